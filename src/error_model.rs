@@ -408,7 +408,7 @@ impl ErrorParams {
 
     /// Eq. (8): the point a tracker with these errors reaches at these joints.
     pub fn point(&self, q: Joints) -> Vector3<f64> {
-        forward(&self.base_at(q), q)
+        ErrorFrames::new(&self.base_at(q)).forward(&Links::new(q))
     }
 
     /// The corrected coordinates of a reading: Eq. (8) at the reading's joints.
@@ -416,18 +416,19 @@ impl ErrorParams {
         self.point(r.joints())
     }
 
-    /// The point and `∂P/∂value` for every coefficient (mm per display unit).
-    pub fn point_with_jacobian(&self, q: Joints, jac: &mut Vec<Vector3<f64>>) -> Vector3<f64> {
-        let (p, dbase) = forward_with_jacobian(&self.base_at(q), q);
-        jac.clear();
-        jac.extend(
-            self.coefs
-                .iter()
-                .map(|c| dbase[c.param.index()] * (c.basis(q) * c.param.scale())),
-        );
-        p
+    /// An evaluator for many readings with the same parameters.
+    pub fn evaluator(&self) -> Evaluator<'_> {
+        let constant = self.coefs.iter().all(|c| c.term == Term::Const);
+        let q0 = Joints {
+            theta: 0.0,
+            phi: 0.0,
+            d: 0.0,
+        };
+        Evaluator {
+            params: self,
+            constant: constant.then(|| ErrorFrames::new(&self.base_at(q0))),
+        }
     }
-
     /// Section 5.1, measuring: the reading a tracker with these errors takes
     /// when its beam reaches `target` — the joint values that solve Eq. (8)
     /// exactly, found by Newton iteration from the nominal reading.
@@ -462,83 +463,171 @@ pub enum InverseError {
     NoConvergence,
 }
 
+/// Evaluates one parameter set at many joint positions, building the error
+/// frames once when every coefficient is a constant.
+pub struct Evaluator<'a> {
+    params: &'a ErrorParams,
+    constant: Option<ErrorFrames>,
+}
+
+impl Evaluator<'_> {
+    fn with_frames<T>(&self, q: Joints, f: impl FnOnce(&ErrorFrames) -> T) -> T {
+        match &self.constant {
+            Some(fr) => f(fr),
+            None => f(&ErrorFrames::new(&self.params.base_at(q))),
+        }
+    }
+
+    /// Eq. (8) at joints `q` whose link rotations are `links`.
+    pub fn point(&self, q: Joints, links: &Links) -> Vector3<f64> {
+        self.with_frames(q, |fr| fr.forward(links))
+    }
+
+    /// The point and `∂P/∂value` for every coefficient (mm per display unit).
+    pub fn point_with_jacobian(
+        &self,
+        q: Joints,
+        links: &Links,
+        jac: &mut Vec<Vector3<f64>>,
+    ) -> Vector3<f64> {
+        let (p, dbase) = self.with_frames(q, |fr| fr.forward_with_jacobian(links));
+        jac.clear();
+        jac.extend(
+            self.params
+                .coefs
+                .iter()
+                .map(|c| dbase[c.param.index()] * (c.basis(q) * c.param.scale())),
+        );
+        p
+    }
+}
+
 /// Eq. (6): `R_x(εx)·R_y(εy)·R_z(εz)`.
 pub fn rotation_xyz(ex: f64, ey: f64, ez: f64) -> Matrix3<f64> {
-    let (sx, cx) = ex.sin_cos();
-    let (sy, cy) = ey.sin_cos();
-    let (sz, cz) = ez.sin_cos();
-    Matrix3::new(
-        cy * cz,
-        -cy * sz,
-        sy,
-        cx * sz + sx * sy * cz,
-        cx * cz - sx * sy * sz,
-        -sx * cy,
-        sx * sz - cx * sy * cz,
-        sx * cz + cx * sy * sz,
-        cx * cy,
-    )
+    Rotation::new(ex, ey, ez).matrix()
 }
 
-/// `∂R/∂εx, ∂R/∂εy, ∂R/∂εz` of [`rotation_xyz`].
-fn rotation_xyz_derivatives(ex: f64, ey: f64, ez: f64) -> [Matrix3<f64>; 3] {
-    let rx = rotation_xyz(ex, 0.0, 0.0);
-    let ry = rotation_xyz(0.0, ey, 0.0);
-    let rz = rotation_xyz(0.0, 0.0, ez);
-    let k = |a: usize| {
-        let mut e = Vector3::zeros();
-        e[a] = 1.0;
-        e.cross_matrix()
-    };
-    [rx * k(0) * ry * rz, rx * ry * k(1) * rz, rx * ry * rz * k(2)]
+/// The factors of Eq. (6), kept apart for its derivatives.
+struct Rotation {
+    rx: Matrix3<f64>,
+    ry: Matrix3<f64>,
+    rz: Matrix3<f64>,
 }
 
-fn beam_point(b: &[f64; N_PARAMS], d: f64) -> Vector3<f64> {
-    // Eq. (7) applied to (0, 0, d): its rotation about z (εz3) moves nothing.
-    Vector3::new(b[16] * d + b[12], -b[15] * d + b[13], d + b[14])
-}
-
-/// Eq. (8) with the placement of the module doc; `b` in mm and rad.
-pub fn forward(b: &[f64; N_PARAMS], q: Joints) -> Vector3<f64> {
-    let p3 = beam_point(b, q.d);
-    let re2 = rotation_xyz(b[9], b[10], b[11]);
-    let re1 = rotation_xyz(b[3], b[4], b[5]);
-    let v = re2 * (link2_rotation(q.phi) * p3) + Vector3::new(b[6], b[7], b[8]);
-    re1 * (link1_rotation(q.theta) * v) + Vector3::new(b[0], b[1], b[2])
-}
-
-/// [`forward`] and its derivative with respect to each of the 18 parameters.
-pub fn forward_with_jacobian(
-    b: &[f64; N_PARAMS],
-    q: Joints,
-) -> (Vector3<f64>, [Vector3<f64>; N_PARAMS]) {
-    let p3 = beam_point(b, q.d);
-    let r1 = link1_rotation(q.theta);
-    let r2 = link2_rotation(q.phi);
-    let re1 = rotation_xyz(b[3], b[4], b[5]);
-    let re2 = rotation_xyz(b[9], b[10], b[11]);
-    let de1 = rotation_xyz_derivatives(b[3], b[4], b[5]);
-    let de2 = rotation_xyz_derivatives(b[9], b[10], b[11]);
-
-    let u = r2 * p3;
-    let v = re2 * u + Vector3::new(b[6], b[7], b[8]);
-    let w = r1 * v;
-    let p = re1 * w + Vector3::new(b[0], b[1], b[2]);
-
-    let m1 = re1 * r1;
-    let m3 = m1 * re2 * r2;
-    let mut j = [Vector3::zeros(); N_PARAMS];
-    for a in 0..3 {
-        j[a][a] = 1.0;
-        j[3 + a] = de1[a] * w;
-        j[6 + a] = m1.column(a).into();
-        j[9 + a] = m1 * (de2[a] * u);
-        j[12 + a] = m3.column(a).into();
+impl Rotation {
+    fn new(ex: f64, ey: f64, ez: f64) -> Rotation {
+        let (sx, cx) = ex.sin_cos();
+        let (sy, cy) = ey.sin_cos();
+        let (sz, cz) = ez.sin_cos();
+        Rotation {
+            rx: Matrix3::new(1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx),
+            ry: Matrix3::new(cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy),
+            rz: Matrix3::new(cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0),
+        }
     }
-    j[15] = -q.d * m3.column(1);
-    j[16] = q.d * m3.column(0);
-    // j[17] (εz3) stays zero: a rotation about the beam moves nothing.
-    (p, j)
+
+    fn matrix(&self) -> Matrix3<f64> {
+        self.rx * self.ry * self.rz
+    }
+
+    /// `∂R/∂εx, ∂R/∂εy, ∂R/∂εz`: `R_x' = R_x·[x̂]×` and likewise.
+    fn derivatives(&self) -> [Matrix3<f64>; 3] {
+        let k = |a: usize| {
+            let mut e = Vector3::zeros();
+            e[a] = 1.0;
+            e.cross_matrix()
+        };
+        let ryz = self.ry * self.rz;
+        [
+            self.rx * k(0) * ryz,
+            self.rx * self.ry * k(1) * self.rz,
+            self.rx * ryz * k(2),
+        ]
+    }
+}
+
+/// The nominal link rotations at one joint position, computed once per
+/// reading and reused while the error parameters change.
+#[derive(Clone, Copy, Debug)]
+pub struct Links {
+    r1: Matrix3<f64>,
+    r2: Matrix3<f64>,
+    d: f64,
+}
+
+impl Links {
+    pub fn new(q: Joints) -> Links {
+        Links {
+            r1: link1_rotation(q.theta),
+            r2: link2_rotation(q.phi),
+            d: q.d,
+        }
+    }
+}
+
+/// The error transforms of Eq. (6)–(7) at one joint position, with the
+/// derivatives of the rotations. A model whose rotary parameters are
+/// constants has the same frames at every reading, so they are built once.
+#[derive(Clone, Debug)]
+pub struct ErrorFrames {
+    b: [f64; N_PARAMS],
+    re1: Matrix3<f64>,
+    re2: Matrix3<f64>,
+    de1: [Matrix3<f64>; 3],
+    de2: [Matrix3<f64>; 3],
+}
+
+impl ErrorFrames {
+    /// `b`: the 18 parameters in mm and rad.
+    pub fn new(b: &[f64; N_PARAMS]) -> ErrorFrames {
+        let e1 = Rotation::new(b[3], b[4], b[5]);
+        let e2 = Rotation::new(b[9], b[10], b[11]);
+        ErrorFrames {
+            b: *b,
+            re1: e1.matrix(),
+            re2: e2.matrix(),
+            de1: e1.derivatives(),
+            de2: e2.derivatives(),
+        }
+    }
+
+    /// Eq. (7) applied to (0, 0, d): its rotation about z (εz3) moves nothing.
+    fn beam_point(&self, d: f64) -> Vector3<f64> {
+        let b = &self.b;
+        Vector3::new(b[16] * d + b[12], -b[15] * d + b[13], d + b[14])
+    }
+
+    /// Eq. (8) with the placement of the module doc.
+    pub fn forward(&self, l: &Links) -> Vector3<f64> {
+        let b = &self.b;
+        let v = self.re2 * (l.r2 * self.beam_point(l.d)) + Vector3::new(b[6], b[7], b[8]);
+        self.re1 * (l.r1 * v) + Vector3::new(b[0], b[1], b[2])
+    }
+
+    /// [`Self::forward`] and its derivative with respect to each of the 18
+    /// parameters (mm per mm or per rad).
+    pub fn forward_with_jacobian(&self, l: &Links) -> (Vector3<f64>, [Vector3<f64>; N_PARAMS]) {
+        let b = &self.b;
+        let u = l.r2 * self.beam_point(l.d);
+        let v = self.re2 * u + Vector3::new(b[6], b[7], b[8]);
+        let w = l.r1 * v;
+        let p = self.re1 * w + Vector3::new(b[0], b[1], b[2]);
+
+        let m1 = self.re1 * l.r1;
+        let m3 = m1 * self.re2 * l.r2;
+        let mut j = [Vector3::zeros(); N_PARAMS];
+        for a in 0..3 {
+            j[a][a] = 1.0;
+            j[3 + a] = self.de1[a] * w;
+            j[6 + a] = m1.column(a).into();
+            j[9 + a] = m1 * (self.de2[a] * u);
+            j[12 + a] = m3.column(a).into();
+        }
+        j[15] = -l.d * m3.column(1);
+        j[16] = l.d * m3.column(0);
+        // j[17] (εz3) stays zero: a rotation about the beam moves nothing.
+        (p, j)
+    }
 }
 
 #[cfg(test)]
@@ -605,14 +694,16 @@ mod tests {
             phi: -0.4,
             d: 4321.0,
         };
-        let (_, j) = forward_with_jacobian(&b, q);
+        let l = Links::new(q);
+        let (_, j) = ErrorFrames::new(&b).forward_with_jacobian(&l);
         for i in 0..N_PARAMS {
             let h = 1e-7;
             let mut bp = b;
             bp[i] += h;
             let mut bm = b;
             bm[i] -= h;
-            let fd = (forward(&bp, q) - forward(&bm, q)) / (2.0 * h);
+            let fd = (ErrorFrames::new(&bp).forward(&l) - ErrorFrames::new(&bm).forward(&l))
+                / (2.0 * h);
             assert!(
                 (fd - j[i]).norm() < 1e-5 * (1.0 + fd.norm()),
                 "{}: {fd} vs {}",

@@ -1,0 +1,247 @@
+//! Which error-parameter combinations a set of measurements can determine.
+//!
+//! The identification Jacobian of the 18-parameter model is rank-deficient
+//! for any layout: εz3 moves nothing, δz1 and δy2 translate along the same
+//! (vertical) axis, δz2 and δy3 along the elevation axis, εz1 and εy2 both
+//! turn about the vertical, εz2 and εy3 about the elevation axis (NOTES item
+//! 8: Table 3's odd values are one arbitrary point of this null space). This
+//! module finds the rank from the singular values, a basis of what is
+//! determined and of what is not, and names the undetermined directions in
+//! words ("δz2 − δy3 is not determined; the data see only δz2 + δy3").
+//!
+//! Columns are compared in display units (µm, µrad), so "orthogonal" and
+//! "minimum norm" are meant in those units.
+
+use nalgebra::{DMatrix, DVector};
+
+/// The singular-value analysis of a Jacobian.
+#[derive(Clone, Debug)]
+pub struct Analysis {
+    /// Singular values, largest first.
+    pub singular_values: Vec<f64>,
+    /// Number of singular values above `tol`.
+    pub rank: usize,
+    /// The absolute threshold used: `rel_tol · σ_max`.
+    pub tol: f64,
+    /// Orthonormal basis of the determined directions (n × rank).
+    pub row_basis: DMatrix<f64>,
+    /// Orthonormal basis of the undetermined directions (n × (n − rank)).
+    pub null_basis: DMatrix<f64>,
+}
+
+/// Default relative threshold: singular values below `1e-9·σ_max` count as zero.
+/// Exact redundancies of the model sit at ~1e-16; genuinely weak directions of
+/// poor layouts stay well above 1e-9.
+pub const DEFAULT_REL_TOL: f64 = 1e-9;
+
+/// Singular values and bases of `j` (m × n, any m).
+pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Analysis {
+    let n = j.ncols();
+    // Reduce a tall Jacobian to its triangular factor first: same singular
+    // values and right vectors, a fraction of the work.
+    let r = if j.nrows() > n {
+        j.clone().qr().r()
+    } else {
+        j.clone()
+    };
+    let svd = r.svd(false, true);
+    let v_t = svd.v_t.expect("right singular vectors were requested");
+    let mut order: Vec<usize> = (0..svd.singular_values.len()).collect();
+    order.sort_by(|&a, &b| svd.singular_values[b].total_cmp(&svd.singular_values[a]));
+    let mut sv: Vec<f64> = order.iter().map(|&i| svd.singular_values[i]).collect();
+    // A wide Jacobian has fewer singular values than unknowns: the rest are zero.
+    sv.resize(n, 0.0);
+    let smax = sv.first().copied().unwrap_or(0.0);
+    let tol = rel_tol * smax;
+    let rank = sv.iter().filter(|&&s| s > tol).count();
+    let mut basis: Vec<DVector<f64>> = order.iter().map(|&i| v_t.row(i).transpose()).collect();
+    complete_basis(&mut basis, n);
+    let row_basis = DMatrix::from_columns(&basis[..rank]);
+    let null_basis = if rank < n {
+        DMatrix::from_columns(&basis[rank..])
+    } else {
+        DMatrix::zeros(n, 0)
+    };
+    Analysis {
+        singular_values: sv,
+        rank,
+        tol,
+        row_basis,
+        null_basis,
+    }
+}
+
+/// Extends orthonormal vectors to a basis of ℝⁿ (Gram–Schmidt on unit vectors).
+fn complete_basis(basis: &mut Vec<DVector<f64>>, n: usize) {
+    let mut k = 0;
+    while basis.len() < n && k < n {
+        let mut e = DVector::zeros(n);
+        e[k] = 1.0;
+        for b in basis.iter() {
+            e -= b * b.dot(&e);
+        }
+        if e.norm() > 1e-6 {
+            basis.push(e.normalize());
+        }
+        k += 1;
+    }
+}
+
+/// One undetermined direction, in a readable form.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Combination {
+    /// The direction the data cannot see, as `(index, coefficient)` with the
+    /// first coefficient 1.
+    pub direction: Vec<(usize, f64)>,
+    /// E.g. `δz2 − δy3`.
+    pub direction_text: String,
+    /// The combination of the same parameters that *is* determined, when the
+    /// direction involves two parameters (`δz2 + δy3`), with its coefficients.
+    pub determined: Option<Vec<(usize, f64)>>,
+    pub determined_text: Option<String>,
+}
+
+impl Combination {
+    /// What a user reads: "εz3 has no effect" or "δz2 − δy3 is not determined
+    /// (only δz2 + δy3 is)".
+    pub fn sentence(&self) -> String {
+        match (&self.determined_text, self.direction.len()) {
+            (_, 1) => format!("{} has no effect on the data", self.direction_text),
+            (Some(d), _) => format!(
+                "{} is not determined by the data (only {d} is)",
+                self.direction_text
+            ),
+            (None, _) => format!("{} is not determined by the data", self.direction_text),
+        }
+    }
+
+    /// The value of the determined combination for a parameter vector.
+    pub fn determined_value(&self, x: &[f64]) -> Option<f64> {
+        self.determined
+            .as_ref()
+            .map(|d| d.iter().map(|&(i, c)| c * x[i]).sum())
+    }
+}
+
+/// Names the null space: reduces its basis to echelon form so that each
+/// direction involves as few parameters as possible.
+pub fn describe_null_space(null_basis: &DMatrix<f64>, names: &[String]) -> Vec<Combination> {
+    let k = null_basis.ncols();
+    if k == 0 {
+        return Vec::new();
+    }
+    let mut m = null_basis.transpose(); // k × n
+    let n = m.ncols();
+    let mut row = 0;
+    for col in 0..n {
+        if row == k {
+            break;
+        }
+        let (piv, val) = (row..k)
+            .map(|r| (r, m[(r, col)].abs()))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap();
+        if val < 1e-9 {
+            continue;
+        }
+        m.swap_rows(row, piv);
+        let p = m[(row, col)];
+        for c in 0..n {
+            m[(row, c)] /= p;
+        }
+        for r in 0..k {
+            if r != row {
+                let f = m[(r, col)];
+                if f != 0.0 {
+                    for c in 0..n {
+                        m[(r, c)] -= f * m[(row, c)];
+                    }
+                }
+            }
+        }
+        row += 1;
+    }
+    (0..k)
+        .map(|r| {
+            let direction: Vec<(usize, f64)> = (0..n)
+                .filter_map(|c| {
+                    let v = m[(r, c)];
+                    (v.abs() > 1e-6).then_some((c, clean(v)))
+                })
+                .collect();
+            let determined = (direction.len() == 2).then(|| {
+                let (i, a) = direction[0];
+                let (j, b) = direction[1];
+                // Orthogonal to (a, b) within the pair, scaled to lead with 1.
+                vec![(i, 1.0), (j, clean(-a / b))]
+            });
+            Combination {
+                direction_text: linear_text(&direction, names),
+                determined_text: determined.as_ref().map(|d| linear_text(d, names)),
+                direction,
+                determined,
+            }
+        })
+        .collect()
+}
+
+/// Rounds coefficients that are ±1 (or 0) up to numerical noise.
+fn clean(v: f64) -> f64 {
+    let r = (v * 1e6).round() / 1e6;
+    if r == 0.0 { 0.0 } else { r }
+}
+
+/// `a·x + b·y` with unit coefficients written plainly: `δz2 − δy3`.
+pub fn linear_text(terms: &[(usize, f64)], names: &[String]) -> String {
+    let mut out = String::new();
+    for (k, &(i, c)) in terms.iter().enumerate() {
+        let mag = c.abs();
+        let sign = if c < 0.0 { "−" } else { "+" };
+        if k == 0 {
+            if c < 0.0 {
+                out.push('−');
+            }
+        } else {
+            out.push_str(&format!(" {sign} "));
+        }
+        if (mag - 1.0).abs() > 1e-9 {
+            out.push_str(&format!("{}·", trim_number(mag)));
+        }
+        out.push_str(&names[i]);
+    }
+    out
+}
+
+fn trim_number(v: f64) -> String {
+    let s = format!("{v:.4}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn finds_and_names_a_duplicated_and_a_dead_column() {
+        // Columns: a, b (= a), c (zero), d.
+        let j = DMatrix::from_row_slice(
+            4,
+            4,
+            &[
+                1.0, 1.0, 0.0, 0.0, //
+                2.0, 2.0, 0.0, 1.0, //
+                0.0, 0.0, 0.0, 3.0, //
+                1.0, 1.0, 0.0, -1.0,
+            ],
+        );
+        let a = analyse(&j, DEFAULT_REL_TOL);
+        assert_eq!(a.rank, 2);
+        let names: Vec<String> = ["a", "b", "c", "d"].iter().map(|s| s.to_string()).collect();
+        let combos = describe_null_space(&a.null_basis, &names);
+        let texts: Vec<String> = combos.iter().map(Combination::sentence).collect();
+        assert!(texts.contains(&"a − b is not determined by the data (only a + b is)".to_string()), "{texts:?}");
+        assert!(texts.contains(&"c has no effect on the data".to_string()), "{texts:?}");
+        let ab = combos.iter().find(|c| c.direction.len() == 2).unwrap();
+        assert_eq!(ab.determined_value(&[3.0, 4.0, 0.0, 0.0]), Some(7.0));
+    }
+}
