@@ -241,6 +241,31 @@ impl Coef {
             Term::Pow(k) => format!("{}.d{k}", self.param.id()),
         }
     }
+    /// Reads a name written by [`Coef::name`].
+    pub fn parse(name: &str) -> Option<Coef> {
+        let (p, term) = match name.split_once('.') {
+            None => (name, Term::Const),
+            Some((p, t)) => {
+                let num = |prefix: &str| -> Option<u32> {
+                    t.strip_prefix(prefix)?.parse().ok().filter(|&k| k >= 1)
+                };
+                let term = if let Some(k) = num("sin") {
+                    Term::Sin(k)
+                } else if let Some(k) = num("cos") {
+                    Term::Cos(k)
+                } else {
+                    Term::Pow(num("d")?)
+                };
+                (p, term)
+            }
+        };
+        let param = ParamId::parse(p)?;
+        if matches!(term, Term::Sin(_) | Term::Cos(_)) && param.joint() == Joint::D {
+            return None;
+        }
+        Some(Coef { param, term })
+    }
+
     /// The paper-style symbol: `δx1`, `εz1·sin2θ`, `δz3·d²`.
     pub fn symbol(&self) -> String {
         let q = self.param.joint().symbol();
@@ -736,6 +761,10 @@ mod tests {
         let coefs = model.coefs();
         assert_eq!(coefs.len(), 18 + 4 + 2);
         let names: Vec<String> = coefs.iter().map(Coef::name).collect();
+        for (c, n) in coefs.iter().zip(&names) {
+            assert_eq!(Coef::parse(n), Some(*c));
+        }
+        assert_eq!(Coef::parse("dz3.sin1"), None);
         assert!(names.contains(&"ez1.sin2".to_string()));
         assert!(names.contains(&"dz3.d2".to_string()));
         let mut e = ErrorParams::zero(&model);

@@ -1,9 +1,27 @@
 //! ltcal: laser-tracker kinematic calibration research.
+//!
+//! The library holds the paper's models (one module per concept) and the
+//! pipeline runner; the `ltcal` binary is a thin shell over [`run`].
 
+pub mod cli;
 pub mod error_model;
 pub mod identifiability;
 pub mod identify;
 pub mod kinematics;
 pub mod mesh;
+pub mod pipeline;
+pub mod plots;
+pub mod random;
+pub mod schema;
+pub mod simulate;
 pub mod solver;
+pub mod stages;
 pub mod table;
+
+/// The version that enters every cache key.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// Runs the command line; see [`cli`].
+pub fn run() -> std::process::ExitCode {
+    cli::main()
+}

@@ -1,1 +1,3 @@
-fn main() { ltcal::placeholder(); }
+fn main() -> std::process::ExitCode {
+    ltcal::run()
+}

@@ -1,0 +1,436 @@
+//! The content-addressed stage cache under `results/<pipeline>/.ltcal/`.
+//!
+//! A stage's outputs are stored under the hash of its [`KeyFields`] — its
+//! kind, its fully resolved settings, the content hashes of its input tables
+//! and the ltcal version. An entry is a directory holding the tables
+//! (Parquet), the files (figures) and `manifest.json`, which records each
+//! file's content hash and is written last. Entries are built in a temporary
+//! directory and published with one `rename`, so a reader — this process,
+//! another `ltcal run` on the same folder, or the next run after a SIGKILL —
+//! sees a complete entry or none. On reuse every file is hashed again: a
+//! truncated, flipped or edited file is reported and the entry recomputed.
+
+use anyhow::{Context as _, Result, anyhow, bail};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Everything a stage's output depends on. Its hash is the cache key.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KeyFields {
+    pub ltcal_version: String,
+    pub kind: String,
+    /// The fully resolved settings, as JSON (object keys sorted).
+    pub params: serde_json::Value,
+    /// Slot → content hash of the table wired to it.
+    pub inputs: BTreeMap<String, String>,
+}
+
+impl KeyFields {
+    /// The key: blake3 of the canonical JSON (serde_json sorts object keys).
+    pub fn hash(&self) -> String {
+        let bytes = serde_json::to_vec(self).expect("key fields serialize");
+        blake3::hash(&bytes).to_hex().to_string()
+    }
+
+    /// What differs from an earlier key, field by field, in words.
+    pub fn diff(&self, old: &KeyFields) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.ltcal_version != old.ltcal_version {
+            out.push(format!(
+                "ltcal version: {} → {}",
+                old.ltcal_version, self.ltcal_version
+            ));
+        }
+        if self.kind != old.kind {
+            out.push(format!("kind: {} → {}", old.kind, self.kind));
+        }
+        json_diff("", &old.params, &self.params, &mut out);
+        for (slot, h) in &self.inputs {
+            match old.inputs.get(slot) {
+                None => out.push(format!("input `{slot}`: newly connected")),
+                Some(o) if o != h => out.push(format!(
+                    "input `{slot}`: content changed ({} → {})",
+                    short(o),
+                    short(h)
+                )),
+                _ => {}
+            }
+        }
+        for slot in old.inputs.keys() {
+            if !self.inputs.contains_key(slot) {
+                out.push(format!("input `{slot}`: disconnected"));
+            }
+        }
+        out
+    }
+}
+
+/// The first 12 characters of a hash, for people.
+pub fn short(h: &str) -> &str {
+    &h[..h.len().min(12)]
+}
+
+fn json_diff(path: &str, old: &serde_json::Value, new: &serde_json::Value, out: &mut Vec<String>) {
+    use serde_json::Value::Object;
+    match (old, new) {
+        (Object(a), Object(b)) => {
+            let keys: std::collections::BTreeSet<&String> = a.keys().chain(b.keys()).collect();
+            for k in keys {
+                let p = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                let null = serde_json::Value::Null;
+                json_diff(&p, a.get(k).unwrap_or(&null), b.get(k).unwrap_or(&null), out);
+            }
+        }
+        _ if old != new => out.push(format!("{path}: {old} → {new}")),
+        _ => {}
+    }
+}
+
+/// One table of an entry.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TableRecord {
+    pub name: String,
+    pub rows: usize,
+    /// blake3 of the Parquet file.
+    pub hash: String,
+}
+
+/// One file (figure) of an entry.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FileRecord {
+    pub name: String,
+    pub bytes: usize,
+    pub hash: String,
+}
+
+/// Provenance of an entry; written last, so its presence means the entry is
+/// complete.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Manifest {
+    pub stage: String,
+    pub key: String,
+    pub key_fields: KeyFields,
+    pub started: String,
+    pub finished: String,
+    pub seconds: f64,
+    pub tables: Vec<TableRecord>,
+    pub files: Vec<FileRecord>,
+}
+
+/// A complete entry read back and verified.
+#[derive(Clone, Debug)]
+pub struct Entry {
+    pub manifest: Manifest,
+    /// Table name → Parquet bytes.
+    pub tables: BTreeMap<String, Vec<u8>>,
+    /// File name → bytes.
+    pub files: BTreeMap<String, Vec<u8>>,
+}
+
+/// What a lookup found.
+#[derive(Debug)]
+pub enum Lookup {
+    Hit(Box<Entry>),
+    Miss,
+    /// The entry existed but failed verification; it has been removed.
+    Corrupt(String),
+}
+
+pub fn hash_bytes(b: &[u8]) -> String {
+    blake3::hash(b).to_hex().to_string()
+}
+
+static COUNTER: AtomicU64 = AtomicU64::new(0);
+
+/// A name no other writer in any process uses.
+fn unique_suffix() -> String {
+    format!(
+        "{}-{}",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    )
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file beside it, synced,
+/// then renamed over it.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let name = path.file_name().map(|n| n.to_string_lossy()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.{}.tmp", unique_suffix()));
+    let write = || -> std::io::Result<()> {
+        let mut f = fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        fs::rename(&tmp, path)
+    };
+    write().map_err(|e| {
+        let _ = fs::remove_file(&tmp);
+        anyhow!("writing {}: {e}", path.display())
+    })
+}
+
+/// The cache of one pipeline.
+pub struct Store {
+    root: PathBuf,
+}
+
+impl Store {
+    /// `results/<pipeline>/.ltcal`; nothing is created until something is written.
+    pub fn new(pipeline_results: &Path) -> Store {
+        Store {
+            root: pipeline_results.join(".ltcal"),
+        }
+    }
+
+    fn entries(&self) -> PathBuf {
+        self.root.join("cache")
+    }
+
+    pub fn entry_dir(&self, key: &str) -> PathBuf {
+        self.entries().join(key)
+    }
+
+    /// Finds and verifies the entry for `key`.
+    pub fn lookup(&self, key: &str) -> Lookup {
+        let dir = self.entry_dir(key);
+        if !dir.exists() {
+            return Lookup::Miss;
+        }
+        match self.read_entry(&dir, key) {
+            Ok(e) => Lookup::Hit(Box::new(e)),
+            Err(why) => {
+                self.discard(&dir);
+                Lookup::Corrupt(why.to_string())
+            }
+        }
+    }
+
+    /// Verifies the entry for `key` without loading it for use or removing
+    /// it: `None` when there is none, `Some(Err(why))` when it is bad.
+    pub fn check(&self, key: &str) -> Option<Result<Manifest>> {
+        let dir = self.entry_dir(key);
+        dir.exists()
+            .then(|| self.read_entry(&dir, key).map(|e| e.manifest))
+    }
+
+    fn read_entry(&self, dir: &Path, key: &str) -> Result<Entry> {
+        let bytes = fs::read(dir.join("manifest.json"))
+            .map_err(|_| anyhow!("manifest.json is missing (an incomplete entry)"))?;
+        let manifest: Manifest =
+            serde_json::from_slice(&bytes).map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
+        if manifest.key != key || manifest.key_fields.hash() != key {
+            bail!("manifest.json does not belong to key {}", short(key));
+        }
+        let mut tables = BTreeMap::new();
+        for t in &manifest.tables {
+            let b = fs::read(dir.join(format!("{}.parquet", t.name)))
+                .map_err(|_| anyhow!("table {}.parquet is missing", t.name))?;
+            if hash_bytes(&b) != t.hash {
+                bail!(
+                    "table {}.parquet does not match its manifest (truncated, corrupted or edited)",
+                    t.name
+                );
+            }
+            tables.insert(t.name.clone(), b);
+        }
+        let mut files = BTreeMap::new();
+        for f in &manifest.files {
+            let b = fs::read(dir.join("files").join(&f.name))
+                .map_err(|_| anyhow!("file {} is missing", f.name))?;
+            if hash_bytes(&b) != f.hash {
+                bail!("file {} does not match its manifest", f.name);
+            }
+            files.insert(f.name.clone(), b);
+        }
+        Ok(Entry {
+            manifest,
+            tables,
+            files,
+        })
+    }
+
+    /// Moves a bad entry out of the way, then deletes it: readers never see
+    /// a half-deleted entry under its key.
+    fn discard(&self, dir: &Path) {
+        let trash = self
+            .entries()
+            .join(format!(".trash-{}", unique_suffix()));
+        if fs::rename(dir, &trash).is_ok() {
+            let _ = fs::remove_dir_all(&trash);
+        }
+    }
+
+    /// Publishes an entry. If another process published the same key first,
+    /// its entry (identical by construction) is kept.
+    pub fn put(&self, entry: &Entry) -> Result<()> {
+        let key = &entry.manifest.key;
+        let entries = self.entries();
+        fs::create_dir_all(&entries).with_context(|| format!("creating {}", entries.display()))?;
+        let tmp = entries.join(format!(".tmp-{}-{}", short(key), unique_suffix()));
+        let result = (|| -> Result<()> {
+            fs::create_dir_all(tmp.join("files"))?;
+            for (name, b) in &entry.tables {
+                write_synced(&tmp.join(format!("{name}.parquet")), b)?;
+            }
+            for (name, b) in &entry.files {
+                write_synced(&tmp.join("files").join(name), b)?;
+            }
+            let manifest = serde_json::to_vec_pretty(&entry.manifest)?;
+            write_synced(&tmp.join("manifest.json"), &manifest)?;
+            sync_dir(&tmp);
+            Ok(())
+        })();
+        if let Err(e) = result {
+            let _ = fs::remove_dir_all(&tmp);
+            return Err(e.context(format!("writing the cache entry for {}", entry.manifest.stage)));
+        }
+        let dest = self.entry_dir(key);
+        if fs::rename(&tmp, &dest).is_err() {
+            // Another writer won the race, or a corrupt entry sits there.
+            let _ = fs::remove_dir_all(&tmp);
+            if !matches!(self.lookup(key), Lookup::Hit(_)) {
+                bail!("could not publish the cache entry {}", dest.display());
+            }
+        }
+        sync_dir(&entries);
+        Ok(())
+    }
+
+    /// Removes what killed runs left behind: temporary entry directories of
+    /// processes that no longer exist. Returns how many were removed.
+    pub fn clean_incomplete(&self) -> usize {
+        let Ok(rd) = fs::read_dir(self.entries()) else {
+            return 0;
+        };
+        let mut n = 0;
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let stale = if let Some(rest) = name.strip_prefix(".tmp-") {
+                owner_gone(rest.split('-').nth(1))
+            } else if let Some(rest) = name.strip_prefix(".trash-") {
+                owner_gone(rest.split('-').next())
+            } else {
+                // A key directory without a manifest cannot be published by
+                // `put`; if one appears (copied by hand, half-deleted), drop it.
+                !e.path().join("manifest.json").exists()
+            };
+            if stale && fs::remove_dir_all(e.path()).is_ok() {
+                n += 1;
+            }
+        }
+        n
+    }
+
+    fn last_path(&self, stage: &str) -> PathBuf {
+        self.root.join("last").join(format!("{stage}.json"))
+    }
+
+    /// The key fields of the last successful run of a stage of this name.
+    pub fn last(&self, stage: &str) -> Option<KeyFields> {
+        let b = fs::read(self.last_path(stage)).ok()?;
+        serde_json::from_slice(&b).ok()
+    }
+
+    pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
+        write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
+    }
+}
+
+/// Whether the process that owns a temporary name has ended.
+fn owner_gone(pid: Option<&str>) -> bool {
+    let Some(pid) = pid.and_then(|p| p.parse::<u32>().ok()) else {
+        return true;
+    };
+    if pid == std::process::id() {
+        return false;
+    }
+    if cfg!(target_os = "linux") {
+        !Path::new(&format!("/proc/{pid}")).exists()
+    } else {
+        // Without a cheap liveness check, leave it: `put` never serves it.
+        false
+    }
+}
+
+fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut f = fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    f.write_all(bytes)?;
+    f.sync_all()?;
+    Ok(())
+}
+
+fn sync_dir(dir: &Path) {
+    if let Ok(f) = fs::File::open(dir) {
+        let _ = f.sync_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn key_fields(seed: u64) -> KeyFields {
+        KeyFields {
+            ltcal_version: "0.1.0".into(),
+            kind: "measure".into(),
+            params: serde_json::json!({"seed": seed, "noise": {"sigma_angle_urad": 1.0}}),
+            inputs: BTreeMap::from([("points".to_string(), "abc".to_string())]),
+        }
+    }
+
+    fn entry(k: &KeyFields) -> Entry {
+        let bytes = b"table bytes".to_vec();
+        Entry {
+            manifest: Manifest {
+                stage: "m".into(),
+                key: k.hash(),
+                key_fields: k.clone(),
+                started: String::new(),
+                finished: String::new(),
+                seconds: 0.0,
+                tables: vec![TableRecord {
+                    name: "readings".into(),
+                    rows: 1,
+                    hash: hash_bytes(&bytes),
+                }],
+                files: vec![],
+            },
+            tables: BTreeMap::from([("readings".to_string(), bytes)]),
+            files: BTreeMap::new(),
+        }
+    }
+
+    #[test]
+    fn diff_names_each_changed_field() {
+        let a = key_fields(1);
+        let mut b = key_fields(2);
+        b.inputs.insert("points".into(), "def".into());
+        let d = b.diff(&a);
+        assert_eq!(d[0], "seed: 1 → 2");
+        assert!(d[1].starts_with("input `points`: content changed"));
+        assert_ne!(a.hash(), b.hash());
+    }
+
+    #[test]
+    fn put_lookup_and_detect_a_flipped_byte() {
+        let dir = std::env::temp_dir().join(format!("ltcal-store-{}", unique_suffix()));
+        let store = Store::new(&dir);
+        let k = key_fields(1);
+        store.put(&entry(&k)).unwrap();
+        assert!(matches!(store.lookup(&k.hash()), Lookup::Hit(_)));
+        // A second put of the same key keeps the first.
+        store.put(&entry(&k)).unwrap();
+        let f = store.entry_dir(&k.hash()).join("readings.parquet");
+        let mut b = fs::read(&f).unwrap();
+        b[0] ^= 1;
+        fs::write(&f, b).unwrap();
+        assert!(matches!(store.lookup(&k.hash()), Lookup::Corrupt(_)));
+        assert!(matches!(store.lookup(&k.hash()), Lookup::Miss));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,73 @@
+//! Declarative pipelines: TOML files whose stages form a graph, run with a
+//! content-addressed Parquet cache.
+//!
+//! Configuration moves through three layers, and nothing downstream of the
+//! first re-reads TOML:
+//!
+//! 1. [`raw`] — the file as written, with spans, every stage table
+//!    deserialized into its kind's typed settings;
+//! 2. [`resolve`] — `--set` overrides applied, defaults filled in, settings
+//!    validated, the graph checked;
+//! 3. [`plan`] — execution order, parallel levels and cache keys.
+//!
+//! [`run`] executes a plan against the [`cache`].
+
+pub mod cache;
+pub mod plan;
+pub mod raw;
+pub mod resolve;
+pub mod run;
+pub mod source;
+
+use resolve::{Override, Pipeline};
+use source::{Source, SourceError};
+use std::fmt;
+use std::path::Path;
+
+/// One problem with the user's input.
+#[derive(Clone, Debug)]
+pub enum Problem {
+    /// At a place in the pipeline file.
+    At(SourceError),
+    /// In a command-line argument (`--set`) or otherwise without a place.
+    Arg(String),
+}
+
+impl fmt::Display for Problem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Problem::At(e) => write!(f, "{e}"),
+            Problem::Arg(s) => f.write_str(s),
+        }
+    }
+}
+
+/// Everything wrong with a pipeline file, reported together.
+#[derive(Clone, Debug)]
+pub struct InputError(pub Vec<Problem>);
+
+impl fmt::Display for InputError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, p) in self.0.iter().enumerate() {
+            if i > 0 {
+                writeln!(f, "\n")?;
+            }
+            write!(f, "{p}")?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for InputError {}
+
+/// Reads, parses and resolves a pipeline file.
+pub fn load(path: &Path, overrides: &[Override]) -> anyhow::Result<Pipeline> {
+    let src = Source::read(path)?;
+    load_source(&src, overrides)
+}
+
+pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipeline> {
+    let raw = raw::parse(src)
+        .map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    Ok(resolve::resolve(&raw, overrides).map_err(InputError)?)
+}

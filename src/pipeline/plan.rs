@@ -1,0 +1,147 @@
+//! Layer 3: the executable plan. Orders the stages (dependencies first, file
+//! order among equals), groups them into levels that can run in parallel,
+//! computes each stage's cache key where its inputs are known, and says for
+//! every stage whether it is cached or why it would run.
+
+use super::cache::{KeyFields, Store};
+use super::resolve::{Pipeline, Stage};
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Stage indices in an order that runs every producer before its consumers,
+/// grouped into levels whose stages depend only on earlier levels.
+#[derive(Clone, Debug)]
+pub struct Graph {
+    pub levels: Vec<Vec<usize>>,
+}
+
+impl Graph {
+    pub fn new(p: &Pipeline) -> Graph {
+        let n = p.stages.len();
+        let mut level = vec![usize::MAX; n];
+        // The resolver rejected cycles, so repeated relaxation terminates.
+        let mut changed = true;
+        while changed {
+            changed = false;
+            for (i, s) in p.stages.iter().enumerate() {
+                let deps: Option<usize> = s
+                    .inputs
+                    .values()
+                    .map(|r| p.index(&r.stage).map(|j| level[j]))
+                    .try_fold(0usize, |acc, l| match l {
+                        Some(l) if l != usize::MAX => Some(acc.max(l + 1)),
+                        _ => None,
+                    });
+                if let Some(l) = deps {
+                    if level[i] != l {
+                        level[i] = l;
+                        changed = true;
+                    }
+                }
+            }
+        }
+        let depth = level.iter().copied().max().map_or(0, |m| m + 1);
+        let mut levels = vec![Vec::new(); depth];
+        for (i, &l) in level.iter().enumerate() {
+            levels[l].push(i);
+        }
+        Graph { levels }
+    }
+
+    pub fn order(&self) -> impl Iterator<Item = usize> + '_ {
+        self.levels.iter().flatten().copied()
+    }
+}
+
+/// The key fields of a stage given the content hashes of its inputs.
+pub fn key_fields(stage: &Stage, input_hashes: BTreeMap<String, String>) -> KeyFields {
+    KeyFields {
+        ltcal_version: crate::VERSION.to_string(),
+        kind: stage.config.kind().to_string(),
+        params: stage.config.to_json(),
+        inputs: input_hashes,
+    }
+}
+
+/// Why a stage would run, given its key (if computable) and the store.
+pub fn reason(store: &Store, stage: &str, key: &KeyFields) -> String {
+    match store.last(stage) {
+        None => "never run".to_string(),
+        Some(old) if old == *key => "its cached result is missing".to_string(),
+        Some(old) => {
+            let d = key.diff(&old);
+            if d.is_empty() {
+                "its cached result is missing".to_string()
+            } else {
+                format!("changed: {}", d.join("; "))
+            }
+        }
+    }
+}
+
+/// What `ltcal plan` reports for one stage.
+#[derive(Clone, Debug, Serialize)]
+pub struct PlanItem {
+    pub stage: String,
+    pub kind: String,
+    /// `cached` or `run`.
+    pub status: String,
+    pub reason: String,
+    /// The cache key, when every input's content is known.
+    pub key: Option<String>,
+}
+
+/// The plan of a pipeline against its store, in execution order.
+pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
+    let graph = Graph::new(p);
+    // Stage → table → content hash, for stages known to be cached.
+    let mut known: BTreeMap<&str, BTreeMap<String, String>> = BTreeMap::new();
+    let mut items = Vec::new();
+    for i in graph.order() {
+        let s = &p.stages[i];
+        let mut hashes = BTreeMap::new();
+        let mut pending = Vec::new();
+        for (slot, r) in &s.inputs {
+            match known.get(r.stage.as_str()).and_then(|t| t.get(&r.table)) {
+                Some(h) => {
+                    hashes.insert(slot.clone(), h.clone());
+                }
+                None => pending.push(format!("`{}`", r.stage)),
+            }
+        }
+        let item = if !pending.is_empty() {
+            pending.sort();
+            pending.dedup();
+            PlanItem {
+                stage: s.name.clone(),
+                kind: s.config.kind().to_string(),
+                status: "run".into(),
+                reason: format!("its input stage {} will run", pending.join(", ")),
+                key: None,
+            }
+        } else {
+            let k = key_fields(s, hashes);
+            let key = k.hash();
+            let (status, reason) = match store.check(&key) {
+                Some(Ok(m)) => {
+                    known.insert(
+                        &s.name,
+                        m.tables.iter().map(|t| (t.name.clone(), t.hash.clone())).collect(),
+                    );
+                    ("cached", String::new())
+                }
+                Some(Err(why)) => ("run", format!("its cached result is corrupt: {why}")),
+                None => ("run", reason(store, &s.name, &k)),
+            };
+            PlanItem {
+                stage: s.name.clone(),
+                kind: s.config.kind().to_string(),
+                status: status.into(),
+                reason,
+                key: Some(key),
+            }
+        };
+        items.push(item);
+    }
+    items
+}

@@ -1,0 +1,278 @@
+//! Layer 1: the pipeline file as written. Parses the TOML keeping every
+//! span, checks its shape (top-level tables, stage names, `kind`,
+//! `inputs`), and deserializes each stage table into its kind's typed
+//! settings with `deny_unknown_fields` — so that every mistake is reported at
+//! its line and column. Nothing after this layer reads TOML.
+
+use super::source::{Source, SourceError};
+use crate::stages::{KINDS, StageConfig};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::ops::Range;
+use toml::Spanned;
+use toml::de::{DeTable, DeValue, ValueDeserializer};
+
+/// `[pipeline]`: what the file is.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Meta {
+    pub name: Option<String>,
+    #[serde(default)]
+    pub description: String,
+}
+
+/// One `inputs` entry: `slot = "stage"` or `slot = "stage.table"`.
+#[derive(Clone, Debug)]
+pub struct RawInput {
+    pub slot: String,
+    pub slot_span: Range<usize>,
+    pub target: String,
+    pub span: Range<usize>,
+}
+
+/// One `[stages.<name>]` table.
+#[derive(Clone, Debug)]
+pub struct RawStage {
+    pub name: String,
+    /// The span of the stage's name in its header.
+    pub span: Range<usize>,
+    pub kind: String,
+    /// As written: defaults that depend on other settings are not filled in.
+    pub config: StageConfig,
+    pub inputs: Vec<RawInput>,
+    /// Dotted path of every value in the table → its span, so that later
+    /// layers can point at a field.
+    pub fields: BTreeMap<String, Range<usize>>,
+}
+
+/// The whole file.
+#[derive(Clone, Debug)]
+pub struct RawPipeline {
+    pub source: Source,
+    pub meta: Meta,
+    pub stages: Vec<RawStage>,
+}
+
+const TOP_LEVEL: &[&str] = &["pipeline", "stages"];
+
+/// A toml error turned into one that points into the file.
+pub(crate) fn toml_error(src: &Source, e: toml::de::Error, fallback: Range<usize>) -> SourceError {
+    let span = e.span().unwrap_or(fallback);
+    src.error(span, e.message().trim().to_string())
+}
+
+fn key_str<'a>(k: &'a Spanned<std::borrow::Cow<'_, str>>) -> &'a str {
+    k.get_ref().as_ref()
+}
+
+/// Deserializes a spanned value into `T`, errors located in `src`.
+pub(crate) fn typed<'i, T: Deserialize<'i>>(
+    src: &Source,
+    v: Spanned<DeValue<'i>>,
+) -> Result<T, SourceError> {
+    let span = v.span();
+    T::deserialize(ValueDeserializer::from(v)).map_err(|e| toml_error(src, e, span))
+}
+
+/// Records the span of every value under `prefix`.
+fn collect_spans(prefix: &str, v: &Spanned<DeValue<'_>>, out: &mut BTreeMap<String, Range<usize>>) {
+    out.insert(prefix.to_string(), v.span());
+    match v.get_ref() {
+        DeValue::Table(t) => {
+            for (k, v) in t.iter() {
+                collect_spans(&format!("{prefix}.{}", key_str(k)), v, out);
+            }
+        }
+        DeValue::Array(a) => {
+            for (i, v) in a.iter().enumerate() {
+                collect_spans(&format!("{prefix}.{i}"), v, out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// A valid stage name: used in file names and references.
+pub fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+/// Parses a pipeline file. Returns every error found, not only the first.
+pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
+    let text = src.text.clone();
+    let root = DeTable::parse(&text).map_err(|e| vec![toml_error(src, e, 0..0)])?;
+    let root_span = root.span();
+    let mut errors = Vec::new();
+    let mut meta = Meta::default();
+    let mut stages = Vec::new();
+    for (key, value) in root.into_inner() {
+        let k = key_str(&key).to_string();
+        match k.as_str() {
+            "pipeline" => match typed::<Meta>(src, value) {
+                Ok(m) => meta = m,
+                Err(e) => errors.push(e),
+            },
+            "stages" => {
+                let span = value.span();
+                match value.into_inner() {
+                    DeValue::Table(t) => {
+                        for (name, body) in t {
+                            match parse_stage(src, &name, body) {
+                                Ok(s) => stages.push(s),
+                                Err(mut e) => errors.append(&mut e),
+                            }
+                        }
+                    }
+                    _ => errors.push(src.error(span, "`stages` must be a table of stage tables")),
+                }
+            }
+            _ => errors.push(src.error(
+                key.span(),
+                format!(
+                    "unknown table `{k}`; a pipeline has {}",
+                    TOP_LEVEL
+                        .iter()
+                        .map(|t| format!("`{t}`"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            )),
+        }
+    }
+    if stages.is_empty() && errors.is_empty() {
+        errors.push(src.error(
+            root_span.start..root_span.start,
+            "the pipeline has no stages: add at least one `[stages.<name>]` table",
+        ));
+    }
+    if !errors.is_empty() {
+        errors.sort_by_key(|e| e.span.start);
+        return Err(errors);
+    }
+    // File order, so that reports list stages as the user wrote them.
+    stages.sort_by_key(|s| s.span.start);
+    Ok(RawPipeline {
+        source: src.clone(),
+        meta,
+        stages,
+    })
+}
+
+fn parse_stage(
+    src: &Source,
+    name: &Spanned<std::borrow::Cow<'_, str>>,
+    body: Spanned<DeValue<'_>>,
+) -> Result<RawStage, Vec<SourceError>> {
+    let name_str = key_str(name).to_string();
+    if !valid_name(&name_str) {
+        return Err(vec![src.error(
+            name.span(),
+            format!(
+                "stage name `{name_str}` may only use letters, digits, `_` and `-` (it names files)"
+            ),
+        )]);
+    }
+    let body_span = body.span();
+    let mut fields = BTreeMap::new();
+    let table = match body.into_inner() {
+        DeValue::Table(t) => t,
+        _ => {
+            return Err(vec![src.error(
+                body_span,
+                format!("stage `{name_str}` must be a table: `[stages.{name_str}]`"),
+            )]);
+        }
+    };
+    let mut kind: Option<(String, Range<usize>)> = None;
+    let mut inputs = Vec::new();
+    let mut errors = Vec::new();
+    let mut rest = DeTable::new();
+    for (k, v) in table {
+        collect_spans(key_str(&k), &v, &mut fields);
+        match key_str(&k) {
+            "kind" => match v.get_ref().as_str() {
+                Some(s) => kind = Some((s.to_string(), v.span())),
+                None => errors.push(src.error(v.span(), "`kind` must be a string")),
+            },
+            "inputs" => match v.get_ref() {
+                DeValue::Table(t) => {
+                    for (slot, target) in t.iter() {
+                        match target.get_ref().as_str() {
+                            Some(s) => inputs.push(RawInput {
+                                slot: key_str(slot).to_string(),
+                                slot_span: slot.span(),
+                                target: s.to_string(),
+                                span: target.span(),
+                            }),
+                            None => errors.push(src.error(
+                                target.span(),
+                                "an input names a stage: `\"stage\"` or `\"stage.table\"`",
+                            )),
+                        }
+                    }
+                }
+                _ => errors.push(src.error(
+                    v.span(),
+                    "`inputs` must be a table: `inputs = { slot = \"stage\" }`",
+                )),
+            },
+            _ => {
+                rest.insert(k, v);
+            }
+        }
+    }
+    let Some((kind, kind_span)) = kind else {
+        errors.push(src.error(
+            name.span(),
+            format!(
+                "stage `{name_str}` has no `kind`; one of: {}",
+                KINDS.join(", ")
+            ),
+        ));
+        return Err(errors);
+    };
+    let de = ValueDeserializer::from(Spanned::new(body_span.clone(), DeValue::Table(rest)));
+    let config = match StageConfig::deserialize(&kind, de) {
+        None => {
+            errors.push(src.error(
+                kind_span,
+                format!("unknown stage kind `{kind}`; one of: {}", KINDS.join(", ")),
+            ));
+            None
+        }
+        Some(Err(e)) => {
+            let mut err = toml_error(src, e, body_span);
+            // Name the field whose value the error points at, if any.
+            let field = fields
+                .iter()
+                .filter(|(_, sp)| sp.start <= err.span.start && err.span.end <= sp.end)
+                .min_by_key(|(_, sp)| sp.end - sp.start)
+                .map(|(f, _)| f.clone());
+            err.message = match field {
+                Some(f) => format!("stage `{name_str}`, `{f}`: {}", err.message),
+                None => format!("stage `{name_str}`: {}", err.message),
+            };
+            errors.push(err);
+            None
+        }
+        Some(Ok(c)) => Some(c),
+    };
+    match config {
+        Some(config) if errors.is_empty() => {
+            inputs.sort_by_key(|i| i.slot_span.start);
+            Ok(RawStage {
+                name: name_str,
+                span: name.span(),
+                kind,
+                config,
+                inputs,
+                fields,
+            })
+        }
+        _ => Err(errors),
+    }
+}

@@ -1,0 +1,436 @@
+//! Layer 2: the resolved pipeline. Applies `--set` overrides to the settings
+//! as written, fills in every default, validates each stage (errors point at
+//! the field in the file, or at the `--set` that changed it), and checks the
+//! graph: every input names an existing stage and table, every required slot
+//! is connected, and there is no cycle.
+
+use super::raw::{RawPipeline, RawStage};
+use super::{Problem, source::Source};
+use crate::stages::StageConfig;
+use anyhow::{Result, anyhow, bail};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+
+/// One `--set path=value`: `path` is dotted (`stages.measure.seed`), with
+/// double quotes around a segment that contains dots; `value` is a TOML
+/// value, or a bare word taken as a string.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Override {
+    pub path: Vec<String>,
+    pub value: serde_json::Value,
+    /// As the user typed it, for messages.
+    pub text: String,
+}
+
+impl Override {
+    pub fn parse(arg: &str) -> Result<Override> {
+        let (path, value) = arg
+            .split_once('=')
+            .ok_or_else(|| anyhow!("--set {arg}: expected path=value, e.g. stages.measure.seed=3"))?;
+        let path = split_path(path.trim())
+            .ok_or_else(|| anyhow!("--set {arg}: `{}` is not a dotted path", path.trim()))?;
+        let value = value.trim();
+        let value = toml::de::ValueDeserializer::parse(value)
+            .ok()
+            .and_then(|d| serde_json::Value::deserialize(d).ok())
+            .unwrap_or_else(|| serde_json::Value::String(value.to_string()));
+        Ok(Override {
+            path,
+            value,
+            text: arg.to_string(),
+        })
+    }
+
+    /// The path after `stages.<name>.`, when it targets that stage.
+    fn within(&self, stage: &str) -> Option<&[String]> {
+        match self.path.as_slice() {
+            [s, name, rest @ ..] if s == "stages" && name == stage => Some(rest),
+            _ => None,
+        }
+    }
+}
+
+/// Splits `a.b."c.d"` into `["a", "b", "c.d"]`.
+pub fn split_path(p: &str) -> Option<Vec<String>> {
+    let mut out = Vec::new();
+    let mut cur = String::new();
+    let mut quoted = false;
+    for c in p.chars() {
+        match c {
+            '"' => quoted = !quoted,
+            '.' if !quoted => out.push(std::mem::take(&mut cur)),
+            _ => cur.push(c),
+        }
+    }
+    out.push(cur);
+    (!quoted && out.iter().all(|s| !s.is_empty())).then_some(out)
+}
+
+fn get_path<'a>(root: &'a serde_json::Value, path: &[String]) -> Option<&'a serde_json::Value> {
+    path.iter().try_fold(root, |v, k| v.get(k))
+}
+
+/// Sets `value` at `path` inside a JSON object, creating objects on the way.
+pub fn set_path(root: &mut serde_json::Value, path: &[String], value: serde_json::Value) -> Result<()> {
+    let Some((last, parents)) = path.split_last() else {
+        bail!("empty path");
+    };
+    let mut cur = root;
+    for p in parents {
+        if cur.get(p).is_none_or(|v| v.is_null()) {
+            cur[p] = serde_json::json!({});
+        }
+        cur = cur
+            .get_mut(p)
+            .filter(|v| v.is_object())
+            .ok_or_else(|| anyhow!("`{p}` is not a table"))?;
+    }
+    match cur {
+        serde_json::Value::Object(m) => {
+            m.insert(last.clone(), value);
+            Ok(())
+        }
+        _ => bail!("cannot set `{last}` inside a value that is not a table"),
+    }
+}
+
+/// Where a stage reads a slot from.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct InputRef {
+    pub stage: String,
+    pub table: String,
+}
+
+impl std::fmt::Display for InputRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}.{}", self.stage, self.table)
+    }
+}
+
+/// A stage with every setting resolved.
+#[derive(Clone, Debug)]
+pub struct Stage {
+    pub name: String,
+    pub config: StageConfig,
+    pub inputs: BTreeMap<String, InputRef>,
+}
+
+/// The resolved pipeline: what the planner and the runner work from.
+#[derive(Clone, Debug)]
+pub struct Pipeline {
+    pub name: String,
+    pub description: String,
+    pub source: Source,
+    pub stages: Vec<Stage>,
+}
+
+impl Pipeline {
+    pub fn index(&self, name: &str) -> Option<usize> {
+        self.stages.iter().position(|s| s.name == name)
+    }
+}
+
+/// Resolves a parsed file with overrides.
+pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Vec<Problem>> {
+    let src = &raw.source;
+    let mut problems = Vec::new();
+    for o in overrides {
+        match o.path.as_slice() {
+            [s, name, _, ..] if s == "stages" => {
+                if !raw.stages.iter().any(|st| &st.name == name) {
+                    problems.push(Problem::Arg(format!(
+                        "--set {}: the pipeline has no stage `{name}`",
+                        o.text
+                    )));
+                }
+            }
+            _ => problems.push(Problem::Arg(format!(
+                "--set {}: a path starts with `stages.<stage>.`, e.g. stages.measure.seed=3",
+                o.text
+            ))),
+        }
+    }
+    let mut stages = Vec::new();
+    for rs in &raw.stages {
+        match resolve_stage(src, rs, overrides) {
+            Ok(s) => stages.push(s),
+            Err(mut p) => problems.append(&mut p),
+        }
+    }
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    let name = raw.meta.name.clone().unwrap_or_else(|| {
+        src.path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "pipeline".into())
+    });
+    if !super::raw::valid_name(&name) {
+        return Err(vec![Problem::Arg(format!(
+            "{}: the pipeline name `{name}` may only use letters, digits, `_` and `-` (it names the results folder)",
+            src.path.display()
+        ))]);
+    }
+    let mut pipeline = Pipeline {
+        name,
+        description: raw.meta.description.clone(),
+        source: src.clone(),
+        stages,
+    };
+    check_graph(raw, &mut pipeline)?;
+    Ok(pipeline)
+}
+
+fn resolve_stage(src: &Source, rs: &RawStage, overrides: &[Override]) -> Result<Stage, Vec<Problem>> {
+    let mut problems = Vec::new();
+    let mut json = rs.config.to_json();
+    // An override inside a value the file leaves to its default (`x.step`
+    // of a default mesh range) starts from that default.
+    let defaults = {
+        let mut c = rs.config.clone();
+        c.resolve();
+        c.to_json()
+    };
+    let mut inputs: BTreeMap<String, String> = rs
+        .inputs
+        .iter()
+        .map(|i| (i.slot.clone(), i.target.clone()))
+        .collect();
+    let mine: Vec<(&Override, &[String])> = overrides
+        .iter()
+        .filter_map(|o| o.within(&rs.name).map(|rest| (o, rest)))
+        .collect();
+    for &(o, rest) in &mine {
+        match rest {
+            [k] if k == "kind" => problems.push(Problem::Arg(format!(
+                "--set {}: a stage's kind cannot be overridden",
+                o.text
+            ))),
+            [k, slot] if k == "inputs" => match o.value.as_str() {
+                Some(t) => {
+                    inputs.insert(slot.clone(), t.to_string());
+                }
+                None => problems.push(Problem::Arg(format!(
+                    "--set {}: an input names a stage, as a string",
+                    o.text
+                ))),
+            },
+            _ => {
+                for k in 1..rest.len() {
+                    let prefix = &rest[..k];
+                    if get_path(&json, prefix).is_none_or(|v| v.is_null()) {
+                        if let Some(d) = get_path(&defaults, prefix) {
+                            let _ = set_path(&mut json, prefix, d.clone());
+                        }
+                    }
+                }
+                if let Err(e) = set_path(&mut json, rest, o.value.clone()) {
+                    problems.push(Problem::Arg(format!("--set {}: {e}", o.text)));
+                }
+            }
+        }
+    }
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    let mut config = if mine.is_empty() {
+        rs.config.clone()
+    } else {
+        StageConfig::from_json(&rs.kind, json).map_err(|e| {
+            let sets: Vec<&str> = mine.iter().map(|(o, _)| o.text.as_str()).collect();
+            vec![Problem::Arg(format!("--set {}: {e}", sets.join(", --set ")))]
+        })?
+    };
+    config.resolve();
+    for inv in config.validate() {
+        let overridden = mine.iter().find(|(_, rest)| {
+            let p = rest.join(".");
+            inv.field == p || inv.field.starts_with(&format!("{p}.")) || p.starts_with(&format!("{}.", inv.field))
+        });
+        match overridden {
+            Some((o, _)) => problems.push(Problem::Arg(format!("--set {}: {}", o.text, inv.message))),
+            None => {
+                let span = rs
+                    .fields
+                    .get(&inv.field)
+                    .cloned()
+                    .unwrap_or_else(|| rs.span.clone());
+                problems.push(Problem::At(src.error(
+                    span,
+                    format!("stage `{}`: {}", rs.name, inv.message),
+                )));
+            }
+        }
+    }
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    let inputs = inputs
+        .into_iter()
+        .map(|(slot, target)| {
+            let r = match target.split_once('.') {
+                Some((s, t)) => InputRef {
+                    stage: s.to_string(),
+                    table: t.to_string(),
+                },
+                None => InputRef {
+                    stage: target.clone(),
+                    table: String::new(),
+                },
+            };
+            (slot, r)
+        })
+        .collect();
+    Ok(Stage {
+        name: rs.name.clone(),
+        config,
+        inputs,
+    })
+}
+
+/// Checks slots, references and cycles; fills in default table names.
+fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> {
+    let src = &raw.source;
+    let mut problems = Vec::new();
+    let at = |stage: &str, slot: &str, key: bool| -> std::ops::Range<usize> {
+        let rs = raw.stages.iter().find(|s| s.name == stage);
+        rs.and_then(|rs| rs.inputs.iter().find(|i| i.slot == slot))
+            .map(|i| if key { i.slot_span.clone() } else { i.span.clone() })
+            .or_else(|| rs.map(|rs| rs.span.clone()))
+            .unwrap_or(0..0)
+    };
+    for s in &p.stages {
+        let slots = s.config.inputs();
+        for (slot, r) in &s.inputs {
+            if !slots.iter().any(|x| x.name == slot) {
+                let known: Vec<&str> = slots.iter().map(|x| x.name).collect();
+                problems.push(Problem::At(src.error(
+                    at(&s.name, slot, true),
+                    format!(
+                        "stage `{}` ({}) has no input `{slot}`; its inputs are: {}",
+                        s.name,
+                        s.config.kind(),
+                        if known.is_empty() { "none".to_string() } else { known.join(", ") }
+                    ),
+                )));
+                continue;
+            }
+            let Some(producer) = p.stages.iter().find(|x| x.name == r.stage) else {
+                let names: Vec<&str> = p.stages.iter().map(|x| x.name.as_str()).collect();
+                problems.push(Problem::At(src.error(
+                    at(&s.name, slot, false),
+                    format!(
+                        "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}",
+                        s.name,
+                        r.stage,
+                        names.join(", ")
+                    ),
+                )));
+                continue;
+            };
+            let tables = producer.config.outputs();
+            if !r.table.is_empty() && !tables.contains(&r.table.as_str()) {
+                problems.push(Problem::At(src.error(
+                    at(&s.name, slot, false),
+                    format!(
+                        "stage `{}` ({}) has no table `{}`; its tables are: {}",
+                        producer.name,
+                        producer.config.kind(),
+                        r.table,
+                        tables.join(", ")
+                    ),
+                )));
+            }
+        }
+        for slot in slots.iter().filter(|x| x.required) {
+            if !s.inputs.contains_key(slot.name) {
+                problems.push(Problem::At(src.error(
+                    at(&s.name, "", true),
+                    format!(
+                        "stage `{}` ({}) needs input `{}`: {}; add `inputs = {{ {} = \"<stage>\" }}`",
+                        s.name,
+                        s.config.kind(),
+                        slot.name,
+                        slot.doc,
+                        slot.name
+                    ),
+                )));
+            }
+        }
+    }
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    let primary: BTreeMap<String, &'static str> = p
+        .stages
+        .iter()
+        .map(|s| (s.name.clone(), s.config.outputs()[0]))
+        .collect();
+    for s in &mut p.stages {
+        for r in s.inputs.values_mut() {
+            if r.table.is_empty() {
+                r.table = primary[&r.stage].to_string();
+            }
+        }
+    }
+    {
+        if let Some(cycle) = find_cycle(p) {
+            let (first, slot) = (&cycle[0].0, &cycle[0].1);
+            let names: Vec<&str> = cycle.iter().map(|(s, _)| s.as_str()).collect();
+            problems.push(Problem::At(src.error(
+                at(first, slot, false),
+                format!(
+                    "the stage inputs form a cycle: {} → {} (each reads the next)",
+                    names.join(" → "),
+                    names[0]
+                ),
+            )));
+        }
+    }
+    if problems.is_empty() { Ok(()) } else { Err(problems) }
+}
+
+/// A cycle as `(stage, slot)` edges: each stage reads the next one's table
+/// through that slot, and the last reads the first.
+fn find_cycle(p: &Pipeline) -> Option<Vec<(String, String)>> {
+    #[derive(Clone, Copy, PartialEq)]
+    enum Mark {
+        New,
+        Active,
+        Done,
+    }
+    fn visit(
+        p: &Pipeline,
+        i: usize,
+        marks: &mut [Mark],
+        path: &mut Vec<(String, String)>,
+    ) -> Option<Vec<(String, String)>> {
+        marks[i] = Mark::Active;
+        for (slot, r) in &p.stages[i].inputs {
+            let Some(j) = p.index(&r.stage) else { continue };
+            path.push((p.stages[i].name.clone(), slot.clone()));
+            match marks[j] {
+                Mark::Active => {
+                    let start = path.iter().position(|(s, _)| *s == p.stages[j].name)?;
+                    return Some(path[start..].to_vec());
+                }
+                Mark::New => {
+                    if let Some(c) = visit(p, j, marks, path) {
+                        return Some(c);
+                    }
+                }
+                Mark::Done => {}
+            }
+            path.pop();
+        }
+        marks[i] = Mark::Done;
+        None
+    }
+    let mut marks = vec![Mark::New; p.stages.len()];
+    (0..p.stages.len()).find_map(|i| {
+        (marks[i] == Mark::New)
+            .then(|| visit(p, i, &mut marks, &mut Vec::new()))
+            .flatten()
+    })
+}

@@ -1,0 +1,214 @@
+//! SVG figures with plotters. Each function takes plain data and returns the
+//! SVG text; stages decide what to draw. Text is rendered without system
+//! fonts (plotters estimates widths), so figures look the same everywhere.
+
+use anyhow::{Result, anyhow};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+
+/// The viridis colour map, sampled at nine points and interpolated.
+pub fn viridis(t: f64) -> RGBColor {
+    const STOPS: [(u8, u8, u8); 9] = [
+        (68, 1, 84),
+        (71, 44, 122),
+        (59, 81, 139),
+        (44, 113, 142),
+        (33, 144, 141),
+        (39, 173, 129),
+        (92, 200, 99),
+        (170, 220, 50),
+        (253, 231, 37),
+    ];
+    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 };
+    let x = t * (STOPS.len() - 1) as f64;
+    let i = (x.floor() as usize).min(STOPS.len() - 2);
+    let f = x - i as f64;
+    let lerp = |a: u8, b: u8| (a as f64 + f * (b as f64 - a as f64)).round() as u8;
+    let (a, b) = (STOPS[i], STOPS[i + 1]);
+    RGBColor(lerp(a.0, b.0), lerp(a.1, b.1), lerp(a.2, b.2))
+}
+
+fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
+    anyhow!("drawing the figure: {e}")
+}
+
+/// One mesh point with its error before and after calibration.
+pub struct PointError {
+    pub x_mm: f64,
+    pub y_mm: f64,
+    pub z_mm: f64,
+    pub before_um: f64,
+    pub after_um: f64,
+}
+
+/// Figures 6–8: the mesh in 3-D coloured by its error before calibration,
+/// and every point's error before and after (log scale).
+pub fn mesh_errors(title: &str, pts: &[PointError]) -> Result<String> {
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (1200, 560)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let root = root.titled(title, ("sans-serif", 26)).map_err(err)?;
+        let (left, right) = root.split_horizontally(560);
+        let (mesh_area, bar_area) = left.split_horizontally(470);
+        let emax = pts.iter().map(|p| p.before_um).fold(0.0, f64::max).max(1e-12);
+        mesh_3d(&mesh_area, pts, emax)?;
+        colour_bar(&bar_area, 0.0, emax, "error before (µm)")?;
+        errors_by_point(&right, pts)?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
+fn bounds(v: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| (a.min(x), b.max(x)));
+    if !lo.is_finite() {
+        return (-1.0, 1.0);
+    }
+    let pad = ((hi - lo) * 0.05).max(1e-3);
+    (lo - pad, hi + pad)
+}
+
+fn mesh_3d(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError], emax: f64) -> Result<()> {
+    let m = |v: f64| v / 1000.0;
+    let (x0, x1) = bounds(pts.iter().map(|p| m(p.x_mm)));
+    let (y0, y1) = bounds(pts.iter().map(|p| m(p.y_mm)));
+    let (z0, z1) = bounds(pts.iter().map(|p| m(p.z_mm)));
+    let mut chart = ChartBuilder::on(area)
+        .margin(20)
+        .caption("mesh, coloured by error before", ("sans-serif", 18))
+        .build_cartesian_3d(x0..x1, z0..z1, y0..y1)
+        .map_err(err)?;
+    chart.with_projection(|mut p| {
+        p.yaw = 0.6;
+        p.pitch = 0.35;
+        p.scale = 0.85;
+        p.into_matrix()
+    });
+    chart
+        .configure_axes()
+        .x_labels(5)
+        .y_labels(5)
+        .z_labels(5)
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(err)?;
+    chart
+        .draw_series(pts.iter().map(|p| {
+            let c = viridis(p.before_um / emax);
+            Circle::new((m(p.x_mm), m(p.z_mm), m(p.y_mm)), 3, c.filled())
+        }))
+        .map_err(err)?;
+    // plotters' 3-D axes carry no titles: say which is which.
+    area.draw_text(
+        "axes in m: x, z (up), y",
+        &("sans-serif", 14).into_text_style(area),
+        (20, area.dim_in_pixel().1 as i32 - 24),
+    )
+    .map_err(err)?;
+    Ok(())
+}
+
+/// A vertical colour bar from `lo` to `hi`.
+pub fn colour_bar(area: &DrawingArea<SVGBackend, Shift>, lo: f64, hi: f64, label: &str) -> Result<()> {
+    let mut chart = ChartBuilder::on(area)
+        .margin_top(60)
+        .margin_bottom(60)
+        .margin_right(10)
+        .y_label_area_size(0)
+        .right_y_label_area_size(55)
+        .build_cartesian_2d(0.0..1.0, lo..hi)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .disable_y_mesh()
+        .disable_x_axis()
+        .y_desc(label)
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(err)?;
+    let n = 64;
+    let step = (hi - lo) / n as f64;
+    chart
+        .draw_series((0..n).map(|i| {
+            let a = lo + i as f64 * step;
+            Rectangle::new([(0.0, a), (1.0, a + step)], viridis((i as f64 + 0.5) / n as f64).filled())
+        }))
+        .map_err(err)?;
+    Ok(())
+}
+
+fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) -> Result<()> {
+    let floor = 1e-9;
+    let all = pts.iter().flat_map(|p| [p.before_um, p.after_um]);
+    let (lo, hi) = all.fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(v.max(floor)), b.max(v)));
+    let (lo, hi) = if lo.is_finite() && hi > 0.0 {
+        (lo / 3.0, hi * 3.0)
+    } else {
+        (floor, 1.0)
+    };
+    let n = pts.len();
+    let mut chart = ChartBuilder::on(area)
+        .margin(20)
+        .caption("error of each point", ("sans-serif", 18))
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0..n.max(1), (lo..hi).log_scale())
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc("point")
+        .y_desc("error (µm, log scale)")
+        .y_label_formatter(&|v| format!("{v:.0e}"))
+        .label_style(("sans-serif", 13))
+        .draw()
+        .map_err(err)?;
+    let series = [
+        ("before calibration", RGBColor(200, 60, 40), true),
+        ("after calibration", RGBColor(30, 90, 200), false),
+    ];
+    for (name, colour, before) in series {
+        let values: Vec<(usize, f64)> = pts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| (i, if before { p.before_um } else { p.after_um }.max(floor)))
+            .collect();
+        chart
+            .draw_series(values.iter().map(|&(i, v)| Circle::new((i, v), 2, colour.filled())))
+            .map_err(err)?
+            .label(name)
+            .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 14))
+        .draw()
+        .map_err(err)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mesh_errors_svg_has_title_axes_and_points() {
+        let pts: Vec<PointError> = (0..20)
+            .map(|i| PointError {
+                x_mm: i as f64 * 100.0,
+                y_mm: 50.0,
+                z_mm: -20.0 * i as f64,
+                before_um: 10.0 + i as f64,
+                after_um: 0.01,
+            })
+            .collect();
+        let svg = mesh_errors("Figure 6: errors in a plane mesh", &pts).unwrap();
+        assert!(svg.starts_with("<svg"));
+        assert!(svg.contains("Figure 6: errors in a plane mesh"));
+        assert!(svg.contains("error (µm, log scale)"));
+        assert!(svg.matches("<circle").count() >= 40);
+    }
+}

@@ -1,0 +1,153 @@
+//! `inject`: the error parameters of a simulated tracker.
+//!
+//! ```toml
+//! [stages.truth]
+//! kind = "inject"
+//! preset = "table2"          # "table2" (every parameter 10 µm / 10 µrad) or "zero"
+//! scale = 1.0                # multiplies the preset (e.g. 0.2 for a compensated tracker)
+//! shapes = { ez1 = "fourier:2", dz3 = "poly:1" }   # Eq. (9) / Eq. (10) per parameter
+//! values = { dx1 = 5.0, "ez1.sin2" = 3.0 }         # set single coefficients (µm, µrad, µm/mᵏ)
+//! random = { sigma_um = 5.0, sigma_urad = 5.0, seed = 7 }   # optional: add Gaussian draws
+//! ```
+//!
+//! Output `params` (see [`crate::schema`]).
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use crate::error_model::{Coef, ErrorModel, ErrorParams, ParamId, Shape, Term};
+use crate::schema;
+use anyhow::Result;
+use crate::random;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// Table 2: every parameter 10 µm or 10 µrad.
+    #[default]
+    Table2,
+    Zero,
+}
+
+/// Gaussian draws added to every coefficient.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Random {
+    pub sigma_um: f64,
+    pub sigma_urad: f64,
+    pub seed: u64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InjectStage {
+    #[serde(default)]
+    pub preset: Preset,
+    #[serde(default = "one")]
+    pub scale: f64,
+    #[serde(default)]
+    pub shapes: BTreeMap<ParamId, Shape>,
+    #[serde(default)]
+    pub values: BTreeMap<String, f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub random: Option<Random>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+impl InjectStage {
+    fn model(&self) -> Result<ErrorModel, Invalid> {
+        let mut m = ErrorModel::constant();
+        for (&p, &s) in &self.shapes {
+            m = m
+                .with_shape(p, s)
+                .map_err(|e| Invalid::new(format!("shapes.{}", p.id()), e))?;
+        }
+        Ok(m)
+    }
+
+    /// The parameter set these settings describe.
+    pub fn params(&self) -> Result<ErrorParams, Invalid> {
+        let model = self.model()?;
+        let mut p = ErrorParams::zero(&model);
+        let coefs = p.coefs().to_vec();
+        let preset = match self.preset {
+            Preset::Table2 => 10.0,
+            Preset::Zero => 0.0,
+        };
+        for (c, v) in coefs.iter().zip(p.values_mut()) {
+            if c.term == Term::Const {
+                *v = preset * self.scale;
+            }
+        }
+        if let Some(r) = &self.random {
+            let mut rng = random::stream(r.seed, "inject");
+            for (c, v) in coefs.iter().zip(p.values_mut()) {
+                let sigma = if c.param.is_angular() { r.sigma_urad } else { r.sigma_um };
+                *v += sigma * random::normal(&mut rng);
+            }
+        }
+        for (name, &value) in &self.values {
+            let field = format!("values.{name}");
+            let c = Coef::parse(name).ok_or_else(|| {
+                Invalid::new(
+                    &field,
+                    format!("`{name}` is not a coefficient: use dx1 … ez3, with .sinK/.cosK (Fourier) or .dK (polynomial)"),
+                )
+            })?;
+            let i = coefs.iter().position(|x| *x == c).ok_or_else(|| {
+                Invalid::new(
+                    &field,
+                    format!(
+                        "`{name}` is not in the model: {} has shape \"{}\"",
+                        c.param.id(),
+                        model.shape(c.param)
+                    ),
+                )
+            })?;
+            p.values_mut()[i] = value;
+        }
+        Ok(p)
+    }
+}
+
+impl StageKind for InjectStage {
+    const KIND: &'static str = "inject";
+    const SUMMARY: &'static str =
+        "the error parameters of a simulated tracker (Table 2 by default; shapes of Eq. 9 and 10)";
+    const INPUTS: &'static [Slot] = &[];
+    const OUTPUTS: &'static [&'static str] = &["params"];
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out = Vec::new();
+        if !self.scale.is_finite() {
+            out.push(Invalid::new("scale", "`scale` must be finite"));
+        }
+        if let Some(r) = &self.random {
+            for (f, v) in [("sigma_um", r.sigma_um), ("sigma_urad", r.sigma_urad)] {
+                if !(v.is_finite() && v >= 0.0) {
+                    out.push(Invalid::new(
+                        format!("random.{f}"),
+                        format!("`random.{f}` must be ≥ 0, got {v}"),
+                    ));
+                }
+            }
+        }
+        for (k, v) in &self.values {
+            if !v.is_finite() {
+                out.push(Invalid::new(format!("values.{k}"), "value must be finite"));
+            }
+        }
+        if let Err(e) = self.params() {
+            out.push(e);
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
+        let p = self.params().map_err(|e| anyhow::anyhow!(e.message))?;
+        Ok(StageOutput::default().table("params", schema::params_table(&p, None)?))
+    }
+}

@@ -1,0 +1,195 @@
+//! Stage kinds: one small module per kind, each a typed, validated TOML table
+//! and a function from input tables to output tables.
+//!
+//! A stage kind declares its input slots and output tables; the runner wires
+//! slots to other stages' tables, caches outputs and never looks inside a
+//! config except through [`StageConfig`]. Adding a kind means adding a module
+//! and one line to [`stage_kinds!`].
+
+pub mod correct;
+pub mod evaluate;
+pub mod identify;
+pub mod inject;
+pub mod measure;
+pub mod mesh;
+pub mod plot;
+
+use crate::table::TableRef;
+use anyhow::{Result, anyhow};
+use polars::prelude::DataFrame;
+use serde::{Serialize, de::DeserializeOwned};
+use std::collections::BTreeMap;
+use std::fmt::Debug;
+use std::sync::Arc;
+
+/// An input slot of a stage kind.
+#[derive(Clone, Copy, Debug)]
+pub struct Slot {
+    pub name: &'static str,
+    pub required: bool,
+    pub doc: &'static str,
+}
+
+/// A setting that cannot work, with the dotted path of its field.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Invalid {
+    pub field: String,
+    pub message: String,
+}
+
+impl Invalid {
+    pub fn new(field: impl Into<String>, message: impl Into<String>) -> Invalid {
+        Invalid {
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+}
+
+/// The tables wired to a stage's slots.
+#[derive(Default)]
+pub struct StageInputs {
+    tables: BTreeMap<String, (String, Arc<DataFrame>)>,
+}
+
+impl StageInputs {
+    /// `label` names the table in messages, e.g. `measure_plane.readings`.
+    pub fn insert(&mut self, slot: &str, label: String, df: Arc<DataFrame>) {
+        self.tables.insert(slot.to_string(), (label, df));
+    }
+
+    pub fn get(&self, slot: &str) -> Result<TableRef<'_>> {
+        self.optional(slot)
+            .ok_or_else(|| anyhow!("input `{slot}` is not connected"))
+    }
+
+    pub fn optional(&self, slot: &str) -> Option<TableRef<'_>> {
+        self.tables
+            .get(slot)
+            .map(|(label, df)| TableRef::new(label, df))
+    }
+}
+
+/// What a stage produces: named tables (Parquet) and files (figures).
+#[derive(Default)]
+pub struct StageOutput {
+    pub tables: Vec<(String, DataFrame)>,
+    pub files: Vec<(String, Vec<u8>)>,
+}
+
+impl StageOutput {
+    pub fn table(mut self, name: &str, df: DataFrame) -> Self {
+        self.tables.push((name.to_string(), df));
+        self
+    }
+    pub fn file(mut self, name: String, bytes: Vec<u8>) -> Self {
+        self.files.push((name, bytes));
+        self
+    }
+}
+
+/// What a running stage knows about where it runs.
+pub struct Context<'a> {
+    pub pipeline: &'a str,
+    pub stage: &'a str,
+}
+
+/// A stage kind: its TOML table (with `deny_unknown_fields`), its slots and
+/// tables, and what it does.
+pub trait StageKind: Serialize + DeserializeOwned + Clone + Debug + Send + Sync + 'static {
+    /// The `kind = "…"` value.
+    const KIND: &'static str;
+    /// One line for `ltcal kinds` and the README.
+    const SUMMARY: &'static str;
+    const INPUTS: &'static [Slot];
+    /// Output tables; the first is the one an input reference without a
+    /// table name (`"stage"` rather than `"stage.table"`) means.
+    const OUTPUTS: &'static [&'static str];
+
+    /// Fills in defaults that depend on other settings, so that the cache
+    /// key sees every value the stage will use.
+    fn resolve(&mut self) {}
+
+    /// Settings that cannot work, each naming its field.
+    fn validate(&self) -> Vec<Invalid> {
+        Vec::new()
+    }
+
+    fn run(&self, ctx: &Context, inputs: &StageInputs) -> Result<StageOutput>;
+}
+
+macro_rules! stage_kinds {
+    ($($variant:ident => $ty:ty),* $(,)?) => {
+        /// The resolved settings of one stage, of any kind.
+        #[derive(Clone, Debug)]
+        pub enum StageConfig {
+            $($variant($ty)),*
+        }
+
+        /// Every kind name, for messages.
+        pub const KINDS: &[&str] = &[$(<$ty as StageKind>::KIND),*];
+
+        impl StageConfig {
+            /// Deserializes a stage table of the named kind; `None` for an
+            /// unknown kind.
+            pub fn deserialize<'de, D>(kind: &str, de: D) -> Option<Result<StageConfig, D::Error>>
+            where
+                D: serde::Deserializer<'de>,
+            {
+                match kind {
+                    $(<$ty as StageKind>::KIND => Some(
+                        <$ty as serde::Deserialize>::deserialize(de).map(StageConfig::$variant),
+                    ),)*
+                    _ => None,
+                }
+            }
+
+            pub fn kind(&self) -> &'static str {
+                match self { $(StageConfig::$variant(_) => <$ty as StageKind>::KIND),* }
+            }
+            pub fn inputs(&self) -> &'static [Slot] {
+                match self { $(StageConfig::$variant(_) => <$ty as StageKind>::INPUTS),* }
+            }
+            pub fn outputs(&self) -> &'static [&'static str] {
+                match self { $(StageConfig::$variant(_) => <$ty as StageKind>::OUTPUTS),* }
+            }
+            pub fn resolve(&mut self) {
+                match self { $(StageConfig::$variant(c) => c.resolve()),* }
+            }
+            pub fn validate(&self) -> Vec<Invalid> {
+                match self { $(StageConfig::$variant(c) => c.validate()),* }
+            }
+            pub fn run(&self, ctx: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+                match self { $(StageConfig::$variant(c) => c.run(ctx, inputs)),* }
+            }
+            /// The settings as JSON: what the cache key hashes and what
+            /// overrides patch.
+            pub fn to_json(&self) -> serde_json::Value {
+                match self {
+                    $(StageConfig::$variant(c) => serde_json::to_value(c)
+                        .expect("stage settings serialize to JSON")),*
+                }
+            }
+            pub fn from_json(kind: &str, v: serde_json::Value) -> Result<StageConfig> {
+                StageConfig::deserialize(kind, v)
+                    .ok_or_else(|| anyhow!("unknown stage kind `{kind}`"))?
+                    .map_err(|e| anyhow!("{e}"))
+            }
+        }
+
+        /// `(kind, summary)` of every stage kind.
+        pub fn summaries() -> Vec<(&'static str, &'static str)> {
+            vec![$((<$ty as StageKind>::KIND, <$ty as StageKind>::SUMMARY)),*]
+        }
+    };
+}
+
+stage_kinds! {
+    Mesh => mesh::MeshStage,
+    Inject => inject::InjectStage,
+    Measure => measure::MeasureStage,
+    Identify => identify::IdentifyStage,
+    Correct => correct::CorrectStage,
+    Evaluate => evaluate::EvaluateStage,
+    Plot => plot::PlotStage,
+}

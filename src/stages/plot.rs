@@ -1,0 +1,105 @@
+//! `plot`: an SVG figure of another stage's table.
+//!
+//! ```toml
+//! [stages.figure8]
+//! kind = "plot"
+//! plot = "mesh-errors"                       # Figures 6–8
+//! inputs = { table = "evaluate_sphere.points" }
+//! title = "Figure 8: errors in a spherical mesh"
+//! file = "figure8.svg"                       # optional, default "<plot>.svg"
+//! ```
+//!
+//! `mesh-errors` reads an `evaluate` stage's `points` table. Output: the SVG
+//! file, and a table `figure` (`file`, `plot`, `title`, `rows`) that records it.
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use crate::plots::{self, PointError};
+use crate::table::TableBuilder;
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PlotKind {
+    /// Figures 6–8: error of each mesh point before and after calibration.
+    MeshErrors,
+}
+
+impl PlotKind {
+    fn name(self) -> &'static str {
+        match self {
+            PlotKind::MeshErrors => "mesh-errors",
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlotStage {
+    pub plot: PlotKind,
+    #[serde(default)]
+    pub title: String,
+    #[serde(default)]
+    pub file: String,
+}
+
+impl StageKind for PlotStage {
+    const KIND: &'static str = "plot";
+    const SUMMARY: &'static str = "an SVG figure of another stage's table (Figures 6–8: mesh-errors)";
+    const INPUTS: &'static [Slot] = &[Slot {
+        name: "table",
+        required: true,
+        doc: "the table to draw",
+    }];
+    const OUTPUTS: &'static [&'static str] = &["figure"];
+
+    fn resolve(&mut self) {
+        if self.file.is_empty() {
+            self.file = format!("{}.svg", self.plot.name());
+        }
+    }
+
+    fn validate(&self) -> Vec<Invalid> {
+        let ok = !self.file.contains(['/', '\\'])
+            && self.file.ends_with(".svg")
+            && self.file.len() > 4
+            && !self.file.starts_with('.');
+        if ok {
+            Vec::new()
+        } else {
+            vec![Invalid::new(
+                "file",
+                format!("`file` must be a plain file name ending in .svg, got \"{}\"", self.file),
+            )]
+        }
+    }
+
+    fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+        let t = inputs.get("table")?;
+        let svg = match self.plot {
+            PlotKind::MeshErrors => {
+                let (x, y, z) = (t.f64("x_ref_mm")?, t.f64("y_ref_mm")?, t.f64("z_ref_mm")?);
+                let (b, a) = (t.f64("err_before_um")?, t.f64("err_after_um")?);
+                let pts: Vec<PointError> = (0..t.height())
+                    .map(|i| PointError {
+                        x_mm: x[i],
+                        y_mm: y[i],
+                        z_mm: z[i],
+                        before_um: b[i],
+                        after_um: a[i],
+                    })
+                    .collect();
+                plots::mesh_errors(&self.title, &pts)?
+            }
+        };
+        let figure = TableBuilder::new()
+            .str("file", &[&self.file])
+            .str("plot", &[self.plot.name()])
+            .str("title", &[&self.title])
+            .i64("rows", vec![t.height() as i64])
+            .build()?;
+        Ok(StageOutput::default()
+            .table("figure", figure)
+            .file(self.file.clone(), svg.into_bytes()))
+    }
+}
