@@ -9,7 +9,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
-#[command(name = "ltcal", version, about = "Laser-tracker kinematic calibration research pipelines")]
+#[command(
+    name = "ltcal",
+    version,
+    about = "Laser-tracker kinematic calibration research pipelines"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -126,7 +130,12 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             );
             let failed = report.failed();
             for f in &failed {
-                eprintln!("\nstage `{}` ({}) failed:\n  {}", f.stage, f.kind, f.reason.replace('\n', "\n  "));
+                eprintln!(
+                    "\nstage `{}` ({}) failed:\n  {}",
+                    f.stage,
+                    f.kind,
+                    f.reason.replace('\n', "\n  ")
+                );
             }
             Ok(if failed.is_empty() {
                 ExitCode::SUCCESS
@@ -140,7 +149,11 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let items = plan::plan(&pipeline, &store);
             let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
             for i in &items {
-                let reason = if i.reason.is_empty() { String::new() } else { format!("  {}", i.reason) };
+                let reason = if i.reason.is_empty() {
+                    String::new()
+                } else {
+                    format!("  {}", i.reason)
+                };
                 println!("{:>6}  {:width$}  {:9}{reason}", i.status, i.stage, i.kind);
             }
             Ok(ExitCode::SUCCESS)
@@ -158,8 +171,12 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let path = run::pipeline_dir(&p.results, &pipeline)
                 .join(&stage)
                 .join(format!("{name}.parquet"));
-            let df = table::read_parquet(&path)
-                .with_context(|| format!("no result yet: run `ltcal run {}` first", p.pipeline.display()))?;
+            let df = table::read_parquet(&path).with_context(|| {
+                format!(
+                    "no result yet: run `ltcal run {}` first",
+                    p.pipeline.display()
+                )
+            })?;
             print!("{}", table::to_text(&df, digits));
             Ok(ExitCode::SUCCESS)
         }

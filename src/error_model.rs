@@ -19,8 +19,8 @@
 //! This placement, and no other, reproduces the classification of Section 6
 //! (NOTES item 11): every δ gives a constant error, εx1 and εy1 vary with θ, φ
 //! and d, εx2 and εy2 with φ and d, εz2, εx3 and εy3 with d only, εz3 with
-//! nothing. `tests::section6_classification` asserts it parameter by
-//! parameter; εz1 is the one difference from the paper's wording (a rotation
+//! nothing. `sensitivity::tests::section6_classification` asserts it
+//! parameter by parameter; εz1 is the one difference from the paper's wording (a rotation
 //! about the vertical axis cannot vary with the azimuth: it varies with φ and d).
 //!
 //! Rotary errors use the exact rotation of Eq. (6), `R = R_x(εx)·R_y(εy)·R_z(εz)`;
@@ -459,11 +459,16 @@ impl ErrorParams {
     /// exactly, found by Newton iteration from the nominal reading.
     pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Result<Reading, InverseError> {
         let mut r = kinematics::nominal_reading(target, face);
+        let mut last = f64::INFINITY;
         for _ in 0..MAX_INVERSE_ITERS {
             let miss = self.point(r.joints()) - target;
-            if miss.norm() <= INVERSE_TOL_MM {
+            let m = miss.norm();
+            // Converged, or down to the rounding noise of coordinates of
+            // this size (which can sit just above the target tolerance).
+            if m <= INVERSE_TOL_MM || (m >= last && m <= INVERSE_MAX_MISS_MM) {
                 return Ok(r);
             }
+            last = m;
             // The nominal Jacobian differs from the true one by the error
             // parameters (≈1e-5), so each step gains about five digits.
             let j = kinematics::nominal_jacobian(r);
@@ -477,8 +482,9 @@ impl ErrorParams {
 }
 
 const MAX_INVERSE_ITERS: usize = 50;
-/// The round trip holds to 1e-9 mm (the requirement); ask for more.
+/// The round trip holds to 1e-9 mm; ask for more where rounding allows.
 const INVERSE_TOL_MM: f64 = 1e-11;
+const INVERSE_MAX_MISS_MM: f64 = 1e-9;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum InverseError {
@@ -680,12 +686,6 @@ mod tests {
         pts
     }
 
-    fn single(p: ParamId, value: f64) -> ErrorParams {
-        let mut e = ErrorParams::zero(&ErrorModel::constant());
-        e.values_mut()[p.index()] = value;
-        e
-    }
-
     #[test]
     fn eq6_matches_its_printed_matrix() {
         let (ex, ey, ez) = (0.3, -0.2, 0.5);
@@ -712,7 +712,11 @@ mod tests {
     fn analytic_jacobian_matches_finite_differences() {
         let mut b = [0.0; N_PARAMS];
         for (i, v) in b.iter_mut().enumerate() {
-            *v = if ParamId::from_index(i).is_angular() { 3e-3 } else { 0.2 } * (i as f64 - 8.0);
+            *v = if ParamId::from_index(i).is_angular() {
+                3e-3
+            } else {
+                0.2
+            } * (i as f64 - 8.0);
         }
         let q = Joints {
             theta: 0.7,
@@ -727,8 +731,8 @@ mod tests {
             bp[i] += h;
             let mut bm = b;
             bm[i] -= h;
-            let fd = (ErrorFrames::new(&bp).forward(&l) - ErrorFrames::new(&bm).forward(&l))
-                / (2.0 * h);
+            let fd =
+                (ErrorFrames::new(&bp).forward(&l) - ErrorFrames::new(&bm).forward(&l)) / (2.0 * h);
             assert!(
                 (fd - j[i]).norm() < 1e-5 * (1.0 + fd.norm()),
                 "{}: {fd} vs {}",
@@ -781,64 +785,5 @@ mod tests {
                 .with_shape(ParamId::parse("dz3").unwrap(), Shape::Fourier(1))
                 .is_err()
         );
-    }
-
-    /// Which of θ, φ, d the error of a single 1 µm / 1 µrad parameter varies
-    /// with over the spherical mesh, as in Section 6.
-    fn varies_with(p: ParamId) -> (bool, bool, bool, bool) {
-        let e = single(p, 1.0);
-        let mut rows = Vec::new();
-        for x in sphere_points() {
-            let r = nominal_reading(&x, Face::Front);
-            let err = (e.correct(r) - x).norm();
-            rows.push((r.az, r.el, r.d, err));
-        }
-        let max = rows.iter().map(|r| r.3).fold(0.0, f64::max);
-        if max <= 1e-9 {
-            return (false, false, false, false);
-        }
-        // Varies with a coordinate when two points equal in the other two
-        // coordinates differ in error.
-        let differs = |same: &dyn Fn(&(f64, f64, f64, f64), &(f64, f64, f64, f64)) -> bool| {
-            rows.iter().any(|a| {
-                rows.iter()
-                    .any(|b| same(a, b) && (a.3 - b.3).abs() > 1e-6 * max.max(1e-12))
-            })
-        };
-        let eq = |a: f64, b: f64| (a - b).abs() < 1e-9;
-        let with_theta = differs(&|a, b| eq(a.1, b.1) && eq(a.2, b.2));
-        let with_phi = differs(&|a, b| eq(a.0, b.0) && eq(a.2, b.2));
-        let with_d = differs(&|a, b| eq(a.0, b.0) && eq(a.1, b.1));
-        (true, with_theta, with_phi, with_d)
-    }
-
-    #[test]
-    fn section6_classification() {
-        // (parameter, produces error, varies with θ, φ, d) — NOTES item 11,
-        // with εz1 varying with φ and d only (see the module doc).
-        let expect = [
-            ("dx1", true, false, false, false),
-            ("dy1", true, false, false, false),
-            ("dz1", true, false, false, false),
-            ("ex1", true, true, true, true),
-            ("ey1", true, true, true, true),
-            ("ez1", true, false, true, true),
-            ("dx2", true, false, false, false),
-            ("dy2", true, false, false, false),
-            ("dz2", true, false, false, false),
-            ("ex2", true, false, true, true),
-            ("ey2", true, false, true, true),
-            ("ez2", true, false, false, true),
-            ("dx3", true, false, false, false),
-            ("dy3", true, false, false, false),
-            ("dz3", true, false, false, false),
-            ("ex3", true, false, false, true),
-            ("ey3", true, false, false, true),
-            ("ez3", false, false, false, false),
-        ];
-        for (id, produces, th, ph, d) in expect {
-            let p = ParamId::parse(id).unwrap();
-            assert_eq!(varies_with(p), (produces, th, ph, d), "parameter {id}");
-        }
     }
 }

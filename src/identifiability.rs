@@ -239,8 +239,14 @@ mod tests {
         let names: Vec<String> = ["a", "b", "c", "d"].iter().map(|s| s.to_string()).collect();
         let combos = describe_null_space(&a.null_basis, &names);
         let texts: Vec<String> = combos.iter().map(Combination::sentence).collect();
-        assert!(texts.contains(&"a − b is not determined by the data (only a + b is)".to_string()), "{texts:?}");
-        assert!(texts.contains(&"c has no effect on the data".to_string()), "{texts:?}");
+        assert!(
+            texts.contains(&"a − b is not determined by the data (only a + b is)".to_string()),
+            "{texts:?}"
+        );
+        assert!(
+            texts.contains(&"c has no effect on the data".to_string()),
+            "{texts:?}"
+        );
         let ab = combos.iter().find(|c| c.direction.len() == 2).unwrap();
         assert_eq!(ab.determined_value(&[3.0, 4.0, 0.0, 0.0]), Some(7.0));
     }

@@ -307,16 +307,29 @@ mod tests {
         assert_eq!(id.analysis.rank, 13, "{:?}", id.analysis.singular_values);
         let mut texts: Vec<String> = id.combinations.iter().map(|c| c.sentence()).collect();
         texts.sort();
-        for expect in ["εz3 has no effect on the data"] {
-            assert!(texts.iter().any(|t| t == expect), "{texts:?}");
-        }
-        for pair in [("δz1", "δy2"), ("εz1", "εy2"), ("δz2", "δy3"), ("εz2", "εy3")] {
+        assert!(
+            texts.iter().any(|t| t == "εz3 has no effect on the data"),
+            "{texts:?}"
+        );
+        for pair in [
+            ("δz1", "δy2"),
+            ("εz1", "εy2"),
+            ("δz2", "δy3"),
+            ("εz2", "εy3"),
+        ] {
             assert!(
-                texts.iter().any(|t| t.starts_with(pair.0) && t.contains(pair.1)),
+                texts
+                    .iter()
+                    .any(|t| t.starts_with(pair.0) && t.contains(pair.1)),
                 "{pair:?} missing from {texts:?}"
             );
         }
-        assert!(id.rms_after_um < 1e-3 * id.rms_before_um, "{} → {}", id.rms_before_um, id.rms_after_um);
+        assert!(
+            id.rms_after_um < 1e-3 * id.rms_before_um,
+            "{} → {}",
+            id.rms_before_um,
+            id.rms_after_um
+        );
     }
 
     #[test]
@@ -332,7 +345,11 @@ mod tests {
         let obs = observe(&truth, &sphere());
         let id = identify(&obs, &start, &[true; 18], &Settings::default()).unwrap();
         for (k, (a, b)) in id.params.values().iter().zip(truth.values()).enumerate() {
-            assert!((a - b).abs() < 1e-6, "{}: {a} vs {b}", ParamId::from_index(k));
+            assert!(
+                (a - b).abs() < 1e-6,
+                "{}: {a} vs {b}",
+                ParamId::from_index(k)
+            );
         }
     }
 }

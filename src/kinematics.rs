@@ -294,7 +294,9 @@ mod tests {
         }
         let f = nominal_reading(&p, Face::Front);
         let b = nominal_reading(&p, Face::Back);
-        assert!(close(wrap_angle(b.az - f.az), PI, 1e-12) || close(wrap_angle(b.az - f.az), -PI, 1e-12));
+        assert!(
+            close(wrap_angle(b.az - f.az), PI, 1e-12) || close(wrap_angle(b.az - f.az), -PI, 1e-12)
+        );
         assert!(close(b.el, PI - f.el, 1e-12));
     }
 

@@ -13,6 +13,7 @@ pub mod pipeline;
 pub mod plots;
 pub mod random;
 pub mod schema;
+pub mod sensitivity;
 pub mod simulate;
 pub mod solver;
 pub mod stages;

@@ -137,7 +137,10 @@ mod tests {
     fn paper_meshes_have_the_paper_counts() {
         assert_eq!(plane(PLANE_X_MM, &PLANE_Y, &PLANE_Z).len(), 210);
         assert_eq!(cube(&CUBE_AXIS, &CUBE_AXIS, &CUBE_AXIS).len(), 216);
-        assert_eq!(sphere(&SPHERE_H_DEG, &SPHERE_V_DEG, &SPHERE_R_MM).len(), 480);
+        assert_eq!(
+            sphere(&SPHERE_H_DEG, &SPHERE_V_DEG, &SPHERE_R_MM).len(),
+            480
+        );
         assert_eq!(PLANE_Y.values().last(), Some(&9880.0));
         assert_eq!(SPHERE_V_DEG.values().last(), Some(&-63.0));
     }
@@ -146,7 +149,10 @@ mod tests {
     fn bad_ranges_name_the_field() {
         assert_eq!(Range::new(0.0, 1.0, 0.0).check().unwrap_err().0, "step");
         assert_eq!(Range::new(0.0, 1.0, -1.0).check().unwrap_err().0, "step");
-        assert_eq!(Range::new(f64::NAN, 1.0, 1.0).check().unwrap_err().0, "from");
+        assert_eq!(
+            Range::new(f64::NAN, 1.0, 1.0).check().unwrap_err().0,
+            "from"
+        );
         assert!(Range::new(0.0, 1e9, 1e-3).check().is_err());
         assert!(Range::new(5.0, 5.0, 1.0).check().is_ok());
     }

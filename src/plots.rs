@@ -19,7 +19,11 @@ pub fn viridis(t: f64) -> RGBColor {
         (170, 220, 50),
         (253, 231, 37),
     ];
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 };
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     let x = t * (STOPS.len() - 1) as f64;
     let i = (x.floor() as usize).min(STOPS.len() - 2);
     let f = x - i as f64;
@@ -51,7 +55,11 @@ pub fn mesh_errors(title: &str, pts: &[PointError]) -> Result<String> {
         let root = root.titled(title, ("sans-serif", 26)).map_err(err)?;
         let (left, right) = root.split_horizontally(560);
         let (mesh_area, bar_area) = left.split_horizontally(470);
-        let emax = pts.iter().map(|p| p.before_um).fold(0.0, f64::max).max(1e-12);
+        let emax = pts
+            .iter()
+            .map(|p| p.before_um)
+            .fold(0.0, f64::max)
+            .max(1e-12);
         mesh_3d(&mesh_area, pts, emax)?;
         colour_bar(&bar_area, 0.0, emax, "error before (µm)")?;
         errors_by_point(&right, pts)?;
@@ -61,7 +69,9 @@ pub fn mesh_errors(title: &str, pts: &[PointError]) -> Result<String> {
 }
 
 fn bounds(v: impl Iterator<Item = f64>) -> (f64, f64) {
-    let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| (a.min(x), b.max(x)));
+    let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+        (a.min(x), b.max(x))
+    });
     if !lo.is_finite() {
         return (-1.0, 1.0);
     }
@@ -110,7 +120,12 @@ fn mesh_3d(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError], emax: f64)
 }
 
 /// A vertical colour bar from `lo` to `hi`.
-pub fn colour_bar(area: &DrawingArea<SVGBackend, Shift>, lo: f64, hi: f64, label: &str) -> Result<()> {
+pub fn colour_bar(
+    area: &DrawingArea<SVGBackend, Shift>,
+    lo: f64,
+    hi: f64,
+    label: &str,
+) -> Result<()> {
     let mut chart = ChartBuilder::on(area)
         .margin_top(60)
         .margin_bottom(60)
@@ -133,7 +148,10 @@ pub fn colour_bar(area: &DrawingArea<SVGBackend, Shift>, lo: f64, hi: f64, label
     chart
         .draw_series((0..n).map(|i| {
             let a = lo + i as f64 * step;
-            Rectangle::new([(0.0, a), (1.0, a + step)], viridis((i as f64 + 0.5) / n as f64).filled())
+            Rectangle::new(
+                [(0.0, a), (1.0, a + step)],
+                viridis((i as f64 + 0.5) / n as f64).filled(),
+            )
         }))
         .map_err(err)?;
     Ok(())
@@ -142,7 +160,9 @@ pub fn colour_bar(area: &DrawingArea<SVGBackend, Shift>, lo: f64, hi: f64, label
 fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) -> Result<()> {
     let floor = 1e-9;
     let all = pts.iter().flat_map(|p| [p.before_um, p.after_um]);
-    let (lo, hi) = all.fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(v.max(floor)), b.max(v)));
+    let (lo, hi) = all.fold((f64::INFINITY, 0.0f64), |(a, b), v| {
+        (a.min(v.max(floor)), b.max(v))
+    });
     let (lo, hi) = if lo.is_finite() && hi > 0.0 {
         (lo / 3.0, hi * 3.0)
     } else {
@@ -175,7 +195,11 @@ fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) ->
             .map(|(i, p)| (i, if before { p.before_um } else { p.after_um }.max(floor)))
             .collect();
         chart
-            .draw_series(values.iter().map(|&(i, v)| Circle::new((i, v), 2, colour.filled())))
+            .draw_series(
+                values
+                    .iter()
+                    .map(|&(i, v)| Circle::new((i, v), 2, colour.filled())),
+            )
             .map_err(err)?
             .label(name)
             .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));

@@ -87,7 +87,10 @@ pub fn params_from(t: &TableRef) -> Result<ErrorParams> {
             )
         })?;
         if !seen.insert(c) {
-            bail!("table `{}`, row {i}: coefficient `{n}` appears twice", t.name);
+            bail!(
+                "table `{}`, row {i}: coefficient `{n}` appears twice",
+                t.name
+            );
         }
         if !values[i].is_finite() {
             bail!("table `{}`, row {i}: value of `{n}` is not finite", t.name);
@@ -134,7 +137,11 @@ pub fn readings_from(t: &TableRef) -> Result<Vec<KnownReading>> {
         .enumerate()
         .map(|(i, target)| {
             let face = Face::from_number(faces[i]).ok_or_else(|| {
-                anyhow!("table `{}`, row {i}: face must be 1 or 2, got {}", t.name, faces[i])
+                anyhow!(
+                    "table `{}`, row {i}: face must be 1 or 2, got {}",
+                    t.name,
+                    faces[i]
+                )
             })?;
             Ok(KnownReading {
                 target,

@@ -34,7 +34,8 @@ impl Noise {
 
     /// The range noise at distance `d_mm`, in µm.
     pub fn sigma_range_at_um(&self, d_mm: f64) -> f64 {
-        self.sigma_range_um.hypot(self.sigma_range_ppm * d_mm / 1000.0)
+        self.sigma_range_um
+            .hypot(self.sigma_range_ppm * d_mm / 1000.0)
     }
 
     /// The reading with one draw of noise added.

@@ -291,14 +291,21 @@ mod tests {
         type Param = DVector<f64>;
         type Output = DVector<f64>;
         fn apply(&self, p: &DVector<f64>) -> Result<DVector<f64>, Error> {
-            Ok(DVector::from_vec(vec![10.0 * (p[1] - p[0] * p[0]), 1.0 - p[0]]))
+            Ok(DVector::from_vec(vec![
+                10.0 * (p[1] - p[0] * p[0]),
+                1.0 - p[0],
+            ]))
         }
     }
     impl Jacobian for Rosenbrock {
         type Param = DVector<f64>;
         type Jacobian = DMatrix<f64>;
         fn jacobian(&self, p: &DVector<f64>) -> Result<DMatrix<f64>, Error> {
-            Ok(DMatrix::from_row_slice(2, 2, &[-20.0 * p[0], 10.0, -1.0, 0.0]))
+            Ok(DMatrix::from_row_slice(
+                2,
+                2,
+                &[-20.0 * p[0], 10.0, -1.0, 0.0],
+            ))
         }
     }
 
@@ -307,7 +314,11 @@ mod tests {
         let fit = LevenbergMarquardt::new()
             .minimize(Rosenbrock, DVector::from_vec(vec![-1.2, 1.0]), 200)
             .unwrap();
-        assert!((fit.x[0] - 1.0).abs() < 1e-9 && (fit.x[1] - 1.0).abs() < 1e-9, "{:?}", fit);
+        assert!(
+            (fit.x[0] - 1.0).abs() < 1e-9 && (fit.x[1] - 1.0).abs() < 1e-9,
+            "{:?}",
+            fit
+        );
     }
 
     #[test]

@@ -87,7 +87,12 @@ impl<'a> TableRef<'a> {
             .iter()
             .enumerate()
             .map(|(i, v)| {
-                v.ok_or_else(|| anyhow!("table `{}`, column `{col}`, row {i}: missing value", self.name))
+                v.ok_or_else(|| {
+                    anyhow!(
+                        "table `{}`, column `{col}`, row {i}: missing value",
+                        self.name
+                    )
+                })
             })
             .collect()
     }
@@ -109,7 +114,12 @@ impl<'a> TableRef<'a> {
             .iter()
             .enumerate()
             .map(|(i, v)| {
-                v.ok_or_else(|| anyhow!("table `{}`, column `{col}`, row {i}: missing value", self.name))
+                v.ok_or_else(|| {
+                    anyhow!(
+                        "table `{}`, column `{col}`, row {i}: missing value",
+                        self.name
+                    )
+                })
             })
             .collect()
     }
@@ -123,7 +133,10 @@ impl<'a> TableRef<'a> {
             .enumerate()
             .map(|(i, v)| {
                 v.map(str::to_string).ok_or_else(|| {
-                    anyhow!("table `{}`, column `{col}`, row {i}: missing value", self.name)
+                    anyhow!(
+                        "table `{}`, column `{col}`, row {i}: missing value",
+                        self.name
+                    )
                 })
             })
             .collect()
@@ -137,7 +150,12 @@ impl<'a> TableRef<'a> {
         s.iter()
             .enumerate()
             .map(|(i, v)| {
-                v.ok_or_else(|| anyhow!("table `{}`, column `{col}`, row {i}: missing value", self.name))
+                v.ok_or_else(|| {
+                    anyhow!(
+                        "table `{}`, column `{col}`, row {i}: missing value",
+                        self.name
+                    )
+                })
             })
             .collect()
     }
@@ -216,7 +234,10 @@ pub fn format_float(x: f64, digits: usize) -> String {
         return x.to_string();
     }
     let s = format!("{x:.digits$}");
-    if s.trim_start_matches('-').chars().all(|c| c == '0' || c == '.') {
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
         s.trim_start_matches('-').to_string()
     } else {
         s

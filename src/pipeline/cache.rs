@@ -80,9 +80,18 @@ fn json_diff(path: &str, old: &serde_json::Value, new: &serde_json::Value, out: 
         (Object(a), Object(b)) => {
             let keys: std::collections::BTreeSet<&String> = a.keys().chain(b.keys()).collect();
             for k in keys {
-                let p = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
                 let null = serde_json::Value::Null;
-                json_diff(&p, a.get(k).unwrap_or(&null), b.get(k).unwrap_or(&null), out);
+                json_diff(
+                    &p,
+                    a.get(k).unwrap_or(&null),
+                    b.get(k).unwrap_or(&null),
+                    out,
+                );
             }
         }
         _ if old != new => out.push(format!("{path}: {old} → {new}")),
@@ -160,7 +169,10 @@ fn unique_suffix() -> String {
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
     fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let name = path.file_name().map(|n| n.to_string_lossy()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default();
     let tmp = dir.join(format!(".{name}.{}.tmp", unique_suffix()));
     let write = || -> std::io::Result<()> {
         let mut f = fs::File::create(&tmp)?;
@@ -221,8 +233,8 @@ impl Store {
     fn read_entry(&self, dir: &Path, key: &str) -> Result<Entry> {
         let bytes = fs::read(dir.join("manifest.json"))
             .map_err(|_| anyhow!("manifest.json is missing (an incomplete entry)"))?;
-        let manifest: Manifest =
-            serde_json::from_slice(&bytes).map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
+        let manifest: Manifest = serde_json::from_slice(&bytes)
+            .map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
         if manifest.key != key || manifest.key_fields.hash() != key {
             bail!("manifest.json does not belong to key {}", short(key));
         }
@@ -257,9 +269,7 @@ impl Store {
     /// Moves a bad entry out of the way, then deletes it: readers never see
     /// a half-deleted entry under its key.
     fn discard(&self, dir: &Path) {
-        let trash = self
-            .entries()
-            .join(format!(".trash-{}", unique_suffix()));
+        let trash = self.entries().join(format!(".trash-{}", unique_suffix()));
         if fs::rename(dir, &trash).is_ok() {
             let _ = fs::remove_dir_all(&trash);
         }
@@ -287,7 +297,10 @@ impl Store {
         })();
         if let Err(e) = result {
             let _ = fs::remove_dir_all(&tmp);
-            return Err(e.context(format!("writing the cache entry for {}", entry.manifest.stage)));
+            return Err(e.context(format!(
+                "writing the cache entry for {}",
+                entry.manifest.stage
+            )));
         }
         let dest = self.entry_dir(key);
         if fs::rename(&tmp, &dest).is_err() {

@@ -67,7 +67,7 @@ pub fn load(path: &Path, overrides: &[Override]) -> anyhow::Result<Pipeline> {
 }
 
 pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipeline> {
-    let raw = raw::parse(src)
-        .map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    let raw =
+        raw::parse(src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
     Ok(resolve::resolve(&raw, overrides).map_err(InputError)?)
 }

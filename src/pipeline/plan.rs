@@ -126,7 +126,10 @@ pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
                 Some(Ok(m)) => {
                     known.insert(
                         &s.name,
-                        m.tables.iter().map(|t| (t.name.clone(), t.hash.clone())).collect(),
+                        m.tables
+                            .iter()
+                            .map(|t| (t.name.clone(), t.hash.clone()))
+                            .collect(),
                     );
                     ("cached", String::new())
                 }

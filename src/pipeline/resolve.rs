@@ -24,9 +24,9 @@ pub struct Override {
 
 impl Override {
     pub fn parse(arg: &str) -> Result<Override> {
-        let (path, value) = arg
-            .split_once('=')
-            .ok_or_else(|| anyhow!("--set {arg}: expected path=value, e.g. stages.measure.seed=3"))?;
+        let (path, value) = arg.split_once('=').ok_or_else(|| {
+            anyhow!("--set {arg}: expected path=value, e.g. stages.measure.seed=3")
+        })?;
         let path = split_path(path.trim())
             .ok_or_else(|| anyhow!("--set {arg}: `{}` is not a dotted path", path.trim()))?;
         let value = value.trim();
@@ -71,7 +71,11 @@ fn get_path<'a>(root: &'a serde_json::Value, path: &[String]) -> Option<&'a serd
 }
 
 /// Sets `value` at `path` inside a JSON object, creating objects on the way.
-pub fn set_path(root: &mut serde_json::Value, path: &[String], value: serde_json::Value) -> Result<()> {
+pub fn set_path(
+    root: &mut serde_json::Value,
+    path: &[String],
+    value: serde_json::Value,
+) -> Result<()> {
     let Some((last, parents)) = path.split_last() else {
         bail!("empty path");
     };
@@ -182,7 +186,11 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
     Ok(pipeline)
 }
 
-fn resolve_stage(src: &Source, rs: &RawStage, overrides: &[Override]) -> Result<Stage, Vec<Problem>> {
+fn resolve_stage(
+    src: &Source,
+    rs: &RawStage,
+    overrides: &[Override],
+) -> Result<Stage, Vec<Problem>> {
     let mut problems = Vec::new();
     let mut json = rs.config.to_json();
     // An override inside a value the file leaves to its default (`x.step`
@@ -239,27 +247,33 @@ fn resolve_stage(src: &Source, rs: &RawStage, overrides: &[Override]) -> Result<
     } else {
         StageConfig::from_json(&rs.kind, json).map_err(|e| {
             let sets: Vec<&str> = mine.iter().map(|(o, _)| o.text.as_str()).collect();
-            vec![Problem::Arg(format!("--set {}: {e}", sets.join(", --set ")))]
+            vec![Problem::Arg(format!(
+                "--set {}: {e}",
+                sets.join(", --set ")
+            ))]
         })?
     };
     config.resolve();
     for inv in config.validate() {
         let overridden = mine.iter().find(|(_, rest)| {
             let p = rest.join(".");
-            inv.field == p || inv.field.starts_with(&format!("{p}.")) || p.starts_with(&format!("{}.", inv.field))
+            inv.field == p
+                || inv.field.starts_with(&format!("{p}."))
+                || p.starts_with(&format!("{}.", inv.field))
         });
         match overridden {
-            Some((o, _)) => problems.push(Problem::Arg(format!("--set {}: {}", o.text, inv.message))),
+            Some((o, _)) => {
+                problems.push(Problem::Arg(format!("--set {}: {}", o.text, inv.message)))
+            }
             None => {
                 let span = rs
                     .fields
                     .get(&inv.field)
                     .cloned()
                     .unwrap_or_else(|| rs.span.clone());
-                problems.push(Problem::At(src.error(
-                    span,
-                    format!("stage `{}`: {}", rs.name, inv.message),
-                )));
+                problems.push(Problem::At(
+                    src.error(span, format!("stage `{}`: {}", rs.name, inv.message)),
+                ));
             }
         }
     }
@@ -296,7 +310,13 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
     let at = |stage: &str, slot: &str, key: bool| -> std::ops::Range<usize> {
         let rs = raw.stages.iter().find(|s| s.name == stage);
         rs.and_then(|rs| rs.inputs.iter().find(|i| i.slot == slot))
-            .map(|i| if key { i.slot_span.clone() } else { i.span.clone() })
+            .map(|i| {
+                if key {
+                    i.slot_span.clone()
+                } else {
+                    i.span.clone()
+                }
+            })
             .or_else(|| rs.map(|rs| rs.span.clone()))
             .unwrap_or(0..0)
     };
@@ -311,7 +331,11 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
                         "stage `{}` ({}) has no input `{slot}`; its inputs are: {}",
                         s.name,
                         s.config.kind(),
-                        if known.is_empty() { "none".to_string() } else { known.join(", ") }
+                        if known.is_empty() {
+                            "none".to_string()
+                        } else {
+                            known.join(", ")
+                        }
                     ),
                 )));
                 continue;
@@ -388,7 +412,11 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
             )));
         }
     }
-    if problems.is_empty() { Ok(()) } else { Err(problems) }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(problems)
+    }
 }
 
 /// A cycle as `(stage, slot)` edges: each stage reads the next one's table

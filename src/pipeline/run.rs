@@ -67,7 +67,10 @@ impl RunReport {
             .collect()
     }
     pub fn failed(&self) -> Vec<&StageReport> {
-        self.stages.iter().filter(|s| s.status == "failed").collect()
+        self.stages
+            .iter()
+            .filter(|s| s.status == "failed")
+            .collect()
     }
 }
 
@@ -102,7 +105,11 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
             .copied()
             .filter(|&i| {
                 let done = produced.lock().expect("no panics hold this lock");
-                !stop && p.stages[i].inputs.values().all(|r| done.contains_key(&r.stage))
+                !stop
+                    && p.stages[i]
+                        .inputs
+                        .values()
+                        .all(|r| done.contains_key(&r.stage))
             })
             .collect();
         let results: Vec<(usize, StageReport, Option<Produced>)> = ready
@@ -149,7 +156,12 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
                     .inputs
                     .values()
                     .map(|r| r.stage.as_str())
-                    .filter(|n| !produced.lock().expect("no panics hold this lock").contains_key(*n))
+                    .filter(|n| {
+                        !produced
+                            .lock()
+                            .expect("no panics hold this lock")
+                            .contains_key(*n)
+                    })
                     .collect();
                 StageReport {
                     stage: s.name.clone(),
@@ -192,7 +204,13 @@ fn progress_line(r: &StageReport) {
 type Wired = Vec<(String, super::resolve::InputRef, Arc<Produced>)>;
 
 /// Runs or reuses one stage.
-fn execute(p: &Pipeline, i: usize, inputs: Wired, store: &Store, dir: &Path) -> (StageReport, Option<Produced>) {
+fn execute(
+    p: &Pipeline,
+    i: usize,
+    inputs: Wired,
+    store: &Store,
+    dir: &Path,
+) -> (StageReport, Option<Produced>) {
     let s = &p.stages[i];
     let mut report = StageReport {
         stage: s.name.clone(),
@@ -261,7 +279,9 @@ fn execute(p: &Pipeline, i: usize, inputs: Wired, store: &Store, dir: &Path) -> 
     let stored = (|| -> Result<Entry> {
         for name in s.config.outputs() {
             if !output.tables.iter().any(|(n, _)| n == name) {
-                return Err(anyhow!("the stage did not produce its table `{name}` (a bug in ltcal)"));
+                return Err(anyhow!(
+                    "the stage did not produce its table `{name}` (a bug in ltcal)"
+                ));
             }
         }
         let mut tables = BTreeMap::new();
@@ -312,7 +332,12 @@ fn execute(p: &Pipeline, i: usize, inputs: Wired, store: &Store, dir: &Path) -> 
                     .tables
                     .into_iter()
                     .map(|(n, df)| {
-                        let h = entry.manifest.tables.iter().find(|t| t.name == n).map(|t| t.hash.clone());
+                        let h = entry
+                            .manifest
+                            .tables
+                            .iter()
+                            .find(|t| t.name == n)
+                            .map(|t| t.hash.clone());
                         (n, (Arc::new(df), h.unwrap_or_default()))
                     })
                     .collect(),

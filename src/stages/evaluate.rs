@@ -98,7 +98,10 @@ impl StageKind for EvaluateStage {
             .str("statistic", &["mean", "rms", "max"])
             .f64("before_um", b.to_vec())
             .f64("after_um", a.to_vec())
-            .f64("reduction_pct", (0..3).map(|k| reduction_pct(b[k], a[k])).collect())
+            .f64(
+                "reduction_pct",
+                (0..3).map(|k| reduction_pct(b[k], a[k])).collect(),
+            )
             .build()?;
         Ok(StageOutput::default()
             .table("summary", summary)

@@ -60,7 +60,8 @@ impl IdentifyStage {
 
 impl StageKind for IdentifyStage {
     const KIND: &'static str = "identify";
-    const SUMMARY: &'static str = "error parameters from readings of known points (Eq. 11), with the null space named";
+    const SUMMARY: &'static str =
+        "error parameters from readings of known points (Eq. 11), with the null space named";
     const INPUTS: &'static [Slot] = &[
         Slot {
             name: "readings",
@@ -152,16 +153,24 @@ fn tables(id: &identify::Identification) -> Result<StageOutput> {
         .f64("sigma", sv.clone())
         .f64(
             "sigma_rel",
-            sv.iter().map(|s| if smax > 0.0 { s / smax } else { 0.0 }).collect(),
+            sv.iter()
+                .map(|s| if smax > 0.0 { s / smax } else { 0.0 })
+                .collect(),
         )
-        .bool("determined", (0..sv.len()).map(|i| i < id.analysis.rank).collect())
+        .bool(
+            "determined",
+            (0..sv.len()).map(|i| i < id.analysis.rank).collect(),
+        )
         .build()?;
 
     let combos = &id.combinations;
     let combinations = TableBuilder::new()
         .str(
             "direction",
-            &combos.iter().map(|c| c.direction_text.clone()).collect::<Vec<_>>(),
+            &combos
+                .iter()
+                .map(|c| c.direction_text.clone())
+                .collect::<Vec<_>>(),
         )
         .str(
             "determined",

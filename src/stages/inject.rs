@@ -14,9 +14,9 @@
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::error_model::{Coef, ErrorModel, ErrorParams, ParamId, Shape, Term};
+use crate::random;
 use crate::schema;
 use anyhow::Result;
-use crate::random;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -85,7 +85,11 @@ impl InjectStage {
         if let Some(r) = &self.random {
             let mut rng = random::stream(r.seed, "inject");
             for (c, v) in coefs.iter().zip(p.values_mut()) {
-                let sigma = if c.param.is_angular() { r.sigma_urad } else { r.sigma_um };
+                let sigma = if c.param.is_angular() {
+                    r.sigma_urad
+                } else {
+                    r.sigma_um
+                };
                 *v += sigma * random::normal(&mut rng);
             }
         }

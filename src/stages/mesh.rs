@@ -120,11 +120,17 @@ impl StageKind for MeshStage {
         }
         for (name, r) in self.ranges() {
             if let Some(Err((part, msg))) = r.map(Range::check) {
-                out.push(Invalid::new(format!("{name}.{part}"), format!("`{name}.{part}` {msg}")));
+                out.push(Invalid::new(
+                    format!("{name}.{part}"),
+                    format!("`{name}.{part}` {msg}"),
+                ));
             }
         }
         if let Some(x) = self.x_mm.filter(|x| !x.is_finite()) {
-            out.push(Invalid::new("x_mm", format!("`x_mm` must be finite, got {x}")));
+            out.push(Invalid::new(
+                "x_mm",
+                format!("`x_mm` must be finite, got {x}"),
+            ));
         }
         if let Some(r) = self.r_mm.as_ref().filter(|r| r.from.min(r.to) <= 0.0) {
             out.push(Invalid::new(

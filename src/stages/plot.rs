@@ -45,7 +45,8 @@ pub struct PlotStage {
 
 impl StageKind for PlotStage {
     const KIND: &'static str = "plot";
-    const SUMMARY: &'static str = "an SVG figure of another stage's table (Figures 6–8: mesh-errors)";
+    const SUMMARY: &'static str =
+        "an SVG figure of another stage's table (Figures 6–8: mesh-errors)";
     const INPUTS: &'static [Slot] = &[Slot {
         name: "table",
         required: true,
@@ -69,7 +70,10 @@ impl StageKind for PlotStage {
         } else {
             vec![Invalid::new(
                 "file",
-                format!("`file` must be a plain file name ending in .svg, got \"{}\"", self.file),
+                format!(
+                    "`file` must be a plain file name ending in .svg, got \"{}\"",
+                    self.file
+                ),
             )]
         }
     }

@@ -12,15 +12,26 @@ fn run_bad(text: &str) -> (i32, String) {
     std::fs::write(&file, text).unwrap();
     let results = dir.path().join("results");
     let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
-        .args(["run", file.to_str().unwrap(), "--results", results.to_str().unwrap()])
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(!Path::new(&results).exists(), "results were written");
-    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
 }
 
 fn assert_located(stderr: &str, line_col: &str, message: &str) {
-    assert!(stderr.contains(&format!("bad.toml:{line_col}")), "no location {line_col} in:\n{stderr}");
+    assert!(
+        stderr.contains(&format!("bad.toml:{line_col}")),
+        "no location {line_col} in:\n{stderr}"
+    );
     assert!(stderr.contains(message), "no `{message}` in:\n{stderr}");
     assert!(stderr.contains('^'), "no caret in:\n{stderr}");
 }
@@ -91,7 +102,9 @@ fn bad_override_names_the_set_argument() {
     let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
         .args([
             "run",
-            crate::util::pipeline_path("synthetic-validation.toml").to_str().unwrap(),
+            crate::util::pipeline_path("synthetic-validation.toml")
+                .to_str()
+                .unwrap(),
             "--results",
             results.to_str().unwrap(),
             "--set",
@@ -101,6 +114,9 @@ fn bad_override_names_the_set_argument() {
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2));
-    assert!(err.contains("--set stages.cube.x.step=0: `x.step` must not be zero"), "{err}");
+    assert!(
+        err.contains("--set stages.cube.x.step=0: `x.step` must not be zero"),
+        "{err}"
+    );
     assert!(!results.exists());
 }

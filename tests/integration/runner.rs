@@ -14,7 +14,11 @@ fn second_run_recomputes_nothing() {
     let first = run_pipeline(&file, dir.path(), &[]);
     assert_eq!(first.with_status("ran").len(), first.stages.len());
     let second = run_pipeline(&file, dir.path(), &[]);
-    assert!(second.with_status("ran").is_empty(), "{:?}", second.with_status("ran"));
+    assert!(
+        second.with_status("ran").is_empty(),
+        "{:?}",
+        second.with_status("ran")
+    );
     assert_eq!(second.with_status("cached").len(), second.stages.len());
 }
 
@@ -34,7 +38,12 @@ fn changing_one_parameter_reruns_that_stage_and_its_descendants_only() {
             "figure8_noisy"
         ])
     );
-    let why = &r.stages.iter().find(|s| s.stage == "measure_sphere_noisy").unwrap().reason;
+    let why = &r
+        .stages
+        .iter()
+        .find(|s| s.stage == "measure_sphere_noisy")
+        .unwrap()
+        .reason;
     assert_eq!(why, "changed: seed: 1 → 2");
     // Changing it back finds the first results in the cache.
     let back = run_pipeline(&file, dir.path(), &[]);
@@ -60,8 +69,14 @@ fn comments_and_whitespace_do_not_change_any_key() {
     run_pipeline(&file, dir.path(), &[]);
     let text = std::fs::read_to_string(&file).unwrap();
     let edited = dir.path().join("synthetic-validation.toml");
-    let text = text.replace("\n[stages.", "\n# a comment\n\n[stages.").replace(" = ", "   =   ");
+    let text = text
+        .replace("\n[stages.", "\n# a comment\n\n[stages.")
+        .replace(" = ", "   =   ");
     std::fs::write(&edited, text).unwrap();
     let r = run_pipeline(&edited, dir.path(), &[]);
-    assert!(r.with_status("ran").is_empty(), "{:?}", r.with_status("ran"));
+    assert!(
+        r.with_status("ran").is_empty(),
+        "{:?}",
+        r.with_status("ran")
+    );
 }

@@ -10,8 +10,14 @@ use nalgebra::DVector;
 
 fn meshes() -> [(&'static str, Vec<mesh::MeshPoint>); 3] {
     [
-        ("plane", mesh::plane(mesh::PLANE_X_MM, &mesh::PLANE_Y, &mesh::PLANE_Z)),
-        ("cube", mesh::cube(&mesh::CUBE_AXIS, &mesh::CUBE_AXIS, &mesh::CUBE_AXIS)),
+        (
+            "plane",
+            mesh::plane(mesh::PLANE_X_MM, &mesh::PLANE_Y, &mesh::PLANE_Z),
+        ),
+        (
+            "cube",
+            mesh::cube(&mesh::CUBE_AXIS, &mesh::CUBE_AXIS, &mesh::CUBE_AXIS),
+        ),
         (
             "sphere",
             mesh::sphere(&mesh::SPHERE_H_DEG, &mesh::SPHERE_V_DEG, &mesh::SPHERE_R_MM),
@@ -33,20 +39,39 @@ fn synthetic_validation_removes_over_98_percent_on_every_mesh() {
     let dir = tempfile::tempdir().unwrap();
     run_pipeline(&pipeline_path("synthetic-validation.toml"), dir.path(), &[]);
     for mesh in ["plane", "cube", "sphere"] {
-        let s = table(dir.path(), "synthetic-validation", &format!("evaluate_{mesh}"), "summary");
+        let s = table(
+            dir.path(),
+            "synthetic-validation",
+            &format!("evaluate_{mesh}"),
+            "summary",
+        );
         for stat in ["mean", "rms", "max"] {
             let reduction = cell(&s, "statistic", stat, "reduction_pct");
             assert!(reduction >= 98.0, "{mesh} {stat}: {reduction} %");
-            assert!(cell(&s, "statistic", stat, "after_um") < 1e-6, "{mesh} {stat}");
-            assert!(cell(&s, "statistic", stat, "before_um") > 100.0, "{mesh} {stat}");
+            assert!(
+                cell(&s, "statistic", stat, "after_um") < 1e-6,
+                "{mesh} {stat}"
+            );
+            assert!(
+                cell(&s, "statistic", stat, "before_um") > 100.0,
+                "{mesh} {stat}"
+            );
         }
     }
     // With 1 µrad and 2 µm of noise the residual is the noise itself: at the
     // sphere's ranges (1–15 m) the expected position noise is
     // sqrt(2·mean(d²)·σ_angle² + σ_range²) = sqrt(2·88.5 + 4) = 13.45 µm.
-    let s = table(dir.path(), "synthetic-validation", "evaluate_sphere_noisy", "summary");
+    let s = table(
+        dir.path(),
+        "synthetic-validation",
+        "evaluate_sphere_noisy",
+        "summary",
+    );
     let rms = cell(&s, "statistic", "rms", "after_um");
-    assert!((0.7 * 13.45..1.05 * 13.45).contains(&rms), "noisy residual {rms} µm");
+    assert!(
+        (0.7 * 13.45..1.05 * 13.45).contains(&rms),
+        "noisy residual {rms} µm"
+    );
 }
 
 /// The undetermined directions are arbitrary: the data cannot fix them. Fix
@@ -66,10 +91,17 @@ fn table2_identifiable_part_is_recovered_to_1e_6() {
         for _ in 0..4 {
             let n = &id.analysis.null_basis;
             let undetermined = n * (n.transpose() * &t);
-            start = ErrorParams::from_parts(zero.coefs().to_vec(), undetermined.iter().copied().collect());
+            start = ErrorParams::from_parts(
+                zero.coefs().to_vec(),
+                undetermined.iter().copied().collect(),
+            );
             id = identify::identify(&obs, &start, &[true; 18], &Settings::default()).unwrap();
         }
-        for (c, (a, b)) in truth.coefs().iter().zip(id.params.values().iter().zip(truth.values())) {
+        for (c, (a, b)) in truth
+            .coefs()
+            .iter()
+            .zip(id.params.values().iter().zip(truth.values()))
+        {
             assert!((a - b).abs() < 1e-6, "{name} {}: {a} vs {b}", c.name());
         }
         assert!(id.rms_after_um < 1e-6, "{name}: {}", id.rms_after_um);
@@ -84,12 +116,18 @@ fn table2_minimum_norm_combinations_match_up_to_second_order() {
     let truth = ErrorParams::table2();
     let zero = ErrorParams::zero(&ErrorModel::constant());
     for (name, pts) in meshes() {
-        let id = identify::identify(&readings(&truth, &pts), &zero, &[true; 18], &Settings::default())
-            .unwrap();
+        let id = identify::identify(
+            &readings(&truth, &pts),
+            &zero,
+            &[true; 18],
+            &Settings::default(),
+        )
+        .unwrap();
         assert_eq!(id.analysis.rank, 13, "{name}");
         let b = &id.analysis.row_basis;
         let dev = b.transpose()
-            * (DVector::from_column_slice(id.params.values()) - DVector::from_column_slice(truth.values()));
+            * (DVector::from_column_slice(id.params.values())
+                - DVector::from_column_slice(truth.values()));
         assert!(dev.amax() < 2e-4, "{name}: {}", dev.amax());
         for c in &id.combinations {
             if let Some(v) = id.determined_value(c, &id.params) {
@@ -115,7 +153,10 @@ fn snapshot_of_the_synthetic_validation_summaries() {
         ("identify_sphere", "fit"),
     ] {
         let df = table(dir.path(), "synthetic-validation", stage, t);
-        text.push_str(&format!("\n# {stage}.{t}\n{}", ltcal::table::to_text(&df, 6)));
+        text.push_str(&format!(
+            "\n# {stage}.{t}\n{}",
+            ltcal::table::to_text(&df, 6)
+        ));
     }
     assert_snapshot!(text);
 }

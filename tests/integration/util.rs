@@ -32,8 +32,13 @@ pub fn run_pipeline(file: &Path, results: &Path, sets: &[&str]) -> run::RunRepor
 
 /// A published result table.
 pub fn table(results: &Path, pipeline: &str, stage: &str, table: &str) -> DataFrame {
-    ltcal::table::read_parquet(&results.join(pipeline).join(stage).join(format!("{table}.parquet")))
-        .unwrap()
+    ltcal::table::read_parquet(
+        &results
+            .join(pipeline)
+            .join(stage)
+            .join(format!("{table}.parquet")),
+    )
+    .unwrap()
 }
 
 pub fn col(df: &DataFrame, name: &str) -> Vec<f64> {
