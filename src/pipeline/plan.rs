@@ -101,10 +101,10 @@ pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
         let s = &p.stages[i];
         let mut hashes = BTreeMap::new();
         let mut pending = Vec::new();
-        for (slot, r) in &s.inputs {
+        for (slot, r) in s.wired_tables() {
             match known.get(r.stage.as_str()).and_then(|t| t.get(&r.table)) {
                 Some(h) => {
-                    hashes.insert(slot.clone(), h.clone());
+                    hashes.insert(slot, h.clone());
                 }
                 None => pending.push(format!("`{}`", r.stage)),
             }

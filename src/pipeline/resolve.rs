@@ -119,6 +119,33 @@ pub struct Stage {
     pub inputs: BTreeMap<String, InputRef>,
 }
 
+impl Stage {
+    /// Every table the stage reads, as `(input name, producer table)`: a
+    /// single-table slot is named after the slot, each table of a group
+    /// slot `<slot>.<table>`.
+    pub fn wired_tables(&self) -> Vec<(String, InputRef)> {
+        let slots = self.config.inputs();
+        let mut out = Vec::new();
+        for (slot, r) in &self.inputs {
+            match slots.iter().find(|s| s.name == slot) {
+                Some(spec) if !spec.group.is_empty() => {
+                    for t in spec.group {
+                        out.push((
+                            format!("{slot}.{t}"),
+                            InputRef {
+                                stage: r.stage.clone(),
+                                table: t.to_string(),
+                            },
+                        ));
+                    }
+                }
+                _ => out.push((slot.clone(), r.clone())),
+            }
+        }
+        out
+    }
+}
+
 /// The resolved pipeline: what the planner and the runner work from.
 #[derive(Clone, Debug)]
 pub struct Pipeline {
@@ -354,6 +381,41 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
                 continue;
             };
             let tables = producer.config.outputs();
+            let spec = slots
+                .iter()
+                .find(|x| x.name == slot)
+                .expect("checked above");
+            if !spec.group.is_empty() {
+                if !r.table.is_empty() {
+                    problems.push(Problem::At(src.error(
+                        at(&s.name, slot, false),
+                        format!(
+                            "input `{slot}` takes the tables {} of a stage together: name the stage alone, `\"{}\"`",
+                            spec.group.join(", "),
+                            r.stage
+                        ),
+                    )));
+                }
+                let missing: Vec<&str> = spec
+                    .group
+                    .iter()
+                    .copied()
+                    .filter(|t| !tables.contains(t))
+                    .collect();
+                if !missing.is_empty() {
+                    problems.push(Problem::At(src.error(
+                        at(&s.name, slot, false),
+                        format!(
+                            "input `{slot}` needs the tables {} but stage `{}` ({}) lacks {}",
+                            spec.group.join(", "),
+                            producer.name,
+                            producer.config.kind(),
+                            missing.join(", ")
+                        ),
+                    )));
+                }
+                continue;
+            }
             if !r.table.is_empty() && !tables.contains(&r.table.as_str()) {
                 problems.push(Problem::At(src.error(
                     at(&s.name, slot, false),
@@ -392,8 +454,10 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
         .map(|s| (s.name.clone(), s.config.outputs()[0]))
         .collect();
     for s in &mut p.stages {
-        for r in s.inputs.values_mut() {
-            if r.table.is_empty() {
+        let slots = s.config.inputs();
+        for (slot, r) in s.inputs.iter_mut() {
+            let group = slots.iter().any(|x| x.name == slot && !x.group.is_empty());
+            if r.table.is_empty() && !group {
                 r.table = primary[&r.stage].to_string();
             }
         }

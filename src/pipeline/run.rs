@@ -118,11 +118,11 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
                 let inputs = {
                     let done = produced.lock().expect("no panics hold this lock");
                     p.stages[i]
-                        .inputs
-                        .iter()
+                        .wired_tables()
+                        .into_iter()
                         .map(|(slot, r)| {
                             let prod = done[&r.stage].clone();
-                            (slot.clone(), r.clone(), prod)
+                            (slot, r, prod)
                         })
                         .collect::<Vec<_>>()
                 };

@@ -23,16 +23,12 @@ impl StageKind for CorrectStage {
     const KIND: &'static str = "correct";
     const SUMMARY: &'static str = "readings corrected with error parameters (Eq. 8)";
     const INPUTS: &'static [Slot] = &[
-        Slot {
-            name: "readings",
-            required: true,
-            doc: "the readings to correct",
-        },
-        Slot {
-            name: "params",
-            required: true,
-            doc: "error parameters (an `identify` or `inject` stage)",
-        },
+        Slot::table("readings", true, "the readings to correct"),
+        Slot::table(
+            "params",
+            true,
+            "error parameters (an `identify` or `inject` stage)",
+        ),
     ];
     const OUTPUTS: &'static [&'static str] = &["corrected"];
 

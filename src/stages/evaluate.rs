@@ -50,16 +50,16 @@ impl StageKind for EvaluateStage {
     const SUMMARY: &'static str =
         "Eq. (12) per point before and after calibration; mean, RMS, max and reduction %";
     const INPUTS: &'static [Slot] = &[
-        Slot {
-            name: "readings",
-            required: true,
-            doc: "readings with reported and reference coordinates",
-        },
-        Slot {
-            name: "corrected",
-            required: true,
-            doc: "the same readings corrected (a `correct` stage)",
-        },
+        Slot::table(
+            "readings",
+            true,
+            "readings with reported and reference coordinates",
+        ),
+        Slot::table(
+            "corrected",
+            true,
+            "the same readings corrected (a `correct` stage)",
+        ),
     ];
     const OUTPUTS: &'static [&'static str] = &["summary", "points"];
 

@@ -63,16 +63,16 @@ impl StageKind for IdentifyStage {
     const SUMMARY: &'static str =
         "error parameters from readings of known points (Eq. 11), with the null space named";
     const INPUTS: &'static [Slot] = &[
-        Slot {
-            name: "readings",
-            required: true,
-            doc: "readings with reference coordinates (a `measure` stage)",
-        },
-        Slot {
-            name: "start",
-            required: false,
-            doc: "start values (a params table); fixed and undetermined coefficients keep them",
-        },
+        Slot::table(
+            "readings",
+            true,
+            "readings with reference coordinates (a `measure` stage)",
+        ),
+        Slot::table(
+            "start",
+            false,
+            "start values (a params table); fixed and undetermined coefficients keep them",
+        ),
     ];
     const OUTPUTS: &'static [&'static str] = &["params", "singular_values", "combinations", "fit"];
 

@@ -56,16 +56,12 @@ impl StageKind for MeasureStage {
     const SUMMARY: &'static str =
         "readings of a mesh by a tracker with error parameters, solved exactly, plus seeded noise";
     const INPUTS: &'static [Slot] = &[
-        Slot {
-            name: "points",
-            required: true,
-            doc: "reflector positions (a `mesh` stage)",
-        },
-        Slot {
-            name: "errors",
-            required: false,
-            doc: "the tracker's error parameters (an `inject` stage); none: a perfect tracker",
-        },
+        Slot::table("points", true, "reflector positions (a `mesh` stage)"),
+        Slot::table(
+            "errors",
+            false,
+            "the tracker's error parameters (an `inject` stage); none: a perfect tracker",
+        ),
     ];
     const OUTPUTS: &'static [&'static str] = &["readings"];
 

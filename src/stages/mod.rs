@@ -22,12 +22,41 @@ use std::collections::BTreeMap;
 use std::fmt::Debug;
 use std::sync::Arc;
 
-/// An input slot of a stage kind.
+/// An input slot of a stage kind: one table, or a group of tables that
+/// travel together (a campaign is `readings`, `targets`, `gauge`, `meta`).
 #[derive(Clone, Copy, Debug)]
 pub struct Slot {
     pub name: &'static str,
     pub required: bool,
     pub doc: &'static str,
+    /// For a group slot, the producer tables it takes; a stage reads them as
+    /// `<slot>.<table>`. Empty for a single-table slot.
+    pub group: &'static [&'static str],
+}
+
+impl Slot {
+    pub const fn table(name: &'static str, required: bool, doc: &'static str) -> Slot {
+        Slot {
+            name,
+            required,
+            doc,
+            group: &[],
+        }
+    }
+
+    pub const fn group(
+        name: &'static str,
+        required: bool,
+        doc: &'static str,
+        tables: &'static [&'static str],
+    ) -> Slot {
+        Slot {
+            name,
+            required,
+            doc,
+            group: tables,
+        }
+    }
 }
 
 /// A setting that cannot work, with the dotted path of its field.

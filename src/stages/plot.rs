@@ -47,11 +47,7 @@ impl StageKind for PlotStage {
     const KIND: &'static str = "plot";
     const SUMMARY: &'static str =
         "an SVG figure of another stage's table (Figures 6–8: mesh-errors)";
-    const INPUTS: &'static [Slot] = &[Slot {
-        name: "table",
-        required: true,
-        doc: "the table to draw",
-    }];
+    const INPUTS: &'static [Slot] = &[Slot::table("table", true, "the table to draw")];
     const OUTPUTS: &'static [&'static str] = &["figure"];
 
     fn resolve(&mut self) {

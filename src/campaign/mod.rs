@@ -1,0 +1,130 @@
+//! Campaign data: what a laser-tracker user brings home — readings of a set
+//! of reflectors from several stations, reference coordinates where known,
+//! calibrated gauge lengths — as `campaign-format.md` (version 1) defines it.
+//!
+//! The same [`Campaign`] comes from a folder ([`read`]), from the simulator
+//! ([`crate::simulate`]) or from pipeline tables ([`Campaign::from_tables`]),
+//! and goes back to a folder ([`write`]) or tables ([`Campaign::to_tables`])
+//! without loss: angles stay in the degrees they were written in and are
+//! converted to radians only when a [`Reading`] is asked for.
+
+use crate::kinematics::{Face, Reading};
+use nalgebra::Vector3;
+
+/// `campaign.toml [tracker]`.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct Tracker {
+    pub model: String,
+    pub sigma_angle_urad: Option<f64>,
+    pub sigma_range_um: Option<f64>,
+    pub sigma_range_ppm: Option<f64>,
+}
+
+/// How the SMR axes are known (`[smr] aim`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Aim {
+    /// From the `aim_*_mm` columns of targets.csv.
+    #[default]
+    AimColumns,
+    /// Every SMR faces the centroid of all station positions (Section 10).
+    StationsCentroid,
+}
+
+impl Aim {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Aim::AimColumns => "aim-columns",
+            Aim::StationsCentroid => "stations-centroid",
+        }
+    }
+    pub fn parse(s: &str) -> Option<Aim> {
+        match s {
+            "aim-columns" => Some(Aim::AimColumns),
+            "stations-centroid" => Some(Aim::StationsCentroid),
+            _ => None,
+        }
+    }
+}
+
+/// `campaign.toml`.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct Meta {
+    pub format: i64,
+    pub name: String,
+    pub description: String,
+    pub tracker: Tracker,
+    pub aim: Aim,
+    pub smr_radius_mm: Option<f64>,
+}
+
+/// One row of readings.csv.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CampaignReading {
+    pub station: String,
+    pub target: String,
+    pub az_deg: f64,
+    pub el_deg: f64,
+    pub d_mm: f64,
+    pub face: Face,
+    pub time_s: Option<f64>,
+    pub temperature_c: Option<f64>,
+    pub pressure_hpa: Option<f64>,
+    pub humidity_pct: Option<f64>,
+}
+
+impl CampaignReading {
+    /// The reading in radians and mm.
+    pub fn reading(&self) -> Reading {
+        Reading {
+            az: self.az_deg.to_radians(),
+            el: self.el_deg.to_radians(),
+            d: self.d_mm,
+        }
+    }
+}
+
+/// One row of targets.csv.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Target {
+    pub id: String,
+    /// Reference coordinates (e.g. from a CMM), mm: a *nominal* point.
+    pub reference: Option<Vector3<f64>>,
+    pub u_mm: Option<f64>,
+    /// The point the SMR opening faces, mm.
+    pub aim: Option<Vector3<f64>>,
+}
+
+/// One row of gauge.csv.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GaugeLength {
+    pub target_a: String,
+    pub target_b: String,
+    pub distance_mm: f64,
+    pub u_mm: Option<f64>,
+}
+
+/// A whole campaign.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct Campaign {
+    pub meta: Meta,
+    pub readings: Vec<CampaignReading>,
+    pub targets: Vec<Target>,
+    pub gauge: Vec<GaugeLength>,
+}
+
+impl Campaign {
+    /// Station ids in order of first appearance.
+    pub fn stations(&self) -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        for r in &self.readings {
+            if !out.contains(&r.station) {
+                out.push(r.station.clone());
+            }
+        }
+        out
+    }
+
+    pub fn target(&self, id: &str) -> Option<&Target> {
+        self.targets.iter().find(|t| t.id == id)
+    }
+}
