@@ -17,6 +17,12 @@ pub fn stream(seed: u64, label: &str) -> ChaCha8Rng {
     ChaCha8Rng::from_seed(*h.finalize().as_bytes())
 }
 
+/// One draw, uniform in [0, 1).
+pub fn uniform(rng: &mut ChaCha8Rng) -> f64 {
+    use rand::RngExt;
+    rng.random::<f64>()
+}
+
 /// One standard normal draw.
 pub fn normal(rng: &mut ChaCha8Rng) -> f64 {
     StandardNormal.sample(rng)

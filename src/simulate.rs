@@ -1,5 +1,7 @@
 //! Simulated measurement: what a tracker with error parameters reads when it
-//! points at true reflector positions, plus reading noise.
+//! points at true reflector positions, plus reading noise — for a single
+//! mesh (Section 5.1) and for whole campaigns with the effects of
+//! `effects.md`.
 //!
 //! A tracker with errors pointed at a true point reports the *nominal*
 //! coordinates of the joint values that actually reach the point
@@ -8,12 +10,17 @@
 //! `sigma_angle_urad` on az and on el, and on d a standard deviation of
 //! `sqrt(sigma_range_um² + (sigma_range_ppm·d/1000)²)` µm.
 
+use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
+use crate::effects::{Axis, Effects, RangeScale, incidence_angles, table9_delta_d_um};
 use crate::error_model::{ErrorParams, InverseError};
 use crate::kinematics::{Face, Reading};
+use crate::layout::Layout;
 use crate::random;
-use nalgebra::Vector3;
+use nalgebra::{Rotation3, Vector3};
 use rand::rngs::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::f64::consts::PI;
 
 /// Reading noise, 1 σ.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -74,4 +81,266 @@ pub fn read(
         Some(e) => e.reading_of(target, face),
         None => Ok(crate::kinematics::nominal_reading(target, face)),
     }
+}
+
+/// A tracker station's true pose: `x_campaign = R·x_station + position`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StationPose {
+    pub id: String,
+    pub position: Vector3<f64>,
+    pub rotation: Rotation3<f64>,
+}
+
+impl StationPose {
+    pub fn to_local(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation.inverse() * (x - self.position)
+    }
+    pub fn to_campaign(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * x + self.position
+    }
+}
+
+/// What a simulated campaign is made from.
+#[derive(Clone, Debug)]
+pub struct CampaignSpec<'a> {
+    pub name: String,
+    pub layout: &'a Layout,
+    pub errors: Option<&'a ErrorParams>,
+    pub faces: &'a [Face],
+    pub aim: Aim,
+    /// SMR acceptance: readings beyond it are not taken.
+    pub max_angle_deg: f64,
+    pub noise: Noise,
+    pub effects: &'a Effects,
+    /// Standard uncertainty of the gauge's calibrated lengths (mm).
+    pub gauge_u_mm: f64,
+    /// Standard uncertainty of reference coordinates, when the layout has them.
+    pub reference_u_mm: f64,
+    /// Station levelling: tilt about x and y, 1 σ (µrad).
+    pub level_urad: f64,
+    /// Seconds between readings.
+    pub interval_s: f64,
+    pub record_time: bool,
+    pub record_temperature: bool,
+    pub seed: u64,
+}
+
+/// A simulated campaign and the truth behind it.
+#[derive(Clone, Debug)]
+pub struct SimulatedCampaign {
+    pub campaign: Campaign,
+    pub poses: Vec<StationPose>,
+    /// True reflector centres before any `target-shift`.
+    pub targets: Vec<(String, Vector3<f64>)>,
+    /// `range-scale` per station as used (given or drawn), ppm.
+    pub range_ppm: BTreeMap<String, f64>,
+    /// Readings beyond the acceptance angle, not taken.
+    pub not_taken: usize,
+}
+
+/// Seconds spent moving the tracker between stations.
+const STATION_CHANGE_S: f64 = 300.0;
+
+/// Simulates a campaign in the order of `effects.md`: true centre (after
+/// `target-shift`), true station pose (after `station-drift`), the readings
+/// of the tracker with its error parameters, reading-level effects, noise.
+pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, String> {
+    let layout = spec.layout;
+    let fx = spec.effects;
+    let mut pose_rng = random::stream(spec.seed, "stations");
+    let poses: Vec<StationPose> = layout
+        .stations
+        .iter()
+        .map(|(id, p)| {
+            let yaw = (random::uniform(&mut pose_rng) * 2.0 - 1.0) * PI;
+            let tx = random::normal(&mut pose_rng) * spec.level_urad * 1e-6;
+            let ty = random::normal(&mut pose_rng) * spec.level_urad * 1e-6;
+            StationPose {
+                id: id.clone(),
+                position: *p,
+                rotation: Rotation3::from_euler_angles(tx, ty, yaw),
+            }
+        })
+        .collect();
+    let station_index = |id: &str| poses.iter().position(|p| p.id == id);
+    let mut range_ppm = BTreeMap::new();
+    if let Some(rs) = &fx.range_scale {
+        let mut rng = random::stream(spec.seed, "range-scale");
+        for p in &poses {
+            let drawn = rs.sigma_ppm.map(|s| s * random::normal(&mut rng));
+            if let Some(v) = rs.ppm.get(&p.id).copied().or(drawn) {
+                range_ppm.insert(p.id.clone(), v);
+            }
+        }
+        if let Some(unknown) = rs.ppm.keys().find(|s| station_index(s).is_none()) {
+            return Err(format!("range-scale names station `{unknown}`, which the layout does not have"));
+        }
+    }
+    let shift_from = match &fx.target_shift {
+        Some(ts) => {
+            if !layout.targets.iter().any(|t| t.0 == ts.target) {
+                return Err(format!("target-shift names reflector `{}`, which the layout does not have", ts.target));
+            }
+            Some(station_index(&ts.from_station).ok_or_else(|| {
+                format!("target-shift names station `{}`, which the layout does not have", ts.from_station)
+            })?)
+        }
+        None => None,
+    };
+    if let Some(d) = fx.station_drift.as_ref().and_then(|d| d.station.as_ref()) {
+        if station_index(d).is_none() {
+            return Err(format!("station-drift names station `{d}`, which the layout does not have"));
+        }
+    }
+    let centroid: Vector3<f64> =
+        poses.iter().map(|p| p.position).sum::<Vector3<f64>>() / poses.len().max(1) as f64;
+    let max_angle = spec.max_angle_deg.to_radians();
+    let mut noise_rng = random::stream(spec.seed, "noise");
+    let mut time_rng = random::stream(spec.seed, "time");
+    let mut temp_rng = random::stream(spec.seed, "temperature");
+    let mut readings = Vec::new();
+    let mut not_taken = 0;
+    let mut time = 0.0;
+    for (si, pose) in poses.iter().enumerate() {
+        if si > 0 {
+            time += STATION_CHANGE_S;
+        }
+        let first_time = time;
+        let mut first = true;
+        for (tid, x0) in &layout.targets {
+            let mut x = *x0;
+            if let (Some(ts), Some(from)) = (&fx.target_shift, shift_from) {
+                if *tid == ts.target && si >= from {
+                    x += ts.shift_mm();
+                }
+            }
+            let aim_dir = (centroid - x).normalize();
+            for &face in spec.faces {
+                if !first {
+                    time += spec.interval_s * (0.9 + 0.2 * random::uniform(&mut time_rng));
+                }
+                first = false;
+                let mut origin = pose.position;
+                if let Some(d) = fx.station_drift.as_ref().filter(|d| d.applies_to(&pose.id)) {
+                    origin += d.displacement_mm(time - first_time);
+                }
+                let at = StationPose {
+                    position: origin,
+                    ..pose.clone()
+                };
+                let angles = incidence_angles(&aim_dir, &(origin - x).normalize());
+                if angles.alpha > max_angle {
+                    not_taken += 1;
+                    continue;
+                }
+                let mut r = read(spec.errors, &at.to_local(&x), face)
+                    .map_err(|e| format!("station {}, reflector {tid}: {e}", pose.id))?;
+                let mut dd_mm = 0.0;
+                if let Some(i) = &fx.incidence {
+                    if angles.alpha > i.max_angle_deg.to_radians() {
+                        not_taken += 1;
+                        continue;
+                    }
+                    dd_mm += i.delta_d_um(&angles) * 1e-3;
+                }
+                if fx.incidence_table9.is_some() {
+                    match table9_delta_d_um(angles.alpha_v, angles.alpha_h) {
+                        Some(um) => dd_mm += um * 1e-3,
+                        None => {
+                            not_taken += 1;
+                            continue;
+                        }
+                    }
+                }
+                if let Some(ppm) = range_ppm.get(&pose.id) {
+                    dd_mm += RangeScale::delta_d_mm(*ppm, r.d);
+                }
+                let temperature = match &fx.air_refraction {
+                    Some(a) => {
+                        let t = a.temperature_c(time);
+                        dd_mm += a.delta_d_mm(t, r.d);
+                        t
+                    }
+                    None => 20.0 + 0.01 * random::normal(&mut temp_rng),
+                };
+                if let Some(e) = &fx.encoder_harmonic {
+                    match e.axis {
+                        Axis::Az => r.az += e.delta_rad(r.az),
+                        Axis::El => r.el += e.delta_rad(r.el),
+                    }
+                }
+                r.d += dd_mm;
+                let r = spec.noise.apply(r, &mut noise_rng).wrapped();
+                readings.push(CampaignReading {
+                    station: pose.id.clone(),
+                    target: tid.clone(),
+                    az_deg: r.az.to_degrees(),
+                    el_deg: r.el.to_degrees(),
+                    d_mm: r.d,
+                    face,
+                    time_s: spec.record_time.then_some(time),
+                    temperature_c: spec.record_temperature.then_some(temperature),
+                    pressure_hpa: None,
+                    humidity_pct: None,
+                });
+            }
+        }
+    }
+    let mut ref_rng = random::stream(spec.seed, "references");
+    let targets = layout
+        .targets
+        .iter()
+        .map(|(id, x)| {
+            let reference = layout.references.then(|| {
+                x + Vector3::from_fn(|_, _| random::normal(&mut ref_rng) * spec.reference_u_mm)
+            });
+            Target {
+                id: id.clone(),
+                reference,
+                u_mm: layout.references.then_some(spec.reference_u_mm),
+                aim: (spec.aim == Aim::AimColumns).then_some(centroid),
+            }
+        })
+        .collect();
+    let mut gauge_rng = random::stream(spec.seed, "gauge");
+    let mut gauge = Vec::new();
+    for (a, ia) in layout.gauge.iter().zip(0..) {
+        for b in layout.gauge.iter().skip(ia + 1) {
+            let pa = layout.targets.iter().find(|t| &t.0 == a).map(|t| t.1);
+            let pb = layout.targets.iter().find(|t| &t.0 == b).map(|t| t.1);
+            if let (Some(pa), Some(pb)) = (pa, pb) {
+                gauge.push(GaugeLength {
+                    target_a: a.clone(),
+                    target_b: b.clone(),
+                    distance_mm: (pa - pb).norm() + spec.gauge_u_mm * random::normal(&mut gauge_rng),
+                    u_mm: Some(spec.gauge_u_mm),
+                });
+            }
+        }
+    }
+    let campaign = Campaign {
+        meta: Meta {
+            format: 1,
+            name: spec.name.clone(),
+            description: format!("simulated by ltcal {}", crate::VERSION),
+            tracker: Tracker {
+                model: "api-tracker3".into(),
+                sigma_angle_urad: Some(spec.noise.sigma_angle_urad),
+                sigma_range_um: Some(spec.noise.sigma_range_um),
+                sigma_range_ppm: Some(spec.noise.sigma_range_ppm),
+            },
+            aim: spec.aim,
+            smr_radius_mm: Some(19.05),
+        },
+        readings,
+        targets,
+        gauge,
+    };
+    Ok(SimulatedCampaign {
+        campaign,
+        poses,
+        targets: layout.targets.clone(),
+        range_ppm,
+        not_taken,
+    })
 }
