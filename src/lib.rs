@@ -5,10 +5,12 @@
 
 pub mod campaign;
 pub mod cli;
+pub mod effects;
 pub mod error_model;
 pub mod identifiability;
 pub mod identify;
 pub mod kinematics;
+pub mod layout;
 pub mod mesh;
 pub mod pipeline;
 pub mod plots;
