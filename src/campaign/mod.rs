@@ -2,14 +2,28 @@
 //! of reflectors from several stations, reference coordinates where known,
 //! calibrated gauge lengths — as `campaign-format.md` (version 1) defines it.
 //!
-//! The same [`Campaign`] comes from a folder ([`read`]), from the simulator
-//! ([`crate::simulate`]) or from pipeline tables ([`Campaign::from_tables`]),
-//! and goes back to a folder ([`write`]) or tables ([`Campaign::to_tables`])
+//! The same [`Campaign`] comes from a folder ([`read()`]), from the simulator
+//! ([`crate::simulate`]) or from pipeline tables ([`Campaign::from_inputs`]),
+//! and goes back to a folder ([`write()`]) or tables ([`Campaign::to_tables`])
 //! without loss: angles stay in the degrees they were written in and are
-//! converted to radians only when a [`Reading`] is asked for.
+//! converted to radians only when a [`Reading`] is asked for. Whatever the
+//! way in or out, [`Campaign::check`] holds it to the same rules.
+
+mod check;
+mod read;
+mod tables;
+mod write;
+
+pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
+pub use read::{CampaignError, Problem, read};
+pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};
 use nalgebra::Vector3;
+
+/// The tables a campaign travels as between stages (a group input slot:
+/// `Slot::group("campaign", …, TABLES)`).
+pub const TABLES: &[&str] = &["readings", "targets", "gauge", "meta"];
 
 /// `campaign.toml [tracker]`.
 #[derive(Clone, Debug, PartialEq, Default)]

@@ -1,0 +1,997 @@
+//! Reading a campaign folder exactly as `campaign-format.md` (version 1)
+//! defines it.
+//!
+//! Two passes. The first reads each file into what a [`Campaign`] can hold
+//! and checks what is about the text itself: encoding, CSV shape, header,
+//! required columns, number syntax, `face`, the keys and types of
+//! campaign.toml; it remembers where every cell is. The second holds the
+//! campaign to the format's rules ([`Campaign::check`], shared with the other
+//! ways a campaign enters or leaves ltcal) and points each broken rule at its
+//! `file:line:col` through those positions. Every problem is collected before
+//! anything is returned, and a campaign with any problem is not returned at
+//! all: nothing is half-read.
+//!
+//! CSV is tokenized by `csv-core`, the parser under the `csv` crate, rather
+//! than by `csv` itself: `csv` tells where a record starts but not where each
+//! of its fields is, and every error must point at its cell. `csv-core`
+//! reports how many input bytes each field took, so cells keep their exact
+//! positions, quoted fields included.
+
+use super::check::{Issue, Place, Table};
+use super::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
+use crate::kinematics::Face;
+use crate::pipeline::raw::toml_error;
+use crate::pipeline::source::{Source, SourceError};
+use csv_core::ReadFieldResult;
+use nalgebra::Vector3;
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::fmt;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use toml::Spanned;
+
+/// Why a campaign folder does not load: every problem found, in file order.
+#[derive(Debug)]
+pub struct CampaignError {
+    pub dir: PathBuf,
+    pub problems: Vec<Problem>,
+}
+
+/// One problem with a campaign folder.
+#[derive(Debug)]
+pub enum Problem {
+    /// At a place in one of its files.
+    At(SourceError),
+    /// About a whole file (missing, unreadable) or the folder.
+    File { path: PathBuf, message: String },
+}
+
+impl Problem {
+    /// `path:line:col` (or the path alone for a whole-file problem).
+    pub fn location(&self) -> String {
+        match self {
+            Problem::At(e) => e.location(),
+            Problem::File { path, .. } => path.display().to_string(),
+        }
+    }
+    pub fn message(&self) -> &str {
+        match self {
+            Problem::At(e) => &e.message,
+            Problem::File { message, .. } => message,
+        }
+    }
+}
+
+impl fmt::Display for Problem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Problem::At(e) => write!(f, "{e}"),
+            Problem::File { path, message } => write!(f, "{}: {message}", path.display()),
+        }
+    }
+}
+
+/// Problems shown in full; a file broken on every line would bury the first
+/// ones, which are what the user fixes first.
+const SHOWN: usize = 20;
+
+impl fmt::Display for CampaignError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let n = self.problems.len();
+        write!(
+            f,
+            "the campaign in {} does not load ({n} problem{}):",
+            self.dir.display(),
+            if n == 1 { "" } else { "s" }
+        )?;
+        for p in self.problems.iter().take(SHOWN) {
+            write!(f, "\n\n{p}")?;
+        }
+        if n > SHOWN {
+            write!(f, "\n\n… and {} more", n - SHOWN)?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for CampaignError {}
+
+/// Reads the campaign in `dir`; relative paths are relative to the current
+/// directory.
+pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
+    let fail = |problems| CampaignError {
+        dir: dir.to_path_buf(),
+        problems,
+    };
+    if !dir.is_dir() {
+        return Err(fail(vec![Problem::File {
+            path: dir.to_path_buf(),
+            message: "not a folder: a campaign is a folder holding campaign.toml, readings.csv, \
+                      targets.csv and optionally gauge.csv"
+                .into(),
+        }]));
+    }
+    let mut problems = Vec::new();
+    let toml_src = load(&dir.join("campaign.toml"), true, &mut problems);
+    let meta = match &toml_src {
+        Some(src) => match parse_meta(src) {
+            Ok(m) => Some(m),
+            Err(MetaError::Version(e)) => {
+                // Another version may lay out every file differently: what
+                // else the folder holds means nothing to this reader.
+                return Err(fail(vec![Problem::At(e)]));
+            }
+            Err(MetaError::Other(e)) => {
+                problems.push(Problem::At(e));
+                None
+            }
+        },
+        None => None,
+    };
+    let aim = meta.as_ref().map(|(m, _)| m.aim);
+    let readings = load(&dir.join("readings.csv"), true, &mut problems)
+        .and_then(|s| Csv::parse(s, &mut problems))
+        .and_then(|csv| parse_readings(csv, &mut problems));
+    let targets = load(&dir.join("targets.csv"), true, &mut problems)
+        .and_then(|s| Csv::parse(s, &mut problems))
+        .and_then(|csv| parse_targets(csv, aim, &mut problems));
+    let gauge = match load(&dir.join("gauge.csv"), false, &mut problems) {
+        Some(s) => Csv::parse(s, &mut problems).and_then(|csv| parse_gauge(csv, &mut problems)),
+        None => Some((Vec::new(), None)),
+    };
+    let (
+        Some((meta, spans)),
+        Some((readings, readings_csv)),
+        Some((targets, targets_csv)),
+        Some((gauge, gauge_csv)),
+    ) = (meta, readings, targets, gauge)
+    else {
+        return Err(fail(problems));
+    };
+    if !problems.is_empty() {
+        return Err(fail(problems));
+    }
+    let campaign = Campaign {
+        meta,
+        readings,
+        targets,
+        gauge,
+    };
+    let issues = campaign.check();
+    if issues.is_empty() {
+        return Ok(campaign);
+    }
+    let toml_src = toml_src.expect("campaign.toml was read, since its meta was parsed");
+    let places = Places {
+        toml: &toml_src,
+        toml_spans: &spans,
+        readings: &readings_csv,
+        targets: &targets_csv,
+        gauge: gauge_csv.as_ref(),
+    };
+    let mut located: Vec<(usize, usize, SourceError)> =
+        issues.into_iter().map(|i| places.locate(i)).collect();
+    located.sort_by_key(|(file, start, _)| (*file, *start));
+    Err(fail(
+        located.into_iter().map(|(_, _, e)| Problem::At(e)).collect(),
+    ))
+}
+
+/// A file's text: `None` (with a problem, if the file is required) when it
+/// cannot be had. A UTF-8 byte-order mark is dropped so that columns count
+/// as an editor shows them.
+fn load(path: &Path, required: bool, problems: &mut Vec<Problem>) -> Option<Source> {
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound && !required => return None,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            problems.push(Problem::File {
+                path: path.to_path_buf(),
+                message: "missing: a campaign needs campaign.toml, readings.csv and targets.csv"
+                    .into(),
+            });
+            return None;
+        }
+        Err(e) => {
+            problems.push(Problem::File {
+                path: path.to_path_buf(),
+                message: format!("cannot be read: {e}"),
+            });
+            return None;
+        }
+    };
+    let bytes = bytes
+        .strip_prefix("\u{feff}".as_bytes())
+        .unwrap_or(&bytes[..]);
+    match std::str::from_utf8(bytes) {
+        Ok(text) => Some(Source::new(path, text)),
+        Err(e) => {
+            // The text up to the bad byte is intact, so the position is exact.
+            let src = Source::new(path, String::from_utf8_lossy(bytes).into_owned());
+            let at = e.valid_up_to();
+            problems.push(Problem::At(src.error(
+                at..at + 1,
+                format!(
+                    "not UTF-8: byte 0x{:02x} here is not valid UTF-8 (campaign files are UTF-8 text)",
+                    bytes[at]
+                ),
+            )));
+            None
+        }
+    }
+}
+
+// ---------------------------------------------------------------- numbers
+
+/// A number cell: a plain decimal (`1234.5`, `-0.0012`, `1e-3`, also `+5`,
+/// `.5`, `5.`, `1E3`) that is finite. `NaN`, `inf`, hexadecimal, thousands
+/// separators and surrounding spaces are not plain decimals; an empty cell
+/// is handled by the caller (it means "not known").
+fn parse_number(text: &str) -> Result<f64, String> {
+    let plain = || format!("`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)");
+    if text.trim() != text {
+        return Err(format!(
+            "`{text}` has spaces around it (numbers are plain decimals like 1234.5, written without spaces)"
+        ));
+    }
+    let unsigned = text.trim_start_matches(['+', '-']).to_ascii_lowercase();
+    if unsigned == "nan" {
+        return Err("NaN is not a value (leave the cell empty for \"not known\")".into());
+    }
+    if unsigned == "inf" || unsigned == "infinity" {
+        return Err(format!("`{text}` is not a finite number"));
+    }
+    if !is_plain_decimal(text) {
+        return Err(plain());
+    }
+    // The grammar above is a subset of what `f64::from_str` accepts.
+    let v: f64 = text.parse().map_err(|_| plain())?;
+    if v.is_infinite() {
+        return Err(format!("`{text}` is too large: it is not a finite number"));
+    }
+    Ok(v)
+}
+
+/// `[+-]? (digits [. digits?] | . digits) ([eE] [+-]? digits)?`
+fn is_plain_decimal(s: &str) -> bool {
+    let b = s.as_bytes();
+    let mut i = 0;
+    let digits = |i: &mut usize| {
+        let start = *i;
+        while *i < b.len() && b[*i].is_ascii_digit() {
+            *i += 1;
+        }
+        *i - start
+    };
+    if i < b.len() && (b[i] == b'+' || b[i] == b'-') {
+        i += 1;
+    }
+    let mut mantissa = digits(&mut i);
+    if i < b.len() && b[i] == b'.' {
+        i += 1;
+        mantissa += digits(&mut i);
+    }
+    if mantissa == 0 {
+        return false;
+    }
+    if i < b.len() && (b[i] == b'e' || b[i] == b'E') {
+        i += 1;
+        if i < b.len() && (b[i] == b'+' || b[i] == b'-') {
+            i += 1;
+        }
+        if digits(&mut i) == 0 {
+            return false;
+        }
+    }
+    i == b.len()
+}
+
+// ---------------------------------------------------------------- CSV
+
+/// One cell: its unquoted text and its bytes in the file.
+#[derive(Clone, Debug)]
+struct Cell {
+    text: String,
+    span: Range<usize>,
+}
+
+/// A CSV file: header, rows of exactly as many cells, and the text for errors.
+struct Csv {
+    src: Source,
+    header: Vec<Cell>,
+    rows: Vec<Vec<Cell>>,
+}
+
+impl Csv {
+    /// Tokenizes a file and checks its shape: a header without repeated
+    /// names, every row as wide as the header, every quote closed.
+    fn parse(src: Source, problems: &mut Vec<Problem>) -> Option<Csv> {
+        let before = problems.len();
+        let mut records = tokenize(&src, problems).into_iter();
+        let Some(header) = records.next() else {
+            problems.push(Problem::At(src.error(
+                0..0,
+                "the file is empty: it needs a header row naming its columns",
+            )));
+            return None;
+        };
+        let mut first: BTreeMap<&str, &Cell> = BTreeMap::new();
+        for cell in &header {
+            if let Some(earlier) = first.insert(&cell.text, cell) {
+                let (_, col) = src.line_col(earlier.span.start);
+                problems.push(Problem::At(src.error(
+                    cell.span.clone(),
+                    format!(
+                        "column `{}` appears twice in the header (first at column {col})",
+                        cell.text
+                    ),
+                )));
+            }
+        }
+        let width = header.len();
+        let mut rows = Vec::new();
+        for row in records {
+            match row.len() {
+                n if n < width => {
+                    let end = row.last().map_or(0, |c| c.span.end);
+                    problems.push(Problem::At(src.error(
+                        end..end,
+                        format!(
+                            "this row has {n} field{} but the header has {width}: \
+                             the file may be cut short, or a comma is missing",
+                            if n == 1 { "" } else { "s" }
+                        ),
+                    )));
+                }
+                n if n > width => problems.push(Problem::At(src.error(
+                    row[width].span.clone(),
+                    format!("this row has {n} fields but the header has {width}"),
+                ))),
+                _ => rows.push(row),
+            }
+        }
+        (problems.len() == before).then_some(Csv { src, header, rows })
+    }
+
+    fn error(&self, span: Range<usize>, message: impl Into<String>) -> Problem {
+        Problem::At(self.src.error(span, message))
+    }
+}
+
+/// Splits a file into records of cells. A quote left open is reported (it
+/// means a cut file: `csv-core` would silently run the field to the end).
+fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> Vec<Vec<Cell>> {
+    let bytes = src.text.as_bytes();
+    let mut reader = csv_core::Reader::new();
+    let mut out = vec![0u8; 1024];
+    let mut records = Vec::new();
+    let mut record: Vec<Cell> = Vec::new();
+    let mut pos = 0;
+    loop {
+        let start = pos;
+        let mut written = 0;
+        let record_end = loop {
+            // Once the input is used up, the empty slice tells csv-core
+            // that the file has ended.
+            let (res, read, wrote) = reader.read_field(&bytes[pos..], &mut out[written..]);
+            pos += read;
+            written += wrote;
+            match res {
+                ReadFieldResult::InputEmpty => {}
+                ReadFieldResult::OutputFull => out.resize(out.len() * 2, 0),
+                ReadFieldResult::Field { record_end } => break Some(record_end),
+                ReadFieldResult::End => break None,
+            }
+        };
+        let Some(record_end) = record_end else {
+            return records;
+        };
+        // A field's bytes run from where the previous one stopped to its
+        // delimiter; at a record's start they include the line ending of the
+        // previous record and any blank lines, which csv-core skips.
+        let mut a = start;
+        if record.is_empty() {
+            while a < pos && matches!(bytes[a], b'\r' | b'\n') {
+                a += 1;
+            }
+        }
+        let mut b = pos;
+        if record_end {
+            if b > a && bytes[b - 1] == b'\n' {
+                b -= 1;
+            }
+            if b > a && bytes[b - 1] == b'\r' {
+                b -= 1;
+            }
+        } else if b > a && bytes[b - 1] == b',' {
+            b -= 1;
+        }
+        let raw = &bytes[a..b];
+        if raw.first() == Some(&b'"') && (raw.len() == 1 || raw.last() != Some(&b'"')) {
+            problems.push(Problem::At(src.error(
+                a..a + 1,
+                "this quoted field has no closing quote: the file may be cut short",
+            )));
+        }
+        record.push(Cell {
+            text: String::from_utf8_lossy(&out[..written]).into_owned(),
+            span: a..b,
+        });
+        if record_end {
+            records.push(std::mem::take(&mut record));
+        }
+    }
+}
+
+/// The header of one file: which column is where.
+struct Columns<'a> {
+    csv: &'a Csv,
+    index: BTreeMap<&'a str, usize>,
+}
+
+impl<'a> Columns<'a> {
+    fn new(csv: &'a Csv) -> Columns<'a> {
+        let index = csv
+            .header
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (c.text.as_str(), i))
+            .collect();
+        Columns { csv, index }
+    }
+
+    fn optional(&self, name: &str) -> Option<usize> {
+        self.index.get(name).copied()
+    }
+
+    /// A required column; `why` says what requires it when the format does
+    /// not require it on its own.
+    fn require(&self, name: &str, why: Option<&str>, problems: &mut Vec<Problem>) -> Option<usize> {
+        if let Some(i) = self.optional(name) {
+            return Some(i);
+        }
+        let file = file_name(&self.csv.src);
+        let why = why.map_or_else(String::new, |w| format!(" ({w})"));
+        // A header cell that is the name but for case or spaces is surely
+        // meant as it: point there. Otherwise at the header as a whole.
+        let near = self
+            .csv
+            .header
+            .iter()
+            .find(|c| c.text.trim().eq_ignore_ascii_case(name));
+        let (span, hint) = match near {
+            Some(c) => (
+                c.span.clone(),
+                format!("; the header has `{}` — column names are exact", c.text),
+            ),
+            None => {
+                let end = self.csv.header.last().map_or(0, |c| c.span.end);
+                (0..end, String::new())
+            }
+        };
+        problems.push(
+            self.csv
+                .error(span, format!("{file} lacks the required column `{name}`{why}{hint}")),
+        );
+        None
+    }
+
+    /// Three columns that go together (`x_mm`, `y_mm`, `z_mm`): all or none.
+    fn triple(&self, names: [&str; 3], problems: &mut Vec<Problem>) -> Option<[usize; 3]> {
+        let found = names.map(|n| self.optional(n));
+        if found.iter().all(Option::is_none) {
+            return None;
+        }
+        if let [Some(x), Some(y), Some(z)] = found {
+            return Some([x, y, z]);
+        }
+        let (have, lack): (Vec<_>, Vec<_>) = names.iter().zip(found).partition(|(_, f)| f.is_some());
+        let at = have[0].1.map_or(0..0, |i| self.csv.header[i].span.clone());
+        let list = |v: Vec<(&&str, Option<usize>)>| {
+            v.iter().map(|(n, _)| format!("`{n}`")).collect::<Vec<_>>().join(", ")
+        };
+        problems.push(self.csv.error(
+            at,
+            format!(
+                "{} has {} but not {}: {} go together",
+                file_name(&self.csv.src),
+                list(have),
+                list(lack),
+                names.join(", ")
+            ),
+        ));
+        None
+    }
+}
+
+fn file_name(src: &Source) -> String {
+    src.path
+        .file_name()
+        .map_or_else(|| src.path.display().to_string(), |n| n.to_string_lossy().into_owned())
+}
+
+/// The typed cells of one row, collecting what is wrong with them.
+struct RowCells<'a> {
+    csv: &'a Csv,
+    row: &'a [Cell],
+    problems: Vec<Problem>,
+}
+
+impl<'a> RowCells<'a> {
+    fn new(csv: &'a Csv, row: &'a [Cell]) -> RowCells<'a> {
+        RowCells {
+            csv,
+            row,
+            problems: Vec::new(),
+        }
+    }
+
+    fn text(&self, col: usize) -> String {
+        self.row[col].text.clone()
+    }
+
+    fn number(&mut self, col: usize) -> Option<f64> {
+        let (csv, row) = (self.csv, self.row);
+        let cell = &row[col];
+        if cell.text.is_empty() {
+            let name = &csv.header[col].text;
+            self.problems.push(csv.error(
+                cell.span.clone(),
+                format!("`{name}` is required, but this cell is empty"),
+            ));
+            return None;
+        }
+        self.parse(col)
+    }
+
+    /// `None` for an absent column or an empty cell (not known) — and for a
+    /// bad cell, which is then reported.
+    fn opt_number(&mut self, col: Option<usize>) -> Option<f64> {
+        let col = col?;
+        if self.row[col].text.is_empty() {
+            return None;
+        }
+        self.parse(col)
+    }
+
+    fn parse(&mut self, col: usize) -> Option<f64> {
+        let (csv, row) = (self.csv, self.row);
+        let cell = &row[col];
+        match parse_number(&cell.text) {
+            Ok(v) => Some(v),
+            Err(m) => {
+                let name = &csv.header[col].text;
+                self.problems
+                    .push(csv.error(cell.span.clone(), format!("`{name}`: {m}")));
+                None
+            }
+        }
+    }
+
+    /// Three optional numbers that go together: all known or all empty.
+    fn opt_vector(&mut self, cols: Option<[usize; 3]>) -> Option<Vector3<f64>> {
+        let cols = cols?;
+        let empty = cols.map(|c| self.row[c].text.is_empty());
+        if empty.iter().all(|e| *e) {
+            return None;
+        }
+        if let Some(k) = empty.iter().position(|e| *e) {
+            let names = cols.map(|c| self.csv.header[c].text.as_str());
+            self.problems.push(self.csv.error(
+                self.row[cols[k]].span.clone(),
+                format!(
+                    "`{}` is empty but other coordinates of this point are given: {} go together",
+                    names[k],
+                    names.join(", ")
+                ),
+            ));
+            return None;
+        }
+        let [x, y, z] = cols.map(|c| self.parse(c));
+        Some(Vector3::new(x?, y?, z?))
+    }
+
+    fn face(&mut self, col: Option<usize>) -> Face {
+        let Some(col) = col else {
+            return Face::Front;
+        };
+        let (csv, row) = (self.csv, self.row);
+        let cell = &row[col];
+        match cell.text.as_str() {
+            "" | "1" => Face::Front,
+            "2" => Face::Back,
+            other => {
+                self.problems.push(csv.error(
+                    cell.span.clone(),
+                    format!("`face` is 1 (front) or 2 (back), got `{other}`"),
+                ));
+                Face::Front
+            }
+        }
+    }
+
+    /// The row's value, or its problems.
+    fn finish<T>(self, value: Option<T>, problems: &mut Vec<Problem>) -> Option<T> {
+        if self.problems.is_empty() {
+            value
+        } else {
+            problems.extend(self.problems);
+            None
+        }
+    }
+}
+
+/// Rows into values; `None` when any row has a problem.
+fn rows<T>(
+    csv: &Csv,
+    problems: &mut Vec<Problem>,
+    mut parse_row: impl FnMut(&mut RowCells) -> Option<T>,
+) -> Option<Vec<T>> {
+    let mut out = Vec::with_capacity(csv.rows.len());
+    let mut ok = true;
+    for row in &csv.rows {
+        let mut cells = RowCells::new(csv, row);
+        let value = parse_row(&mut cells);
+        match cells.finish(value, problems) {
+            Some(v) => out.push(v),
+            None => ok = false,
+        }
+    }
+    ok.then_some(out)
+}
+
+fn parse_readings(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<CampaignReading>, Csv)> {
+    let c = Columns::new(&csv);
+    let required = ["station", "target", "az_deg", "el_deg", "d_mm"].map(|n| c.require(n, None, problems));
+    let [Some(station), Some(target), Some(az), Some(el), Some(d)] = required else {
+        return None;
+    };
+    let face = c.optional("face");
+    let [time, temperature, pressure, humidity] =
+        ["time_s", "temperature_c", "pressure_hpa", "humidity_pct"].map(|n| c.optional(n));
+    let readings = rows(&csv, problems, |r| {
+        let (az, el, d) = (r.number(az), r.number(el), r.number(d));
+        let face = r.face(face);
+        let (time_s, temperature_c, pressure_hpa, humidity_pct) = (
+            r.opt_number(time),
+            r.opt_number(temperature),
+            r.opt_number(pressure),
+            r.opt_number(humidity),
+        );
+        Some(CampaignReading {
+            station: r.text(station),
+            target: r.text(target),
+            az_deg: az?,
+            el_deg: el?,
+            d_mm: d?,
+            face,
+            time_s,
+            temperature_c,
+            pressure_hpa,
+            humidity_pct,
+        })
+    })?;
+    Some((readings, csv))
+}
+
+fn parse_targets(
+    csv: Csv,
+    aim: Option<Aim>,
+    problems: &mut Vec<Problem>,
+) -> Option<(Vec<Target>, Csv)> {
+    let c = Columns::new(&csv);
+    let before = problems.len();
+    let id = c.require("target", None, problems);
+    let reference = c.triple(["x_mm", "y_mm", "z_mm"], problems);
+    let u = c.optional("u_mm");
+    let aim_names = ["aim_x_mm", "aim_y_mm", "aim_z_mm"];
+    let aim_cols = c.triple(aim_names, problems);
+    if aim == Some(Aim::AimColumns) && aim_cols.is_none() {
+        for n in aim_names {
+            c.require(
+                n,
+                Some("campaign.toml says [smr] aim = \"aim-columns\": every target needs its aim point"),
+                problems,
+            );
+        }
+    }
+    let id = id?;
+    if problems.len() > before {
+        return None;
+    }
+    let targets = rows(&csv, problems, |r| {
+        let reference = r.opt_vector(reference);
+        let u_mm = r.opt_number(u);
+        let aim = r.opt_vector(aim_cols);
+        Some(Target {
+            id: r.text(id),
+            reference,
+            u_mm,
+            aim,
+        })
+    })?;
+    Some((targets, csv))
+}
+
+fn parse_gauge(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<GaugeLength>, Option<Csv>)> {
+    let c = Columns::new(&csv);
+    let required = ["target_a", "target_b", "distance_mm"].map(|n| c.require(n, None, problems));
+    let [Some(a), Some(b), Some(distance)] = required else {
+        return None;
+    };
+    let u = c.optional("u_mm");
+    let gauge = rows(&csv, problems, |r| {
+        let distance_mm = r.number(distance);
+        let u_mm = r.opt_number(u);
+        Some(GaugeLength {
+            target_a: r.text(a),
+            target_b: r.text(b),
+            distance_mm: distance_mm?,
+            u_mm,
+        })
+    })?;
+    Some((gauge, Some(csv)))
+}
+
+// ---------------------------------------------------------------- campaign.toml
+
+#[derive(Deserialize)]
+struct Version {
+    format: Option<Spanned<toml::Value>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MetaFile {
+    // Checked before this struct is read; named so that the key is known.
+    #[serde(rename = "format")]
+    _format: serde::de::IgnoredAny,
+    name: Spanned<String>,
+    description: Option<String>,
+    tracker: TrackerFile,
+    smr: SmrFile,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TrackerFile {
+    model: Spanned<String>,
+    sigma_angle_urad: Option<Spanned<f64>>,
+    sigma_range_um: Option<Spanned<f64>>,
+    sigma_range_ppm: Option<Spanned<f64>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SmrFile {
+    aim: Spanned<String>,
+    radius_mm: Option<Spanned<f64>>,
+}
+
+enum MetaError {
+    /// Not format 1: nothing else can be read.
+    Version(SourceError),
+    Other(SourceError),
+}
+
+/// The span of every campaign.toml value, by dotted key.
+type Spans = BTreeMap<&'static str, Range<usize>>;
+
+fn parse_meta(src: &Source) -> Result<(Meta, Spans), MetaError> {
+    let text = &src.text;
+    let version: Version =
+        toml::from_str(text).map_err(|e| MetaError::Other(toml_error(src, e, 0..0)))?;
+    let format = version.format.ok_or_else(|| {
+        MetaError::Version(src.error(
+            0..0,
+            "campaign.toml has no `format`: a campaign file starts with `format = 1`",
+        ))
+    })?;
+    match format.get_ref() {
+        toml::Value::Integer(1) => {}
+        toml::Value::Integer(n) => {
+            return Err(MetaError::Version(src.error(
+                format.span(),
+                format!("format {n} is not supported: this ltcal reads campaign format 1"),
+            )));
+        }
+        _ => {
+            return Err(MetaError::Version(src.error(
+                format.span(),
+                "`format` is the integer 1 (the version of the campaign format)",
+            )));
+        }
+    }
+    let file: MetaFile =
+        toml::from_str(text).map_err(|e| MetaError::Other(toml_error(src, e, 0..0)))?;
+    let aim = Aim::parse(file.smr.aim.get_ref()).ok_or_else(|| {
+        MetaError::Other(src.error(
+            file.smr.aim.span(),
+            format!(
+                "[smr] aim is \"aim-columns\" or \"stations-centroid\", got \"{}\"",
+                file.smr.aim.get_ref()
+            ),
+        ))
+    })?;
+    let mut spans = Spans::new();
+    spans.insert("format", format.span());
+    spans.insert("name", file.name.span());
+    spans.insert("tracker.model", file.tracker.model.span());
+    spans.insert("smr.aim", file.smr.aim.span());
+    let mut value = |key: &'static str, v: Option<Spanned<f64>>| {
+        v.map(|s| {
+            spans.insert(key, s.span());
+            s.into_inner()
+        })
+    };
+    let t = file.tracker;
+    let tracker = Tracker {
+        model: t.model.into_inner(),
+        sigma_angle_urad: value("tracker.sigma_angle_urad", t.sigma_angle_urad),
+        sigma_range_um: value("tracker.sigma_range_um", t.sigma_range_um),
+        sigma_range_ppm: value("tracker.sigma_range_ppm", t.sigma_range_ppm),
+    };
+    let smr_radius_mm = value("smr.radius_mm", file.smr.radius_mm);
+    let meta = Meta {
+        format: 1,
+        name: file.name.into_inner(),
+        description: file.description.unwrap_or_default(),
+        tracker,
+        aim,
+        smr_radius_mm,
+    };
+    Ok((meta, spans))
+}
+
+// ---------------------------------------------------------------- locating issues
+
+/// Where each part of a read campaign came from.
+struct Places<'a> {
+    toml: &'a Source,
+    toml_spans: &'a Spans,
+    readings: &'a Csv,
+    targets: &'a Csv,
+    gauge: Option<&'a Csv>,
+}
+
+impl Places<'_> {
+    /// The issue as an error in its file, with the file's rank and the
+    /// offset to sort by.
+    fn locate(&self, issue: Issue) -> (usize, usize, SourceError) {
+        let (rank, src, span) = match issue.place {
+            Place::Meta(key) => (
+                0,
+                self.toml,
+                self.toml_spans.get(key).cloned().unwrap_or(0..0),
+            ),
+            Place::Table(t) => {
+                let (rank, csv) = self.csv(t);
+                let end = csv.src.text.len();
+                (rank, &csv.src, end..end)
+            }
+            Place::Cell { table, row, column } => {
+                let (rank, csv) = self.csv(table);
+                let cells = &csv.rows[row];
+                let span = match Columns::new(csv).optional(column) {
+                    Some(i) => cells[i].span.clone(),
+                    None => cells[0].span.start..cells[0].span.start,
+                };
+                (rank, &csv.src, span)
+            }
+        };
+        (rank, span.start, src.error(span, issue.message))
+    }
+
+    fn csv(&self, t: Table) -> (usize, &Csv) {
+        match t {
+            Table::Readings => (1, self.readings),
+            Table::Targets => (2, self.targets),
+            Table::Gauge => (
+                3,
+                self.gauge
+                    .expect("a gauge issue comes from a gauge row, so gauge.csv was read"),
+            ),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plain_decimals_parse_exactly() {
+        for (text, v) in [
+            ("1234.5", 1234.5),
+            ("-0.0012", -0.0012),
+            ("1e-3", 1e-3),
+            ("0", 0.0),
+            ("+5", 5.0),
+            (".5", 0.5),
+            ("5.", 5.0),
+            ("1E3", 1000.0),
+            ("-2.5e+2", -250.0),
+            ("4610.10042", 4610.10042),
+            ("0.1", 0.1),
+        ] {
+            assert_eq!(parse_number(text), Ok(v), "{text}");
+        }
+        assert!(parse_number("-0").unwrap().is_sign_negative());
+    }
+
+    #[test]
+    fn what_is_not_a_plain_decimal_is_refused_with_a_reason() {
+        for (text, phrase) in [
+            ("NaN", "NaN is not a value"),
+            ("nan", "NaN is not a value"),
+            ("-NaN", "NaN is not a value"),
+            ("inf", "not a finite number"),
+            ("-Infinity", "not a finite number"),
+            ("1e999", "too large"),
+            (" 1.5", "spaces around it"),
+            ("1.5 ", "spaces around it"),
+            ("abc", "is not a number"),
+            ("1,5", "is not a number"),
+            ("0x10", "is not a number"),
+            ("1_000", "is not a number"),
+            ("1e", "is not a number"),
+            (".", "is not a number"),
+            ("-", "is not a number"),
+            ("e5", "is not a number"),
+            ("1.2.3", "is not a number"),
+            ("--1", "is not a number"),
+        ] {
+            let e = parse_number(text).unwrap_err();
+            assert!(e.contains(phrase), "{text}: {e}");
+        }
+    }
+
+    #[test]
+    fn shortest_round_trip_display_parses_back_to_the_same_bits() {
+        use proptest::prelude::*;
+        proptest!(|(bits in any::<u64>())| {
+            let v = f64::from_bits(bits);
+            prop_assume!(v.is_finite());
+            prop_assert_eq!(parse_number(&v.to_string()).map(f64::to_bits), Ok(bits));
+        });
+    }
+
+    fn cells(text: &str) -> Vec<Vec<(String, String)>> {
+        let src = Source::new("t.csv", text);
+        let mut problems = Vec::new();
+        let records = tokenize(&src, &mut problems);
+        assert!(problems.is_empty(), "{problems:?}");
+        records
+            .into_iter()
+            .map(|r| {
+                r.into_iter()
+                    .map(|c| (c.text, text[c.span].to_string()))
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn cells_keep_their_exact_place_with_quotes_crlf_and_blank_lines() {
+        let r = cells("a,b\r\nc,\"d,\"\"x\"\"\"\n\n\ne,\n");
+        let pairs = |v: &[(&str, &str)]| -> Vec<(String, String)> {
+            v.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect()
+        };
+        assert_eq!(r[0], pairs(&[("a", "a"), ("b", "b")]));
+        assert_eq!(r[1], pairs(&[("c", "c"), ("d,\"x\"", "\"d,\"\"x\"\"\"")]));
+        assert_eq!(r[2], pairs(&[("e", "e"), ("", "")]));
+        assert_eq!(r.len(), 3);
+        // The last line without its newline is a whole record.
+        assert_eq!(cells("a,b\n1,2")[1], pairs(&[("1", "1"), ("2", "2")]));
+    }
+
+    #[test]
+    fn an_open_quote_at_the_end_is_a_cut_file() {
+        let src = Source::new("t.csv", "a,b\n1,\"2");
+        let mut problems = Vec::new();
+        tokenize(&src, &mut problems);
+        assert_eq!(problems.len(), 1);
+        assert_eq!(problems[0].location(), "t.csv:2:3");
+    }
+}

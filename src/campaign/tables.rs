@@ -1,0 +1,222 @@
+//! A campaign as pipeline tables and back, so that stages can pass a whole
+//! campaign along (a group input slot, [`super::TABLES`]) and the cache can
+//! hash it like any other output.
+//!
+//! The tables mirror the files column for column — `readings` has exactly
+//! readings.csv's columns, `targets` targets.csv's, `gauge` gauge.csv's —
+//! with every optional column always present (null where not known), and
+//! `meta` holds campaign.toml as one row. The round trip is exact: numbers
+//! stay `f64`, angles stay in degrees.
+
+use super::check::Issue;
+use super::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
+use crate::kinematics::Face;
+use crate::stages::StageInputs;
+use crate::table::{TableBuilder, TableRef};
+use anyhow::{Result, anyhow, bail};
+use nalgebra::Vector3;
+use polars::prelude::DataFrame;
+
+impl Campaign {
+    /// `readings`, `targets`, `gauge` and `meta`, in the order of [`super::TABLES`].
+    pub fn to_tables(&self) -> Result<Vec<(String, DataFrame)>> {
+        Ok(vec![
+            ("readings".into(), self.readings_table()?),
+            ("targets".into(), self.targets_table()?),
+            ("gauge".into(), self.gauge_table()?),
+            ("meta".into(), self.meta_table()?),
+        ])
+    }
+
+    /// The campaign wired to the group slot `slot` (tables `<slot>.readings`,
+    /// `<slot>.targets`, `<slot>.gauge`, `<slot>.meta`), held to the format's
+    /// rules: a stage never works on a campaign that could not be written.
+    pub fn from_inputs(inputs: &StageInputs, slot: &str) -> Result<Campaign> {
+        let table = |name: &str| inputs.get(&format!("{slot}.{name}"));
+        let c = Campaign {
+            meta: meta_from(&table("meta")?)?,
+            readings: readings_from(&table("readings")?)?,
+            targets: targets_from(&table("targets")?)?,
+            gauge: gauge_from(&table("gauge")?)?,
+        };
+        let issues = c.check();
+        if !issues.is_empty() {
+            let list: Vec<String> = issues.iter().map(Issue::to_string).collect();
+            bail!(
+                "input `{slot}` is not a valid campaign:\n  {}",
+                list.join("\n  ")
+            );
+        }
+        Ok(c)
+    }
+
+    fn readings_table(&self) -> Result<DataFrame> {
+        let r = &self.readings;
+        let stations: Vec<&str> = r.iter().map(|r| r.station.as_str()).collect();
+        let targets: Vec<&str> = r.iter().map(|r| r.target.as_str()).collect();
+        TableBuilder::new()
+            .str("station", &stations)
+            .str("target", &targets)
+            .f64("az_deg", r.iter().map(|r| r.az_deg).collect())
+            .f64("el_deg", r.iter().map(|r| r.el_deg).collect())
+            .f64("d_mm", r.iter().map(|r| r.d_mm).collect())
+            .i64("face", r.iter().map(|r| r.face.number()).collect())
+            .opt_f64("time_s", r.iter().map(|r| r.time_s).collect())
+            .opt_f64("temperature_c", r.iter().map(|r| r.temperature_c).collect())
+            .opt_f64("pressure_hpa", r.iter().map(|r| r.pressure_hpa).collect())
+            .opt_f64("humidity_pct", r.iter().map(|r| r.humidity_pct).collect())
+            .build()
+    }
+
+    fn targets_table(&self) -> Result<DataFrame> {
+        let t = &self.targets;
+        let ids: Vec<&str> = t.iter().map(|t| t.id.as_str()).collect();
+        let reference = |k: usize| t.iter().map(|t| t.reference.map(|p| p[k])).collect();
+        let aim = |k: usize| t.iter().map(|t| t.aim.map(|p| p[k])).collect();
+        TableBuilder::new()
+            .str("target", &ids)
+            .opt_f64("x_mm", reference(0))
+            .opt_f64("y_mm", reference(1))
+            .opt_f64("z_mm", reference(2))
+            .opt_f64("u_mm", t.iter().map(|t| t.u_mm).collect())
+            .opt_f64("aim_x_mm", aim(0))
+            .opt_f64("aim_y_mm", aim(1))
+            .opt_f64("aim_z_mm", aim(2))
+            .build()
+    }
+
+    fn gauge_table(&self) -> Result<DataFrame> {
+        let g = &self.gauge;
+        let a: Vec<&str> = g.iter().map(|g| g.target_a.as_str()).collect();
+        let b: Vec<&str> = g.iter().map(|g| g.target_b.as_str()).collect();
+        TableBuilder::new()
+            .str("target_a", &a)
+            .str("target_b", &b)
+            .f64("distance_mm", g.iter().map(|g| g.distance_mm).collect())
+            .opt_f64("u_mm", g.iter().map(|g| g.u_mm).collect())
+            .build()
+    }
+
+    fn meta_table(&self) -> Result<DataFrame> {
+        let m = &self.meta;
+        TableBuilder::new()
+            .i64("format", vec![m.format])
+            .str("name", &[&m.name])
+            .str("description", &[&m.description])
+            .str("tracker_model", &[&m.tracker.model])
+            .opt_f64("sigma_angle_urad", vec![m.tracker.sigma_angle_urad])
+            .opt_f64("sigma_range_um", vec![m.tracker.sigma_range_um])
+            .opt_f64("sigma_range_ppm", vec![m.tracker.sigma_range_ppm])
+            .str("smr_aim", &[m.aim.as_str()])
+            .opt_f64("smr_radius_mm", vec![m.smr_radius_mm])
+            .build()
+    }
+}
+
+fn readings_from(t: &TableRef) -> Result<Vec<CampaignReading>> {
+    let (station, target) = (t.str("station")?, t.str("target")?);
+    let (az, el, d) = (t.f64("az_deg")?, t.f64("el_deg")?, t.f64("d_mm")?);
+    let face = t
+        .i64("face")?
+        .into_iter()
+        .enumerate()
+        .map(|(i, n)| {
+            Face::from_number(n).ok_or_else(|| {
+                anyhow!(
+                    "table `{}`, column `face`, row {i}: 1 (front) or 2 (back), got {n}",
+                    t.name
+                )
+            })
+        })
+        .collect::<Result<Vec<Face>>>()?;
+    let time = t.opt_f64("time_s")?;
+    let temperature = t.opt_f64("temperature_c")?;
+    let pressure = t.opt_f64("pressure_hpa")?;
+    let humidity = t.opt_f64("humidity_pct")?;
+    Ok((0..t.height())
+        .map(|i| CampaignReading {
+            station: station[i].clone(),
+            target: target[i].clone(),
+            az_deg: az[i],
+            el_deg: el[i],
+            d_mm: d[i],
+            face: face[i],
+            time_s: time[i],
+            temperature_c: temperature[i],
+            pressure_hpa: pressure[i],
+            humidity_pct: humidity[i],
+        })
+        .collect())
+}
+
+/// Three nullable columns that form one point: all known or all null.
+fn points(t: &TableRef, names: [&str; 3]) -> Result<Vec<Option<Vector3<f64>>>> {
+    let [x, y, z] = [t.opt_f64(names[0])?, t.opt_f64(names[1])?, t.opt_f64(names[2])?];
+    (0..t.height())
+        .map(|i| match (x[i], y[i], z[i]) {
+            (Some(x), Some(y), Some(z)) => Ok(Some(Vector3::new(x, y, z))),
+            (None, None, None) => Ok(None),
+            _ => Err(anyhow!(
+                "table `{}`, row {i}: {} go together (all known or all null)",
+                t.name,
+                names.join(", ")
+            )),
+        })
+        .collect()
+}
+
+fn targets_from(t: &TableRef) -> Result<Vec<Target>> {
+    let ids = t.str("target")?;
+    let reference = points(t, ["x_mm", "y_mm", "z_mm"])?;
+    let u = t.opt_f64("u_mm")?;
+    let aim = points(t, ["aim_x_mm", "aim_y_mm", "aim_z_mm"])?;
+    Ok(ids
+        .into_iter()
+        .enumerate()
+        .map(|(i, id)| Target {
+            id,
+            reference: reference[i],
+            u_mm: u[i],
+            aim: aim[i],
+        })
+        .collect())
+}
+
+fn gauge_from(t: &TableRef) -> Result<Vec<GaugeLength>> {
+    let (a, b) = (t.str("target_a")?, t.str("target_b")?);
+    let distance = t.f64("distance_mm")?;
+    let u = t.opt_f64("u_mm")?;
+    Ok((0..t.height())
+        .map(|i| GaugeLength {
+            target_a: a[i].clone(),
+            target_b: b[i].clone(),
+            distance_mm: distance[i],
+            u_mm: u[i],
+        })
+        .collect())
+}
+
+fn meta_from(t: &TableRef) -> Result<Meta> {
+    if t.height() != 1 {
+        bail!("table `{}` has {} rows; a campaign's meta is one row", t.name, t.height());
+    }
+    let aim = t.str("smr_aim")?.remove(0);
+    Ok(Meta {
+        format: t.i64("format")?[0],
+        name: t.str("name")?.remove(0),
+        description: t.str("description")?.remove(0),
+        tracker: Tracker {
+            model: t.str("tracker_model")?.remove(0),
+            sigma_angle_urad: t.opt_f64("sigma_angle_urad")?[0],
+            sigma_range_um: t.opt_f64("sigma_range_um")?[0],
+            sigma_range_ppm: t.opt_f64("sigma_range_ppm")?[0],
+        },
+        aim: Aim::parse(&aim).ok_or_else(|| {
+            anyhow!(
+                "table `{}`, column `smr_aim`: \"aim-columns\" or \"stations-centroid\", got \"{aim}\"",
+                t.name
+            )
+        })?,
+        smr_radius_mm: t.opt_f64("smr_radius_mm")?[0],
+    })
+}
