@@ -9,6 +9,26 @@
 //! another `ltcal run` on the same folder, or the next run after a SIGKILL —
 //! sees a complete entry or none. On reuse every file is hashed again: a
 //! truncated, flipped or edited file is reported and the entry recomputed.
+//!
+//! # Concurrency and killed runs
+//!
+//! There is no lock, by design. Two `ltcal run`s on one folder may compute
+//! the same stage at once: each builds its entry in a private temporary
+//! directory and renames it into place; the first rename wins, the second
+//! finds the key taken, verifies the winner and drops its own copy. The key
+//! hashes everything an output depends on and stages are deterministic, so
+//! both copies are identical and losing the race costs only time. A run
+//! looks each stage up just before it would compute it, so it reuses every
+//! entry another run has finished by then.
+//!
+//! A lock would serialise runs for no gain in correctness, and a lock held
+//! by a SIGKILLed process has to be recognised and broken — a guess about
+//! another process on the path that decides what is served. Here a dead
+//! process can neither block nor mislead a live one: its temporary
+//! directories and files are never read, and the next run removes them once
+//! their process id is gone (a guess that can only delay a clean-up). A key
+//! directory without `manifest.json` cannot come from [`Store::put`]; if one
+//! appears it is treated as incomplete, ignored and removed.
 
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
@@ -69,6 +89,39 @@ impl KeyFields {
     }
 }
 
+impl KeyFields {
+    /// Every field as `(name, value)`, named as [`KeyFields::diff`] names
+    /// them: `ltcal version`, `kind`, each setting by its dotted path (arrays
+    /// whole), `input `<slot>`` with the input's short content hash.
+    pub fn fields(&self) -> Vec<(String, String)> {
+        let mut out = vec![
+            ("ltcal version".to_string(), self.ltcal_version.clone()),
+            ("kind".to_string(), self.kind.clone()),
+        ];
+        json_leaves("", &self.params, &mut out);
+        for (slot, h) in &self.inputs {
+            out.push((format!("input `{slot}`"), short(h).to_string()));
+        }
+        out
+    }
+}
+
+fn json_leaves(path: &str, v: &serde_json::Value, out: &mut Vec<(String, String)>) {
+    match v {
+        serde_json::Value::Object(m) => {
+            for (k, v) in m {
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                json_leaves(&p, v, out);
+            }
+        }
+        _ => out.push((path.to_string(), v.to_string())),
+    }
+}
+
 /// The first 12 characters of a hash, for people.
 pub fn short(h: &str) -> &str {
     &h[..h.len().min(12)]
@@ -117,12 +170,17 @@ pub struct FileRecord {
 }
 
 /// Provenance of an entry; written last, so its presence means the entry is
-/// complete.
+/// complete. Everything a reader needs to know where a result came from:
+/// the stage that made it, its key fields (kind, resolved settings, the
+/// content hash of every input table, the ltcal version), when it ran, and
+/// each table's rows and content hash (blake3 of its Parquet bytes, which
+/// depend on the table alone: see [`crate::table::to_parquet_bytes`]).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Manifest {
     pub stage: String,
     pub key: String,
     pub key_fields: KeyFields,
+    /// RFC 3339 wall-clock times of the stage's run.
     pub started: String,
     pub finished: String,
     pub seconds: f64,
@@ -303,12 +361,16 @@ impl Store {
             )));
         }
         let dest = self.entry_dir(key);
-        if fs::rename(&tmp, &dest).is_err() {
-            // Another writer won the race, or a corrupt entry sits there.
-            let _ = fs::remove_dir_all(&tmp);
-            if !matches!(self.lookup(key), Lookup::Hit(_)) {
-                bail!("could not publish the cache entry {}", dest.display());
-            }
+        // `rename` onto an existing non-empty directory fails: another writer
+        // won the race (its entry is identical by construction and is kept),
+        // or a bad entry sits there, which `lookup` discards so that ours can
+        // take its place.
+        let published = fs::rename(&tmp, &dest).is_ok()
+            || matches!(self.lookup(key), Lookup::Hit(_))
+            || fs::rename(&tmp, &dest).is_ok();
+        let _ = fs::remove_dir_all(&tmp);
+        if !published && !matches!(self.lookup(key), Lookup::Hit(_)) {
+            bail!("could not publish the cache entry {}", dest.display());
         }
         sync_dir(&entries);
         Ok(())
@@ -351,6 +413,56 @@ impl Store {
 
     pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
         write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
+    }
+}
+
+/// Removes the temporary files [`write_atomic`] leaves when its process is
+/// killed between creating and renaming them, in `dir` and its immediate
+/// subfolders (the published stage folders). Returns how many were removed.
+pub fn clean_temp_files(dir: &Path) -> usize {
+    let Ok(rd) = fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut n = 0;
+    for e in rd.flatten() {
+        let path = e.path();
+        let name = e.file_name().to_string_lossy().into_owned();
+        if e.file_type().is_ok_and(|t| t.is_dir()) {
+            if !name.starts_with('.') {
+                n += clean_temp_files_in(&path);
+            }
+        } else if is_dead_temp_file(&name) && fs::remove_file(&path).is_ok() {
+            n += 1;
+        }
+    }
+    n
+}
+
+fn clean_temp_files_in(dir: &Path) -> usize {
+    let Ok(rd) = fs::read_dir(dir) else {
+        return 0;
+    };
+    rd.flatten()
+        .filter(|e| {
+            is_dead_temp_file(&e.file_name().to_string_lossy()) && fs::remove_file(e.path()).is_ok()
+        })
+        .count()
+}
+
+/// `.<name>.<pid>-<n>.tmp` of a process that has ended.
+fn is_dead_temp_file(name: &str) -> bool {
+    let Some(stem) = name.strip_prefix('.').and_then(|n| n.strip_suffix(".tmp")) else {
+        return false;
+    };
+    // Only names `write_atomic` makes: a user's own dot-files stay.
+    let ours = |suffix: &str| {
+        suffix
+            .split_once('-')
+            .is_some_and(|(p, n)| p.parse::<u32>().is_ok() && n.parse::<u64>().is_ok())
+    };
+    match stem.rsplit_once('.') {
+        Some((_, suffix)) if ours(suffix) => owner_gone(suffix.split('-').next()),
+        _ => false,
     }
 }
 

@@ -10,13 +10,18 @@
 //!    validated, the graph checked;
 //! 3. [`plan`] — execution order, parallel levels and cache keys.
 //!
-//! [`run`] executes a plan against the [`cache`].
+//! [`run`] executes a plan against the [`cache`]; [`explain`] says why a
+//! stage would run.
 
 pub mod cache;
+pub mod explain;
+pub mod graph;
+pub mod panics;
 pub mod plan;
 pub mod raw;
 pub mod resolve;
 pub mod run;
+pub mod snapshot;
 pub mod source;
 
 use resolve::{Override, Pipeline};

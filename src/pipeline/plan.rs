@@ -6,7 +6,7 @@
 use super::cache::{KeyFields, Store};
 use super::resolve::{Pipeline, Stage};
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Stage indices in an order that runs every producer before its consumers,
 /// grouped into levels whose stages depend only on earlier levels.
@@ -91,37 +91,51 @@ pub struct PlanItem {
     pub key: Option<String>,
 }
 
+/// One stage assessed against the store: its plan item, and what is known
+/// of its key.
+#[derive(Clone, Debug)]
+pub struct Assessment {
+    pub item: PlanItem,
+    /// The key fields, with the inputs whose content is known (all of them
+    /// when `pending` is empty).
+    pub fields: KeyFields,
+    /// Slot → the stage that must run before the slot's content is known.
+    pub pending: BTreeMap<String, String>,
+}
+
 /// The plan of a pipeline against its store, in execution order.
 pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
+    assess(p, store).into_iter().map(|a| a.item).collect()
+}
+
+/// Every stage assessed against the store, in execution order.
+pub fn assess(p: &Pipeline, store: &Store) -> Vec<Assessment> {
     let graph = Graph::new(p);
     // Stage → table → content hash, for stages known to be cached.
     let mut known: BTreeMap<&str, BTreeMap<String, String>> = BTreeMap::new();
-    let mut items = Vec::new();
+    let mut out = Vec::new();
     for i in graph.order() {
         let s = &p.stages[i];
         let mut hashes = BTreeMap::new();
-        let mut pending = Vec::new();
+        let mut pending = BTreeMap::new();
         for (slot, r) in s.wired_tables() {
             match known.get(r.stage.as_str()).and_then(|t| t.get(&r.table)) {
                 Some(h) => {
                     hashes.insert(slot, h.clone());
                 }
-                None => pending.push(format!("`{}`", r.stage)),
+                None => {
+                    pending.insert(slot, r.stage.clone());
+                }
             }
         }
-        let item = if !pending.is_empty() {
-            pending.sort();
-            pending.dedup();
-            PlanItem {
-                stage: s.name.clone(),
-                kind: s.config.kind().to_string(),
-                status: "run".into(),
-                reason: format!("its input stage {} will run", pending.join(", ")),
-                key: None,
-            }
+        let fields = key_fields(s, hashes);
+        let (status, reason, key) = if !pending.is_empty() {
+            let stages: BTreeSet<String> = pending.values().map(|s| format!("`{s}`")).collect();
+            let stages: Vec<String> = stages.into_iter().collect();
+            let reason = format!("its input stage {} will run", stages.join(", "));
+            ("run", reason, None)
         } else {
-            let k = key_fields(s, hashes);
-            let key = k.hash();
+            let key = fields.hash();
             let (status, reason) = match store.check(&key) {
                 Some(Ok(m)) => {
                     known.insert(
@@ -134,17 +148,21 @@ pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
                     ("cached", String::new())
                 }
                 Some(Err(why)) => ("run", format!("its cached result is corrupt: {why}")),
-                None => ("run", reason(store, &s.name, &k)),
+                None => ("run", reason(store, &s.name, &fields)),
             };
-            PlanItem {
+            (status, reason, Some(key))
+        };
+        out.push(Assessment {
+            item: PlanItem {
                 stage: s.name.clone(),
                 kind: s.config.kind().to_string(),
                 status: status.into(),
                 reason,
-                key: Some(key),
-            }
-        };
-        items.push(item);
+                key,
+            },
+            fields,
+            pending,
+        });
     }
-    items
+    out
 }

@@ -3,6 +3,10 @@
 //! `inputs`), and deserializes each stage table into its kind's typed
 //! settings with `deny_unknown_fields` — so that every mistake is reported at
 //! its line and column. Nothing after this layer reads TOML.
+//!
+//! Each top-level table has one arm in [`parse`] and one field in
+//! [`RawPipeline`]; a new one (say `[sweep]`) is added the same way and
+//! resolved in [`super::resolve`].
 
 use super::source::{Source, SourceError};
 use crate::stages::{KINDS, StageConfig};
@@ -19,6 +23,23 @@ pub struct Meta {
     pub name: Option<String>,
     #[serde(default)]
     pub description: String,
+}
+
+/// `[snapshot]`: the result tables `ltcal snapshot` records as text and
+/// checks against, with per-column tolerances. Spans are kept so that a
+/// table or column that does not exist is reported at its place.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawSnapshot {
+    /// `"stage.table"`, or `"stage"` for its first table.
+    pub tables: Vec<Spanned<String>>,
+    /// Decimal places of the recorded numbers.
+    pub digits: Option<Spanned<usize>>,
+    /// Column name → absolute tolerance.
+    #[serde(default)]
+    pub tolerance: BTreeMap<Spanned<String>, Spanned<f64>>,
+    /// For columns not in `tolerance`.
+    pub default_tolerance: Option<Spanned<f64>>,
 }
 
 /// One `inputs` entry: `slot = "stage"` or `slot = "stage.table"`.
@@ -51,9 +72,11 @@ pub struct RawPipeline {
     pub source: Source,
     pub meta: Meta,
     pub stages: Vec<RawStage>,
+    /// With the span of its header, for errors about the table as a whole.
+    pub snapshot: Option<(RawSnapshot, Range<usize>)>,
 }
 
-const TOP_LEVEL: &[&str] = &["pipeline", "stages"];
+const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot"];
 
 /// A toml error turned into one that points into the file.
 pub(crate) fn toml_error(src: &Source, e: toml::de::Error, fallback: Range<usize>) -> SourceError {
@@ -109,6 +132,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
     let mut errors = Vec::new();
     let mut meta = Meta::default();
     let mut stages = Vec::new();
+    let mut snapshot = None;
     for (key, value) in root.into_inner() {
         let k = key_str(&key).to_string();
         match k.as_str() {
@@ -116,6 +140,16 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
                 Ok(m) => meta = m,
                 Err(e) => errors.push(e),
             },
+            "snapshot" => {
+                let span = key.span();
+                match typed::<RawSnapshot>(src, value) {
+                    Ok(s) => snapshot = Some((s, span)),
+                    Err(mut e) => {
+                        e.message = format!("[snapshot]: {}", e.message);
+                        errors.push(e)
+                    }
+                }
+            }
             "stages" => {
                 let span = value.span();
                 match value.into_inner() {
@@ -159,6 +193,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
         source: src.clone(),
         meta,
         stages,
+        snapshot,
     })
 }
 

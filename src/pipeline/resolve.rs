@@ -2,9 +2,11 @@
 //! as written, fills in every default, validates each stage (errors point at
 //! the field in the file, or at the `--set` that changed it), and checks the
 //! graph: every input names an existing stage and table, every required slot
-//! is connected, and there is no cycle.
+//! is connected, and there is no cycle. Other top-level tables are resolved
+//! by their own modules against the resolved stages ([`snapshot`]).
 
 use super::raw::{RawPipeline, RawStage};
+use super::snapshot::{self, Snapshot};
 use super::{Problem, source::Source};
 use crate::stages::StageConfig;
 use anyhow::{Result, anyhow, bail};
@@ -153,6 +155,8 @@ pub struct Pipeline {
     pub description: String,
     pub source: Source,
     pub stages: Vec<Stage>,
+    /// `[snapshot]`, when the file has one.
+    pub snapshot: Option<Snapshot>,
 }
 
 impl Pipeline {
@@ -208,8 +212,17 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
         description: raw.meta.description.clone(),
         source: src.clone(),
         stages,
+        snapshot: None,
     };
     check_graph(raw, &mut pipeline)?;
+    if let Some((snap, header)) = &raw.snapshot {
+        pipeline.snapshot = Some(snapshot::resolve(
+            src,
+            snap,
+            header.clone(),
+            &pipeline.stages,
+        )?);
+    }
     Ok(pipeline)
 }
 

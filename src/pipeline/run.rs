@@ -2,11 +2,17 @@
 //! in parallel (rayon), reusing cached results, and publishes every stage's
 //! tables and figures under `results/<pipeline>/<stage>/`.
 //!
-//! A stage that fails — by error or by panic — is reported as a failure of
-//! that stage with its message; by default the run stops after the level in
-//! which it failed, with `keep_going` every stage whose inputs exist runs.
+//! A stage that fails — by error or by panic ([`super::panics`]) — is
+//! reported as a failure of that stage with its message; by default the run
+//! stops after the level in which it failed, with `keep_going` every stage
+//! whose inputs exist runs.
+//!
+//! A cached entry that fails verification is recomputed, and the stage's
+//! report says so (`cache_problem`), so that a damaged cache is visible
+//! rather than silently repaired.
 
 use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord};
+use super::panics;
 use super::plan::{Graph, key_fields, reason};
 use super::resolve::Pipeline;
 use crate::stages::{Context, StageInputs};
@@ -39,6 +45,9 @@ pub struct StageReport {
     pub status: String,
     /// Why it ran, failed or was skipped; empty when cached.
     pub reason: String,
+    /// What was wrong with the stage's cached entry when it failed
+    /// verification (truncated, corrupted or edited) and was recomputed.
+    pub cache_problem: Option<String>,
     pub key: Option<String>,
     pub seconds: f64,
     /// Table name → rows.
@@ -53,7 +62,8 @@ pub struct RunReport {
     pub results: PathBuf,
     pub started: String,
     pub finished: String,
-    /// Incomplete entries of killed runs removed before this run.
+    /// Leftovers of killed runs (incomplete entries, temporary files)
+    /// removed before this run.
     pub cleaned: usize,
     pub stages: Vec<StageReport>,
 }
@@ -94,7 +104,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let started = SystemTime::now();
     let dir = pipeline_dir(&opts.results_root, p);
     let store = Store::new(&dir);
-    let cleaned = store.clean_incomplete();
+    let cleaned = store.clean_incomplete() + cache::clean_temp_files(&dir);
     let graph = Graph::new(p);
     let produced: Mutex<BTreeMap<String, Arc<Produced>>> = Mutex::new(BTreeMap::new());
     let mut reports: Vec<Option<StageReport>> = vec![None; p.stages.len()];
@@ -167,6 +177,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
                     stage: s.name.clone(),
                     kind: s.config.kind().to_string(),
                     status: "skipped".into(),
+                    cache_problem: None,
                     reason: if failed_inputs.is_empty() {
                         "the run stopped at the first failure (use --keep-going)".into()
                     } else {
@@ -217,6 +228,7 @@ fn execute(
         kind: s.config.kind().to_string(),
         status: "failed".into(),
         reason: String::new(),
+        cache_problem: None,
         key: None,
         seconds: 0.0,
         tables: BTreeMap::new(),
@@ -247,7 +259,11 @@ fn execute(
             }
             Err(e) => format!("its cached result could not be read: {e:#}"),
         },
-        Lookup::Corrupt(why) => format!("its cached result was corrupt and is recomputed: {why}"),
+        Lookup::Corrupt(why) => {
+            let reason = format!("its cached result was corrupt and is recomputed: {why}");
+            report.cache_problem = Some(why);
+            reason
+        }
         Lookup::Miss => reason(store, &s.name, &kf),
     };
     report.reason = why;
@@ -256,22 +272,14 @@ fn execute(
         pipeline: &p.name,
         stage: &s.name,
     };
-    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        s.config.run(&ctx, &stage_inputs)
-    }));
-    let output = match outcome {
+    let output = match panics::catch(|| s.config.run(&ctx, &stage_inputs)) {
         Ok(Ok(o)) => o,
         Ok(Err(e)) => {
             report.reason = format!("{e:#}");
             return (report, None);
         }
         Err(panic) => {
-            let msg = panic
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| panic.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "unknown panic".into());
-            report.reason = format!("the stage panicked: {msg}");
+            report.reason = format!("the stage panicked: {panic}");
             return (report, None);
         }
     };

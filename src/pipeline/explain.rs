@@ -1,0 +1,175 @@
+//! `ltcal explain`: why a stage would run, or why it is cached — its current
+//! key fields against those of the last successful run of a stage of that
+//! name (`.ltcal/last/<stage>.json`), field by field.
+//!
+//! An input whose producer would run first has no content hash yet; its
+//! row says which stage it waits for, and every other field is still
+//! compared, so that a change of the stage's own settings shows even when an
+//! upstream change makes it rerun anyway.
+
+use super::cache::{KeyFields, Store, short};
+use super::plan::{self, Assessment};
+use super::resolve::Pipeline;
+use anyhow::{Result, bail};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::fmt;
+
+/// One key field, last run against now.
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub field: String,
+    /// `None`: the last run had no such field (or there was no last run).
+    pub last: Option<String>,
+    /// `None`: no such field now, or not known yet (see `waits_for`).
+    pub now: Option<String>,
+    /// The stage that must run before this input's content is known.
+    pub waits_for: Option<String>,
+    pub changed: bool,
+}
+
+/// Why a stage is cached or would run.
+#[derive(Clone, Debug, Serialize)]
+pub struct Explanation {
+    pub stage: String,
+    pub kind: String,
+    /// `cached` or `run`, as `ltcal plan` says.
+    pub status: String,
+    pub reason: String,
+    /// The current key, when every input's content is known.
+    pub key: Option<String>,
+    /// The key of the last successful run of this stage, if any.
+    pub last_key: Option<String>,
+    pub rows: Vec<Row>,
+}
+
+/// Explains one stage of the pipeline against its store.
+pub fn explain(p: &Pipeline, store: &Store, stage: &str) -> Result<Explanation> {
+    if p.index(stage).is_none() {
+        let names: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
+        bail!(
+            "the pipeline has no stage `{stage}`; its stages are: {}",
+            names.join(", ")
+        );
+    }
+    let a = plan::assess(p, store)
+        .into_iter()
+        .find(|a| a.item.stage == stage)
+        .expect("every stage is assessed");
+    let last = store.last(stage);
+    Ok(Explanation {
+        rows: rows(&a, last.as_ref()),
+        last_key: last.as_ref().map(KeyFields::hash),
+        stage: a.item.stage,
+        kind: a.item.kind,
+        status: a.item.status,
+        reason: a.item.reason,
+        key: a.item.key,
+    })
+}
+
+fn rows(a: &Assessment, last: Option<&KeyFields>) -> Vec<Row> {
+    let last: BTreeMap<String, String> = last
+        .map(|k| k.fields())
+        .unwrap_or_default()
+        .into_iter()
+        .collect();
+    let mut now = a.fields.fields();
+    now.extend(
+        a.pending
+            .keys()
+            .map(|slot| (format!("input `{slot}`"), String::new())),
+    );
+    let waits: BTreeMap<String, &String> = a
+        .pending
+        .iter()
+        .map(|(slot, stage)| (format!("input `{slot}`"), stage))
+        .collect();
+    let mut rows: Vec<Row> = Vec::new();
+    for (field, value) in now {
+        let waits_for = waits.get(&field).map(|s| s.to_string());
+        let value = waits_for.is_none().then_some(value);
+        let last = last.get(&field).cloned();
+        rows.push(Row {
+            changed: waits_for.is_none() && value != last,
+            field,
+            last,
+            now: value,
+            waits_for,
+        });
+    }
+    // Fields only the last run had (a setting or input since removed).
+    for (field, value) in &last {
+        if !rows.iter().any(|r| &r.field == field) {
+            rows.push(Row {
+                field: field.clone(),
+                last: Some(value.clone()),
+                now: None,
+                waits_for: None,
+                changed: true,
+            });
+        }
+    }
+    rows
+}
+
+impl fmt::Display for Explanation {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let verdict = match (self.status.as_str(), self.reason.is_empty()) {
+            ("cached", _) => "cached".to_string(),
+            (_, true) => "would run".to_string(),
+            (_, false) => format!("would run: {}", self.reason),
+        };
+        writeln!(f, "stage `{}` ({}): {verdict}", self.stage, self.kind)?;
+        let key = |k: &Option<String>| k.as_deref().map_or("—".to_string(), |k| short(k).into());
+        writeln!(
+            f,
+            "key now {}, at the last run {}",
+            key(&self.key),
+            key(&self.last_key)
+        )?;
+        if self.status == "cached" && self.rows.iter().any(|r| r.changed) {
+            writeln!(
+                f,
+                "(an earlier run with the current settings is in the cache; the last run differed)"
+            )?;
+        }
+        let cell = |r: &Row, v: &Option<String>, now: bool| match (v, &r.waits_for) {
+            (_, Some(s)) if now => format!("(known once `{s}` has run)"),
+            (Some(v), _) => v.clone(),
+            (None, _) => "—".to_string(),
+        };
+        let table: Vec<[String; 4]> = std::iter::once([
+            "field".to_string(),
+            "last run".to_string(),
+            "now".to_string(),
+            String::new(),
+        ])
+        .chain(self.rows.iter().map(|r| {
+            [
+                r.field.clone(),
+                cell(r, &r.last, false),
+                cell(r, &r.now, true),
+                if r.changed {
+                    "changed".into()
+                } else {
+                    String::new()
+                },
+            ]
+        }))
+        .collect();
+        let width = |j: usize| {
+            table
+                .iter()
+                .map(|r| r[j].chars().count())
+                .max()
+                .unwrap_or(0)
+        };
+        let (w0, w1, w2) = (width(0), width(1), width(2));
+        for r in &table {
+            let line = format!("  {:w0$}  {:w1$}  {:w2$}  {}", r[0], r[1], r[2], r[3]);
+            writeln!(f, "{}", line.trim_end())?;
+        }
+        Ok(())
+    }
+}
