@@ -149,42 +149,118 @@ fn text_width(s: &str, px: f64) -> i32 {
     (s.chars().count() as f64 * px * 0.6).ceil() as i32
 }
 
-/// Stage → (column, row) of the layered layout.
-fn layout(p: &Pipeline) -> (Vec<Vec<usize>>, Vec<(usize, usize)>) {
+/// One place in a row of the layout: a stage's box, or where an edge that
+/// spans several levels crosses this row (so that it passes between boxes,
+/// never under one).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Item {
+    Stage(usize),
+    Edge(usize),
+}
+
+const EDGE_W: i32 = 12;
+
+/// The layered layout, x centred on 0.
+#[derive(Debug)]
+struct Layout {
+    /// Each row's items left to right, with their left x.
+    rows: Vec<Vec<(Item, i32)>>,
+    /// Stage → (left x, row).
+    stage: Vec<(i32, usize)>,
+    /// Edge → (centre x, row) of each row it crosses.
+    crossings: Vec<Vec<(i32, usize)>>,
+    /// Of the widest row.
+    width: i32,
+}
+
+fn layout(p: &Pipeline, edges: &[(usize, usize, String)], box_w: i32) -> Layout {
     let graph = Graph::new(p);
-    let mut pos = vec![(0usize, 0usize); p.stages.len()];
-    let mut rows: Vec<Vec<usize>> = Vec::new();
-    // Rows are drawn centred, so a stage's horizontal place is its column
-    // less half its row's width.
-    let centred = |rows: &[Vec<usize>], (col, row): (usize, usize)| {
-        col as f64 - (rows[row].len() as f64 - 1.0) / 2.0
+    let mut level = vec![0; p.stages.len()];
+    for (l, stages) in graph.levels.iter().enumerate() {
+        for &i in stages {
+            level[i] = l;
+        }
+    }
+    let width_of = |it: Item| match it {
+        Item::Stage(_) => box_w,
+        Item::Edge(_) => EDGE_W,
     };
-    for (row, level) in graph.levels.iter().enumerate() {
-        let mut order: Vec<(f64, usize)> = level
-            .iter()
-            .map(|&i| {
-                let cols: Vec<f64> = p.stages[i]
-                    .inputs
-                    .values()
-                    .filter_map(|r| p.index(&r.stage))
-                    .map(|j| centred(&rows, pos[j]))
+    let mut centre: BTreeMap<(usize, usize), f64> = BTreeMap::new(); // (row, item id) → x
+    let id = |it: Item| match it {
+        Item::Stage(i) => 2 * i,
+        Item::Edge(k) => 2 * k + 1,
+    };
+    let mut out = Layout {
+        rows: Vec::new(),
+        stage: vec![(0, 0); p.stages.len()],
+        crossings: vec![Vec::new(); edges.len()],
+        width: 0,
+    };
+    for (row, stages) in graph.levels.iter().enumerate() {
+        let mut items: Vec<Item> = stages.iter().map(|&i| Item::Stage(i)).collect();
+        items.extend(
+            edges
+                .iter()
+                .enumerate()
+                .filter(|(_, (i, j, _))| level[*i] < row && row < level[*j])
+                .map(|(k, _)| Item::Edge(k)),
+        );
+        // What each item hangs from in the row above: a stage's inputs (or
+        // their crossings), an edge's producer (or its own crossing).
+        let above = |it: Item| -> Vec<Item> {
+            let from = |k: usize| {
+                let i = edges[k].0;
+                if level[i] + 1 == row {
+                    Item::Stage(i)
+                } else {
+                    Item::Edge(k)
+                }
+            };
+            match it {
+                Item::Stage(j) => edges
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, e)| e.1 == j)
+                    .map(|(k, _)| from(k))
+                    .collect(),
+                Item::Edge(k) => vec![from(k)],
+            }
+        };
+        let mut keyed: Vec<(f64, usize, Item)> = items
+            .into_iter()
+            .map(|it| {
+                let xs: Vec<f64> = above(it)
+                    .into_iter()
+                    .filter_map(|a| centre.get(&(row.wrapping_sub(1), id(a))).copied())
                     .collect();
-                let centre = if cols.is_empty() {
+                let bary = if xs.is_empty() {
                     f64::INFINITY
                 } else {
-                    cols.iter().sum::<f64>() / cols.len() as f64
+                    xs.iter().sum::<f64>() / xs.len() as f64
                 };
-                (centre, i)
+                (bary, id(it), it)
             })
             .collect();
-        // Stages without inputs keep file order; others follow their inputs.
-        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        for (col, &(_, i)) in order.iter().enumerate() {
-            pos[i] = (col, row);
+        // Stages without inputs keep file order; the rest follow their inputs.
+        keyed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let row_w: i32 = keyed.iter().map(|&(_, _, it)| width_of(it)).sum::<i32>()
+            + (keyed.len() as i32 - 1).max(0) * COL_GAP;
+        out.width = out.width.max(row_w);
+        let mut x = -row_w / 2;
+        let mut placed = Vec::new();
+        for (_, _, it) in keyed {
+            let w = width_of(it);
+            centre.insert((row, id(it)), (x + w / 2) as f64);
+            match it {
+                Item::Stage(i) => out.stage[i] = (x, row),
+                Item::Edge(k) => out.crossings[k].push((x + w / 2, row)),
+            }
+            placed.push((it, x));
+            x += w + COL_GAP;
         }
-        rows.push(order.into_iter().map(|(_, i)| i).collect());
+        out.rows.push(placed);
     }
-    (rows, pos)
+    out
 }
 
 fn draw_err<E: std::fmt::Display>(e: E) -> anyhow::Error {
@@ -193,7 +269,7 @@ fn draw_err<E: std::fmt::Display>(e: E) -> anyhow::Error {
 
 /// The graph as an SVG, each stage coloured by its status, with a legend.
 pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
-    let (rows, pos) = layout(p);
+    let edges = edges(p);
     let box_w = p
         .stages
         .iter()
@@ -201,22 +277,54 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
         .max()
         .unwrap_or(80)
         + 20;
-    let widest = rows.iter().map(Vec::len).max().unwrap_or(1) as i32;
-    let content_w = widest * box_w + (widest - 1) * COL_GAP;
+    let lay = layout(p, &edges, box_w);
     let title = format!("{}: stage graph", p.name);
-    let width = (content_w + 2 * MARGIN)
+    let width = (lay.width + 2 * MARGIN)
         .max(text_width(&title, 18.0) + 2 * MARGIN)
         .max(520);
-    let height = 2 * MARGIN + 30 + rows.len() as i32 * (BOX_H + ROW_GAP) - ROW_GAP + LEGEND_H;
-    // Each row centred: rows narrower than the widest one sit in the middle.
-    let at = |i: usize| -> (i32, i32) {
-        let (col, row) = pos[i];
-        let n = rows[row].len() as i32;
-        let row_w = n * box_w + (n - 1) * COL_GAP;
-        let x = (width - row_w) / 2 + col as i32 * (box_w + COL_GAP);
-        let y = MARGIN + 30 + row as i32 * (BOX_H + ROW_GAP);
-        (x, y)
-    };
+    let top = MARGIN + 30;
+    let height = top + lay.rows.len() as i32 * (BOX_H + ROW_GAP) - ROW_GAP + MARGIN + LEGEND_H;
+    let x0 = width / 2;
+    let row_y = |row: usize| top + row as i32 * (BOX_H + ROW_GAP);
+    // Each edge as a polyline: out of its producer's bottom, through the
+    // rows it crosses, into its consumer's top.
+    let mut paths: Vec<Vec<(i32, i32)>> = edges
+        .iter()
+        .enumerate()
+        .map(|(k, (i, j, _))| {
+            let (xi, ri) = lay.stage[*i];
+            let (xj, rj) = lay.stage[*j];
+            let mut pts = vec![(x0 + xi + box_w / 2, row_y(ri) + BOX_H)];
+            for &(x, r) in &lay.crossings[k] {
+                pts.push((x0 + x, row_y(r)));
+                pts.push((x0 + x, row_y(r) + BOX_H));
+            }
+            pts.push((x0 + xj + box_w / 2, row_y(rj)));
+            pts
+        })
+        .collect();
+    // Edges leave and enter a box at their own points along its side,
+    // ordered by where they go or come from, so that they do not meet.
+    for i in 0..p.stages.len() {
+        let left = x0 + lay.stage[i].0;
+        let mut outs: Vec<(i32, usize)> = (0..edges.len())
+            .filter(|&k| edges[k].0 == i)
+            .map(|k| (paths[k][1].0, k))
+            .collect();
+        outs.sort();
+        for (rank, &(_, k)) in outs.iter().enumerate() {
+            paths[k][0].0 = left + box_w * (rank as i32 + 1) / (outs.len() as i32 + 1);
+        }
+        let mut ins: Vec<(i32, usize)> = (0..edges.len())
+            .filter(|&k| edges[k].1 == i)
+            .map(|k| (paths[k][paths[k].len() - 2].0, k))
+            .collect();
+        ins.sort();
+        for (rank, &(_, k)) in ins.iter().enumerate() {
+            let last = paths[k].len() - 1;
+            paths[k][last].0 = left + box_w * (rank as i32 + 1) / (ins.len() as i32 + 1);
+        }
+    }
     let mut out = String::new();
     {
         let root =
@@ -231,40 +339,31 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
         ))
         .map_err(draw_err)?;
         let line = RGBColor(90, 90, 90);
-        for (i, j, label) in edges(p) {
-            let (x0, y0) = at(i);
-            let (x1, y1) = at(j);
-            let from = (x0 + box_w / 2, y0 + BOX_H);
-            let to = (x1 + box_w / 2, y1);
-            root.draw(&PathElement::new(vec![from, to], line.stroke_width(1)))
+        for (path, (_, _, label)) in paths.iter().zip(&edges) {
+            root.draw(&PathElement::new(path.clone(), line.stroke_width(1)))
                 .map_err(draw_err)?;
-            let head = arrow_head(from, to);
-            root.draw(&Polygon::new(head, line.filled()))
+            let (a, b) = (path[path.len() - 2], path[path.len() - 1]);
+            root.draw(&Polygon::new(arrow_head(a, b), line.filled()))
                 .map_err(draw_err)?;
-            // The slot name near the consumer, where arrows are apart.
-            let t = 0.72;
-            let lx = from.0 as f64 + t * (to.0 - from.0) as f64;
-            let ly = from.1 as f64 + t * (to.1 - from.1) as f64;
+            // The slot's name on the last stretch, near the consumer.
+            let t = 0.7;
+            let lx = a.0 as f64 + t * (b.0 - a.0) as f64;
+            let ly = a.1 as f64 + t * (b.1 - a.1) as f64;
             root.draw(&Text::new(
-                label,
+                label.as_str(),
                 (lx as i32 + 4, ly as i32),
                 font(11.0, RGBColor(60, 60, 60), left),
             ))
             .map_err(draw_err)?;
         }
         for (i, s) in p.stages.iter().enumerate() {
-            let (x, y) = at(i);
+            let (x, y) = (x0 + lay.stage[i].0, row_y(lay.stage[i].1));
             let (fill, _) = style(status_of(statuses, &s.name));
-            root.draw(&Rectangle::new(
-                [(x, y), (x + box_w, y + BOX_H)],
-                fill.filled(),
-            ))
-            .map_err(draw_err)?;
-            root.draw(&Rectangle::new(
-                [(x, y), (x + box_w, y + BOX_H)],
-                line.stroke_width(1),
-            ))
-            .map_err(draw_err)?;
+            let corners = [(x, y), (x + box_w, y + BOX_H)];
+            root.draw(&Rectangle::new(corners, fill.filled()))
+                .map_err(draw_err)?;
+            root.draw(&Rectangle::new(corners, line.stroke_width(1)))
+                .map_err(draw_err)?;
             root.draw(&Text::new(
                 s.name.clone(),
                 (x + box_w / 2, y + 16),
@@ -285,13 +384,11 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
         let y = height - MARGIN - 14;
         for st in used {
             let (fill, label) = style(st);
-            root.draw(&Rectangle::new([(x, y), (x + 18, y + 14)], fill.filled()))
+            let corners = [(x, y), (x + 18, y + 14)];
+            root.draw(&Rectangle::new(corners, fill.filled()))
                 .map_err(draw_err)?;
-            root.draw(&Rectangle::new(
-                [(x, y), (x + 18, y + 14)],
-                line.stroke_width(1),
-            ))
-            .map_err(draw_err)?;
+            root.draw(&Rectangle::new(corners, line.stroke_width(1)))
+                .map_err(draw_err)?;
             root.draw(&Text::new(label, (x + 24, y + 7), font(13.0, BLACK, left)))
                 .map_err(draw_err)?;
             x += 24 + text_width(label, 13.0) + 24;
@@ -356,9 +453,25 @@ mod tests {
     #[test]
     fn layout_puts_each_stage_below_its_inputs() {
         let p = pipeline();
-        let (rows, pos) = layout(&p);
-        assert_eq!(rows, vec![vec![0, 1], vec![2]]);
-        assert_eq!(pos[2], (0, 1));
+        let lay = layout(&p, &edges(&p), 100);
+        let items: Vec<Vec<Item>> = lay
+            .rows
+            .iter()
+            .map(|r| r.iter().map(|&(it, _)| it).collect())
+            .collect();
+        assert_eq!(
+            items,
+            [vec![Item::Stage(0), Item::Stage(1)], vec![Item::Stage(2)]]
+        );
+        // Two boxes of 100 and a gap, centred; the consumer below between.
+        assert_eq!(
+            lay.stage,
+            [
+                (-(200 + COL_GAP) / 2, 0),
+                (-(200 + COL_GAP) / 2 + 100 + COL_GAP, 0),
+                (-50, 1)
+            ]
+        );
         let s = svg(&p, &Statuses::new()).unwrap();
         assert!(
             s.starts_with("<svg") && s.contains(">\nmeasure\n</text>"),

@@ -1,6 +1,7 @@
 //! The runner: executes a resolved pipeline level by level, stages of a level
 //! in parallel (rayon), reusing cached results, and publishes every stage's
-//! tables and figures under `results/<pipeline>/<stage>/`.
+//! tables and figures under `results/<pipeline>/<stage>/`, the run report
+//! (`run.json`) and the page [`crate::report`] (`index.html`).
 //!
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
 //! reported as a failure of that stage with its message; by default the run
@@ -15,6 +16,7 @@ use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
 use super::resolve::Pipeline;
+use crate::report;
 use crate::stages::{Context, StageInputs};
 use crate::table;
 use anyhow::{Result, anyhow};
@@ -200,6 +202,20 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         stages,
     };
     cache::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
+    let tables: report::Tables = produced
+        .into_inner()
+        .expect("no panics hold this lock")
+        .into_iter()
+        .map(|(stage, prod)| {
+            let t = prod
+                .tables
+                .iter()
+                .map(|(name, (df, _))| (name.clone(), df.clone()))
+                .collect();
+            (stage, t)
+        })
+        .collect();
+    report::write(&dir, p, &report, &tables)?;
     Ok(report)
 }
 
