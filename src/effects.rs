@@ -144,17 +144,41 @@ pub struct TargetShift {
 pub struct Effects {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub incidence: Option<Incidence>,
-    #[serde(default, rename = "incidence-table9", skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        rename = "incidence-table9",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub incidence_table9: Option<IncidenceTable9>,
-    #[serde(default, rename = "range-scale", skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        rename = "range-scale",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub range_scale: Option<RangeScale>,
-    #[serde(default, rename = "air-refraction", skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        rename = "air-refraction",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub air_refraction: Option<AirRefraction>,
-    #[serde(default, rename = "encoder-harmonic", skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        rename = "encoder-harmonic",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub encoder_harmonic: Option<EncoderHarmonic>,
-    #[serde(default, rename = "station-drift", skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        rename = "station-drift",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub station_drift: Option<StationDrift>,
-    #[serde(default, rename = "target-shift", skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        rename = "target-shift",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub target_shift: Option<TargetShift>,
 }
 
@@ -191,7 +215,10 @@ impl Effects {
         let mut out = Vec::new();
         let mut finite = |field: &str, v: f64| {
             if !v.is_finite() {
-                out.push((field.to_string(), format!("`{field}` must be finite, got {v}")));
+                out.push((
+                    field.to_string(),
+                    format!("`{field}` must be finite, got {v}"),
+                ));
             }
         };
         if let Some(i) = &self.incidence {
@@ -211,7 +238,10 @@ impl Effects {
             if !(i.max_angle_deg > 0.0 && i.max_angle_deg <= 90.0) {
                 out.push((
                     "incidence.max_angle_deg".into(),
-                    format!("`max_angle_deg` must lie in (0, 90], got {}", i.max_angle_deg),
+                    format!(
+                        "`max_angle_deg` must lie in (0, 90], got {}",
+                        i.max_angle_deg
+                    ),
                 ));
             }
         }
@@ -236,7 +266,10 @@ impl Effects {
         }
         if let Some(r) = &self.range_scale {
             if r.sigma_ppm.is_some_and(|s| !(s >= 0.0 && s.is_finite())) {
-                out.push(("range-scale.sigma_ppm".into(), "`sigma_ppm` must be ≥ 0".into()));
+                out.push((
+                    "range-scale.sigma_ppm".into(),
+                    "`sigma_ppm` must be ≥ 0".into(),
+                ));
             }
         }
         out
@@ -258,7 +291,11 @@ pub struct IncidenceAngles {
 pub fn incidence_angles(n: &Vector3<f64>, r: &Vector3<f64>) -> IncidenceAngles {
     let z = Vector3::z();
     let c = z.cross(n);
-    let h = if c.norm() < 1e-12 { Vector3::x() } else { c.normalize() };
+    let h = if c.norm() < 1e-12 {
+        Vector3::x()
+    } else {
+        c.normalize()
+    };
     let v = n.cross(&h);
     let rn = r.dot(n);
     IncidenceAngles {

@@ -95,22 +95,43 @@ impl Spec {
     pub fn check(&self) -> Vec<(&'static str, String)> {
         let mut out = Vec::new();
         if !(2..=50).contains(&self.stations) {
-            out.push(("stations", format!("`stations` must be 2 … 50, got {}", self.stations)));
+            out.push((
+                "stations",
+                format!("`stations` must be 2 … 50, got {}", self.stations),
+            ));
         }
         if !(self.pan_deg > 5.0 && self.pan_deg <= 120.0) {
-            out.push(("pan_deg", format!("`pan_deg` must lie in (5, 120], got {}", self.pan_deg)));
+            out.push((
+                "pan_deg",
+                format!("`pan_deg` must lie in (5, 120], got {}", self.pan_deg),
+            ));
         }
         if self.levels.is_empty() {
-            out.push(("levels", "`levels` needs at least one of floor, wall, high".into()));
+            out.push((
+                "levels",
+                "`levels` needs at least one of floor, wall, high".into(),
+            ));
         }
         if !(1..=200).contains(&self.per_level) {
-            out.push(("per_level", format!("`per_level` must be 1 … 200, got {}", self.per_level)));
+            out.push((
+                "per_level",
+                format!("`per_level` must be 1 … 200, got {}", self.per_level),
+            ));
         }
         if !(self.distance_mm >= 1000.0 && self.distance_mm <= 100_000.0) {
-            out.push(("distance_mm", format!("`distance_mm` must lie in [1000, 100000], got {}", self.distance_mm)));
+            out.push((
+                "distance_mm",
+                format!(
+                    "`distance_mm` must lie in [1000, 100000], got {}",
+                    self.distance_mm
+                ),
+            ));
         }
         if !(self.tracker_height_mm > 0.0 && self.tracker_height_mm < 3000.0) {
-            out.push(("tracker_height_mm", "`tracker_height_mm` must lie in (0, 3000)".into()));
+            out.push((
+                "tracker_height_mm",
+                "`tracker_height_mm` must lie in (0, 3000)".into(),
+            ));
         }
         out
     }
@@ -147,11 +168,20 @@ fn spread(a: f64, b: f64, n: usize) -> Vec<f64> {
     if n == 1 {
         return vec![(a + b) / 2.0];
     }
-    (0..n).map(|i| a + (b - a) * i as f64 / (n - 1) as f64).collect()
+    (0..n)
+        .map(|i| a + (b - a) * i as f64 / (n - 1) as f64)
+        .collect()
 }
 
 /// Stations on an arc about `centre` (angles in the campaign frame).
-fn arc(centre: Vector3<f64>, radius: f64, mid: f64, span: f64, n: usize, z: f64) -> Vec<(String, Vector3<f64>)> {
+fn arc(
+    centre: Vector3<f64>,
+    radius: f64,
+    mid: f64,
+    span: f64,
+    n: usize,
+    z: f64,
+) -> Vec<(String, Vector3<f64>)> {
     ids("S", n)
         .into_iter()
         .zip(spread(mid - span / 2.0, mid + span / 2.0, n))
@@ -159,7 +189,10 @@ fn arc(centre: Vector3<f64>, radius: f64, mid: f64, span: f64, n: usize, z: f64)
         .map(|(i, (id, a))| {
             // Stagger the radius so that the stations are not on one circle.
             let r = radius * (1.0 + 0.06 * ((i % 3) as f64 - 1.0));
-            (id, Vector3::new(centre.x + r * a.cos(), centre.y + r * a.sin(), z))
+            (
+                id,
+                Vector3::new(centre.x + r * a.cos(), centre.y + r * a.sin(), z),
+            )
         })
         .collect()
 }
@@ -195,7 +228,14 @@ fn corner(spec: &Spec) -> Layout {
         }
     }
     let targets: Vec<(String, Vector3<f64>)> = ids("T", pts.len()).into_iter().zip(pts).collect();
-    let stations = arc(Vector3::zeros(), spec.distance_mm, PI / 4.0, (40f64).to_radians(), spec.stations, h);
+    let stations = arc(
+        Vector3::zeros(),
+        spec.distance_mm,
+        PI / 4.0,
+        (40f64).to_radians(),
+        spec.stations,
+        h,
+    );
     let gauge = gauge_of(&targets);
     Layout {
         targets,
@@ -217,7 +257,14 @@ fn cmm_table(spec: &Spec) -> Layout {
     pts.push(Vector3::new(900.0, 600.0, 600.0));
     let targets: Vec<(String, Vector3<f64>)> = ids("T", pts.len()).into_iter().zip(pts).collect();
     let centre = Vector3::new(900.0, 600.0, 0.0);
-    let stations = arc(centre, 3000.0, -PI / 2.0, PI, spec.stations, spec.tracker_height_mm - 800.0);
+    let stations = arc(
+        centre,
+        3000.0,
+        -PI / 2.0,
+        PI,
+        spec.stations,
+        spec.tracker_height_mm - 800.0,
+    );
     let gauge = gauge_of(&targets);
     Layout {
         targets,
@@ -250,7 +297,14 @@ fn hall(spec: &Spec) -> Layout {
     }
     let targets: Vec<(String, Vector3<f64>)> = ids("T", pts.len()).into_iter().zip(pts).collect();
     let centre = Vector3::new(lx / 2.0, ly / 2.0, 0.0);
-    let stations = arc(centre, 3000.0, 0.0, 2.0 * PI * (1.0 - 1.0 / spec.stations as f64), spec.stations, spec.tracker_height_mm);
+    let stations = arc(
+        centre,
+        3000.0,
+        0.0,
+        2.0 * PI * (1.0 - 1.0 / spec.stations as f64),
+        spec.stations,
+        spec.tracker_height_mm,
+    );
     let gauge = gauge_of(&targets);
     Layout {
         targets,
@@ -268,8 +322,14 @@ fn gauge_of(targets: &[(String, Vector3<f64>)]) -> Vec<String> {
         let next = (0..targets.len())
             .filter(|i| !chosen.contains(i))
             .max_by(|&a, &b| {
-                let da = chosen.iter().map(|&c| (targets[a].1 - targets[c].1).norm()).fold(f64::INFINITY, f64::min);
-                let db = chosen.iter().map(|&c| (targets[b].1 - targets[c].1).norm()).fold(f64::INFINITY, f64::min);
+                let da = chosen
+                    .iter()
+                    .map(|&c| (targets[a].1 - targets[c].1).norm())
+                    .fold(f64::INFINITY, f64::min);
+                let db = chosen
+                    .iter()
+                    .map(|&c| (targets[b].1 - targets[c].1).norm())
+                    .fold(f64::INFINITY, f64::min);
                 da.total_cmp(&db)
             })
             .expect("targets left");
@@ -286,7 +346,10 @@ mod tests {
     #[test]
     fn paper_layouts_have_the_paper_counts() {
         let c = build(&Spec::new(Kind::Corner));
-        assert_eq!((c.targets.len(), c.stations.len(), c.gauge.len()), (24, 5, 4));
+        assert_eq!(
+            (c.targets.len(), c.stations.len(), c.gauge.len()),
+            (24, 5, 4)
+        );
         let t = build(&Spec::new(Kind::CmmTable));
         assert_eq!((t.targets.len(), t.stations.len()), (17, 5));
         assert!(t.references);
@@ -299,16 +362,25 @@ mod tests {
         let c = build(&Spec::new(Kind::Corner));
         let z: Vec<f64> = c.targets.iter().map(|t| t.1.z).collect();
         assert_eq!(z.iter().filter(|&&z| z == 0.0).count(), 8);
-        assert_eq!(z.iter().filter(|&&z| (z - 1500.0).abs() <= 150.0).count(), 8);
+        assert_eq!(
+            z.iter().filter(|&&z| (z - 1500.0).abs() <= 150.0).count(),
+            8
+        );
         assert_eq!(z.iter().filter(|&&z| z > 3000.0).count(), 8);
         // Seen from the stations' centroid the reflectors span ≈ 90° of pan.
         let centroid: Vector3<f64> = c.stations.iter().map(|s| s.1).sum::<Vector3<f64>>() / 5.0;
         let az: Vec<f64> = c
             .targets
             .iter()
-            .map(|t| (t.1.y - centroid.y).atan2(t.1.x - centroid.x).rem_euclid(2.0 * PI).to_degrees())
+            .map(|t| {
+                (t.1.y - centroid.y)
+                    .atan2(t.1.x - centroid.x)
+                    .rem_euclid(2.0 * PI)
+                    .to_degrees()
+            })
             .collect();
-        let span = az.iter().cloned().fold(f64::MIN, f64::max) - az.iter().cloned().fold(f64::MAX, f64::min);
+        let span = az.iter().cloned().fold(f64::MIN, f64::max)
+            - az.iter().cloned().fold(f64::MAX, f64::min);
         assert!((75.0..=100.0).contains(&span), "pan {span}");
     }
 }

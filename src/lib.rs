@@ -3,6 +3,7 @@
 //! The library holds the paper's models (one module per concept) and the
 //! pipeline runner; the `ltcal` binary is a thin shell over [`run`].
 
+pub mod calibrate;
 pub mod campaign;
 pub mod cli;
 pub mod effects;

@@ -173,23 +173,33 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
             }
         }
         if let Some(unknown) = rs.ppm.keys().find(|s| station_index(s).is_none()) {
-            return Err(format!("range-scale names station `{unknown}`, which the layout does not have"));
+            return Err(format!(
+                "range-scale names station `{unknown}`, which the layout does not have"
+            ));
         }
     }
     let shift_from = match &fx.target_shift {
         Some(ts) => {
             if !layout.targets.iter().any(|t| t.0 == ts.target) {
-                return Err(format!("target-shift names reflector `{}`, which the layout does not have", ts.target));
+                return Err(format!(
+                    "target-shift names reflector `{}`, which the layout does not have",
+                    ts.target
+                ));
             }
             Some(station_index(&ts.from_station).ok_or_else(|| {
-                format!("target-shift names station `{}`, which the layout does not have", ts.from_station)
+                format!(
+                    "target-shift names station `{}`, which the layout does not have",
+                    ts.from_station
+                )
             })?)
         }
         None => None,
     };
     if let Some(d) = fx.station_drift.as_ref().and_then(|d| d.station.as_ref()) {
         if station_index(d).is_none() {
-            return Err(format!("station-drift names station `{d}`, which the layout does not have"));
+            return Err(format!(
+                "station-drift names station `{d}`, which the layout does not have"
+            ));
         }
     }
     let centroid: Vector3<f64> =
@@ -312,7 +322,8 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                 gauge.push(GaugeLength {
                     target_a: a.clone(),
                     target_b: b.clone(),
-                    distance_mm: (pa - pb).norm() + spec.gauge_u_mm * random::normal(&mut gauge_rng),
+                    distance_mm: (pa - pb).norm()
+                        + spec.gauge_u_mm * random::normal(&mut gauge_rng),
                     u_mm: Some(spec.gauge_u_mm),
                 });
             }

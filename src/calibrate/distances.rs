@@ -1,0 +1,421 @@
+//! The paper's distance objectives, Eq. (13)–(15).
+//!
+//! A *view* is the set of readings one station took in one face: its points,
+//! corrected with the error parameters, are in one rigid frame, so the
+//! distances between them are what a perfect tracker would measure there.
+//! (The paper has one face per station, so its views are its stations.)
+//!
+//! ```text
+//! Eq. 13:  Σ_views Σ_pairs (dᵛ_kl − d_kl^ref)         reference coordinates
+//! Eq. 14:  Σ_{v<w} Σ_pairs (dᵛ_kl − dʷ_kl)            between views only
+//! Eq. 15:  Eq. 14 + Σ_views Σ_gauge (dᵛ_kl − L_kl)     plus the gauge
+//! ```
+//!
+//! each term in absolute value (the paper's L1 form, minimised by
+//! iteratively reweighted least squares) or squared. Eq. (13) as printed
+//! sums signed differences; as an objective it needs their absolute values
+//! or squares (NOTES item 9).
+
+use super::register::align;
+use super::{Calibration, FitSummary, Network, Norm, Objective, Settings, gauge_scale_ppm};
+use crate::error_model::ErrorParams;
+use crate::identifiability;
+use crate::solver::LevenbergMarquardt;
+use anyhow::{Result, anyhow, bail};
+use argmin::core::{Error as ArgminError, Jacobian, Operator};
+use nalgebra::{DMatrix, DVector, Vector3};
+use std::collections::BTreeMap;
+
+/// One station in one face: target → readings (indices into `net.obs`).
+struct View {
+    targets: BTreeMap<usize, Vec<usize>>,
+}
+
+/// One term of an objective.
+#[derive(Clone, Copy, Debug)]
+enum Term {
+    /// `dᵛ_kl − dʷ_kl`.
+    Between {
+        v: usize,
+        w: usize,
+        k: usize,
+        l: usize,
+    },
+    /// `dᵛ_kl − length`.
+    Against {
+        v: usize,
+        k: usize,
+        l: usize,
+        length_mm: f64,
+    },
+}
+
+fn views(net: &Network) -> Vec<View> {
+    let mut map: BTreeMap<(usize, i64), View> = BTreeMap::new();
+    for (i, o) in net.obs.iter().enumerate() {
+        map.entry((o.station, o.face.number()))
+            .or_insert_with(|| View {
+                targets: BTreeMap::new(),
+            })
+            .targets
+            .entry(o.target)
+            .or_default()
+            .push(i);
+    }
+    map.into_values().collect()
+}
+
+fn pairs(v: &View) -> Vec<(usize, usize)> {
+    let t: Vec<usize> = v.targets.keys().copied().collect();
+    let mut out = Vec::new();
+    for (i, &a) in t.iter().enumerate() {
+        for &b in &t[i + 1..] {
+            out.push((a, b));
+        }
+    }
+    out
+}
+
+fn terms(net: &Network, views: &[View], objective: Objective) -> Result<Vec<Term>> {
+    let mut out = Vec::new();
+    match objective {
+        Objective::Eq13 => {
+            for (v, view) in views.iter().enumerate() {
+                for (k, l) in pairs(view) {
+                    if let (Some((a, _)), Some((b, _))) = (net.references[k], net.references[l]) {
+                        out.push(Term::Against {
+                            v,
+                            k,
+                            l,
+                            length_mm: (a - b).norm(),
+                        });
+                    }
+                }
+            }
+            if out.is_empty() {
+                bail!(
+                    "Eq. (13) needs reflectors with reference coordinates; this campaign has none seen in pairs"
+                );
+            }
+        }
+        Objective::Eq14 | Objective::Eq15 => {
+            for v in 0..views.len() {
+                for w in v + 1..views.len() {
+                    for (k, l) in pairs(&views[v]) {
+                        if views[w].targets.contains_key(&k) && views[w].targets.contains_key(&l) {
+                            out.push(Term::Between { v, w, k, l });
+                        }
+                    }
+                }
+            }
+            if objective == Objective::Eq15 {
+                let before = out.len();
+                for (v, view) in views.iter().enumerate() {
+                    for g in &net.gauge {
+                        if view.targets.contains_key(&g.a) && view.targets.contains_key(&g.b) {
+                            out.push(Term::Against {
+                                v,
+                                k: g.a,
+                                l: g.b,
+                                length_mm: g.length_mm,
+                            });
+                        }
+                    }
+                }
+                if out.len() == before {
+                    bail!("Eq. (15) needs a gauge: no gauge length is seen from any station");
+                }
+            }
+            if out.is_empty() {
+                bail!("no reflector pair is seen from two stations");
+            }
+        }
+        Objective::Bundle => unreachable!("the bundle adjustment is not a distance objective"),
+    }
+    Ok(out)
+}
+
+/// The objective's residuals (µm) and, when asked, their Jacobian with
+/// respect to the listed coefficients (µm per display unit).
+struct Evaluation {
+    r: DVector<f64>,
+    j: Option<DMatrix<f64>>,
+}
+
+fn evaluate(
+    net: &Network,
+    views: &[View],
+    terms: &[Term],
+    params: &ErrorParams,
+    cols: &[usize],
+    jac: bool,
+) -> Evaluation {
+    let eval = params.evaluator();
+    let n = cols.len();
+    // Per view and target: the mean corrected point and its derivative.
+    let mut pts: Vec<BTreeMap<usize, (Vector3<f64>, Vec<Vector3<f64>>)>> =
+        Vec::with_capacity(views.len());
+    let mut buf = Vec::new();
+    for view in views {
+        let mut m = BTreeMap::new();
+        for (&t, idx) in &view.targets {
+            let mut p = Vector3::zeros();
+            let mut d = vec![Vector3::zeros(); if jac { n } else { 0 }];
+            for &i in idx {
+                let o = &net.obs[i];
+                if jac {
+                    p += eval.point_with_jacobian(o.q, &o.links, &mut buf);
+                    for (k, &c) in cols.iter().enumerate() {
+                        d[k] += buf[c];
+                    }
+                } else {
+                    p += eval.point(o.q, &o.links);
+                }
+            }
+            let w = 1.0 / idx.len() as f64;
+            d.iter_mut().for_each(|x| *x *= w);
+            m.insert(t, (p * w, d));
+        }
+        pts.push(m);
+    }
+    let dist = |v: usize, k: usize, l: usize| {
+        let (a, da) = &pts[v][&k];
+        let (b, db) = &pts[v][&l];
+        let u = a - b;
+        let d = u.norm();
+        let u = u / d;
+        let grad: Vec<f64> = if jac {
+            (0..n).map(|c| u.dot(&(da[c] - db[c]))).collect()
+        } else {
+            Vec::new()
+        };
+        (d, grad)
+    };
+    let mut r = DVector::zeros(terms.len());
+    let mut j = jac.then(|| DMatrix::zeros(terms.len(), n));
+    for (i, t) in terms.iter().enumerate() {
+        let (value, grad) = match *t {
+            Term::Between { v, w, k, l } => {
+                let (dv, gv) = dist(v, k, l);
+                let (dw, gw) = dist(w, k, l);
+                (
+                    dv - dw,
+                    gv.iter().zip(&gw).map(|(a, b)| a - b).collect::<Vec<_>>(),
+                )
+            }
+            Term::Against { v, k, l, length_mm } => {
+                let (dv, gv) = dist(v, k, l);
+                (dv - length_mm, gv)
+            }
+        };
+        r[i] = value * 1e3;
+        if let Some(j) = j.as_mut() {
+            for (c, g) in grad.iter().enumerate() {
+                j[(i, c)] = g * 1e3;
+            }
+        }
+    }
+    Evaluation { r, j }
+}
+
+/// Weighted least squares in the coordinates `z` of the determined
+/// directions: `p = p₀ + S·B·z`.
+struct Weighted<'a> {
+    net: &'a Network,
+    views: &'a [View],
+    terms: &'a [Term],
+    start: &'a ErrorParams,
+    free_index: &'a [usize],
+    basis: &'a DMatrix<f64>,
+    /// √w per term.
+    sqrt_w: &'a DVector<f64>,
+}
+
+impl Weighted<'_> {
+    fn params(&self, z: &DVector<f64>) -> ErrorParams {
+        let mut p = self.start.clone();
+        let dx = self.basis * z;
+        for (k, &i) in self.free_index.iter().enumerate() {
+            p.values_mut()[i] += dx[k];
+        }
+        p
+    }
+}
+
+impl Operator for Weighted<'_> {
+    type Param = DVector<f64>;
+    type Output = DVector<f64>;
+    fn apply(&self, z: &DVector<f64>) -> Result<DVector<f64>, ArgminError> {
+        let e = evaluate(
+            self.net,
+            self.views,
+            self.terms,
+            &self.params(z),
+            self.free_index,
+            false,
+        );
+        Ok(e.r.component_mul(self.sqrt_w))
+    }
+}
+
+impl Jacobian for Weighted<'_> {
+    type Param = DVector<f64>;
+    type Jacobian = DMatrix<f64>;
+    fn jacobian(&self, z: &DVector<f64>) -> Result<DMatrix<f64>, ArgminError> {
+        let e = evaluate(
+            self.net,
+            self.views,
+            self.terms,
+            &self.params(z),
+            self.free_index,
+            true,
+        );
+        let mut j = e.j.expect("requested") * self.basis;
+        for (i, mut row) in j.row_iter_mut().enumerate() {
+            row *= self.sqrt_w[i];
+        }
+        Ok(j)
+    }
+}
+
+/// The most IRLS rounds for the L1 form.
+const MAX_IRLS: usize = 60;
+
+pub fn calibrate(
+    net: &Network,
+    start: &ErrorParams,
+    free: &[bool],
+    settings: &Settings,
+) -> Result<Calibration> {
+    let views = views(net);
+    let terms = terms(net, &views, settings.objective)?;
+    let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
+    let e0 = evaluate(net, &views, &terms, start, &free_index, true);
+    let analysis = identifiability::analyse(e0.j.as_ref().expect("requested"), settings.rank_tol);
+    let names: Vec<String> = free_index
+        .iter()
+        .map(|&i| start.coefs()[i].symbol())
+        .collect();
+    let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
+    let basis = analysis.row_basis.clone();
+    let rank = analysis.rank;
+    let mut sqrt_w = DVector::from_element(terms.len(), 1.0);
+    let mut z = DVector::zeros(rank);
+    let mut iterations = 0;
+    let mut stop = "nothing-to-estimate";
+    if rank > 0 {
+        let rounds = if settings.norm == Norm::L1 {
+            MAX_IRLS
+        } else {
+            1
+        };
+        let mut last_l1 = f64::INFINITY;
+        for _ in 0..rounds {
+            let problem = Weighted {
+                net,
+                views: &views,
+                terms: &terms,
+                start,
+                free_index: &free_index,
+                basis: &basis,
+                sqrt_w: &sqrt_w,
+            };
+            let fit = LevenbergMarquardt::new()
+                .with_initial_lambda(1e-6)
+                .and_then(|lm| lm.minimize(problem, z.clone(), settings.max_iters))
+                .map_err(|e| anyhow!("calibration failed: {e}"))?;
+            iterations += fit.iterations;
+            stop = fit.reason;
+            z = fit.x;
+            if settings.norm == Norm::L2 {
+                break;
+            }
+            // IRLS: weight each term by 1/|r| so that Σ w·r² ≈ Σ |r|.
+            let problem = Weighted {
+                net,
+                views: &views,
+                terms: &terms,
+                start,
+                free_index: &free_index,
+                basis: &basis,
+                sqrt_w: &sqrt_w,
+            };
+            let r = evaluate(net, &views, &terms, &problem.params(&z), &free_index, false).r;
+            let l1 = r.iter().map(|x| x.abs()).sum::<f64>();
+            let eps = (1e-6 * l1 / r.len() as f64).max(1e-9);
+            sqrt_w = r.map(|x| 1.0 / x.abs().max(eps).sqrt());
+            if (last_l1 - l1).abs() <= 1e-10 * l1.max(1e-300) {
+                stop = "irls-converged";
+                break;
+            }
+            last_l1 = l1;
+        }
+    }
+    let problem = Weighted {
+        net,
+        views: &views,
+        terms: &terms,
+        start,
+        free_index: &free_index,
+        basis: &basis,
+        sqrt_w: &sqrt_w,
+    };
+    let params = problem.params(&z);
+    let e1 = evaluate(net, &views, &terms, &params, &free_index, true);
+    let m = terms.len() as f64;
+    let rms = |r: &DVector<f64>| (r.norm_squared() / m).sqrt();
+    let mean_abs = |r: &DVector<f64>| r.iter().map(|x| x.abs()).sum::<f64>() / m;
+
+    // Standard uncertainties from the least-squares covariance of the terms,
+    // scaled by their scatter (no stated weights enter the distance forms).
+    let mut std = vec![None; free.len()];
+    if rank > 0 {
+        let jz = e1.j.as_ref().expect("requested") * &basis;
+        let dof = terms.len().saturating_sub(rank).max(1);
+        let s2 = e1.r.norm_squared() / dof as f64;
+        if let Some(inv) = (jz.transpose() * &jz).try_inverse() {
+            let cov = &basis * inv * basis.transpose() * s2;
+            for (k, &i) in free_index.iter().enumerate() {
+                std[i] = Some(cov[(k, k)].max(0.0).sqrt());
+            }
+        }
+    }
+    let station_pts = net.station_points(&params);
+    let anchor = net.references_fix_frame().then(|| net.reference_points());
+    let alignment = align(&station_pts, anchor.as_ref())
+        .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
+    Ok(Calibration {
+        std,
+        free: free.to_vec(),
+        analysis,
+        free_index,
+        combinations,
+        pose_std: vec![None; alignment.poses.len()],
+        poses: alignment.poses,
+        points: alignment.points,
+        point_std: BTreeMap::new(),
+        fit: FitSummary {
+            objective: settings.objective.name().into(),
+            norm: match settings.norm {
+                Norm::L1 => "l1".into(),
+                Norm::L2 => "l2".into(),
+            },
+            n_readings: net.obs.len(),
+            n_residuals: terms.len(),
+            n_unknowns: rank,
+            rank,
+            iterations,
+            stop: stop.into(),
+            rms_before: rms(&e0.r),
+            rms_after: rms(&e1.r),
+            mean_abs_before: mean_abs(&e0.r),
+            mean_abs_after: mean_abs(&e1.r),
+            chi2: None,
+            dof: None,
+            chi2_p: None,
+            gauge_scale_ppm: gauge_scale_ppm(net, &params),
+        },
+        params,
+        residuals: Vec::new(),
+    })
+}

@@ -1,0 +1,426 @@
+//! Calibration with unknown station poses (Sections 5.2, 7, 8): the error
+//! parameters from a campaign, where nobody knows the reflectors' true
+//! positions.
+//!
+//! * [`distances`] — the paper's objectives: Eq. (13) (distances against
+//!   reference distances), Eq. (14) (distances between stations only) and
+//!   Eq. (15) (Eq. 14 plus the gauge), each in the paper's absolute-value
+//!   (L1) form and in least-squares form. Distances measured within one
+//!   station do not depend on its pose, so these objectives have the error
+//!   parameters as their only unknowns; poses and positions are estimated
+//!   afterwards by registration ([`register`]).
+//! * [`bundle`] — the statistically proper alternative: a bundle adjustment
+//!   on the readings themselves (residuals in az, el, d weighted by the
+//!   stated noise) with station poses and reflector positions as unknowns
+//!   beside the error parameters, gauge lengths and reference coordinates as
+//!   observations.
+//!
+//! Both report which error-parameter combinations the campaign determines,
+//! estimate only those (the rest keep their start values: the minimum-norm
+//! solution), and say so.
+
+pub mod bundle;
+pub mod distances;
+pub mod register;
+
+use crate::campaign::Campaign;
+use crate::error_model::{ErrorParams, Links};
+use crate::identifiability::{Analysis, Combination};
+use crate::kinematics::{Face, Joints, Reading};
+use crate::simulate::Noise;
+use anyhow::{Result, anyhow, bail};
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Reading noise assumed when the campaign does not state it (FIELD.md,
+/// typical indoor values).
+pub const DEFAULT_NOISE: Noise = Noise {
+    sigma_angle_urad: 1.0,
+    sigma_range_um: 2.0,
+    sigma_range_ppm: 0.0,
+};
+
+/// One reading, prepared for repeated evaluation.
+#[derive(Clone, Debug)]
+pub struct Observation {
+    pub station: usize,
+    pub target: usize,
+    pub face: Face,
+    pub reading: Reading,
+    pub q: Joints,
+    pub links: Links,
+    /// 1 σ of az and el (rad) and d (mm).
+    pub sigma: Vector3<f64>,
+}
+
+/// A calibrated length between two reflectors.
+#[derive(Clone, Debug)]
+pub struct Gauge {
+    pub a: usize,
+    pub b: usize,
+    pub length_mm: f64,
+    pub u_mm: f64,
+}
+
+/// A campaign as the calibration sees it: ids as indices, readings
+/// prepared, references and gauge attached.
+#[derive(Clone, Debug)]
+pub struct Network {
+    pub stations: Vec<String>,
+    pub targets: Vec<String>,
+    pub obs: Vec<Observation>,
+    pub gauge: Vec<Gauge>,
+    /// Reference coordinates and their standard uncertainty (mm), per target.
+    pub references: Vec<Option<(Vector3<f64>, f64)>>,
+    pub noise: Noise,
+    /// Whether `noise` was stated in the campaign (rather than assumed).
+    pub noise_stated: bool,
+}
+
+/// Standard uncertainty assumed for reference coordinates and gauge lengths
+/// that give none (mm).
+pub const DEFAULT_REFERENCE_U_MM: f64 = 0.001;
+
+impl Network {
+    pub fn from_campaign(c: &Campaign) -> Result<Network> {
+        let stations = c.stations();
+        let targets: Vec<String> = c.targets.iter().map(|t| t.id.clone()).collect();
+        let index = |id: &str| targets.iter().position(|t| t == id);
+        let t = &c.meta.tracker;
+        let noise_stated = t.sigma_angle_urad.is_some() || t.sigma_range_um.is_some();
+        let noise = Noise {
+            sigma_angle_urad: t.sigma_angle_urad.unwrap_or(DEFAULT_NOISE.sigma_angle_urad),
+            sigma_range_um: t.sigma_range_um.unwrap_or(DEFAULT_NOISE.sigma_range_um),
+            sigma_range_ppm: t.sigma_range_ppm.unwrap_or(DEFAULT_NOISE.sigma_range_ppm),
+        };
+        // A noise-free campaign still needs weights: keep them finite.
+        let floor = |v: f64, min: f64| if v > 0.0 { v } else { min };
+        let mut obs = Vec::with_capacity(c.readings.len());
+        for r in &c.readings {
+            let target = index(&r.target)
+                .ok_or_else(|| anyhow!("reading of unknown reflector `{}`", r.target))?;
+            let station = stations
+                .iter()
+                .position(|s| *s == r.station)
+                .expect("listed");
+            let reading = r.reading();
+            let q = reading.joints();
+            obs.push(Observation {
+                station,
+                target,
+                face: r.face,
+                reading,
+                q,
+                links: Links::new(q),
+                sigma: Vector3::new(
+                    floor(noise.sigma_angle_urad, 1e-3) * 1e-6,
+                    floor(noise.sigma_angle_urad, 1e-3) * 1e-6,
+                    floor(noise.sigma_range_at_um(r.d_mm), 1e-3) * 1e-3,
+                ),
+            });
+        }
+        let gauge = c
+            .gauge
+            .iter()
+            .map(|g| {
+                Ok(Gauge {
+                    a: index(&g.target_a)
+                        .ok_or_else(|| anyhow!("gauge names unknown `{}`", g.target_a))?,
+                    b: index(&g.target_b)
+                        .ok_or_else(|| anyhow!("gauge names unknown `{}`", g.target_b))?,
+                    length_mm: g.distance_mm,
+                    u_mm: g
+                        .u_mm
+                        .filter(|u| *u > 0.0)
+                        .unwrap_or(DEFAULT_REFERENCE_U_MM),
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let references = c
+            .targets
+            .iter()
+            .map(|t| {
+                t.reference.map(|x| {
+                    (
+                        x,
+                        t.u_mm
+                            .filter(|u| *u > 0.0)
+                            .unwrap_or(DEFAULT_REFERENCE_U_MM),
+                    )
+                })
+            })
+            .collect();
+        if obs.is_empty() {
+            bail!("the campaign has no readings");
+        }
+        Ok(Network {
+            stations,
+            targets,
+            obs,
+            gauge,
+            references,
+            noise,
+            noise_stated,
+        })
+    }
+
+    /// The corrected point of every reading in its station's frame.
+    pub fn local_points(&self, params: &ErrorParams) -> Vec<Vector3<f64>> {
+        let eval = params.evaluator();
+        self.obs.iter().map(|o| eval.point(o.q, &o.links)).collect()
+    }
+
+    /// Per station: target → mean corrected point (over faces and repeats).
+    pub fn station_points(&self, params: &ErrorParams) -> Vec<BTreeMap<usize, Vector3<f64>>> {
+        let pts = self.local_points(params);
+        let mut sums: Vec<BTreeMap<usize, (Vector3<f64>, usize)>> =
+            vec![BTreeMap::new(); self.stations.len()];
+        for (o, p) in self.obs.iter().zip(&pts) {
+            let e = sums[o.station]
+                .entry(o.target)
+                .or_insert((Vector3::zeros(), 0));
+            e.0 += p;
+            e.1 += 1;
+        }
+        sums.into_iter()
+            .map(|m| m.into_iter().map(|(k, (v, n))| (k, v / n as f64)).collect())
+            .collect()
+    }
+
+    /// Reference coordinates of the targets that have them.
+    pub fn reference_points(&self) -> BTreeMap<usize, Vector3<f64>> {
+        self.references
+            .iter()
+            .enumerate()
+            .filter_map(|(i, r)| r.map(|(x, _)| (i, x)))
+            .collect()
+    }
+
+    /// Whether the references fix the frame (≥ 3 not on a line).
+    pub fn references_fix_frame(&self) -> bool {
+        let r: Vec<Vector3<f64>> = self.reference_points().into_values().collect();
+        register::fit(&r, &r).is_some()
+    }
+}
+
+/// Which objective to minimise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Objective {
+    /// Eq. (13): distances against distances between reference coordinates.
+    Eq13,
+    /// Eq. (14): distances between stations only.
+    Eq14,
+    /// Eq. (15): Eq. (14) plus the gauge.
+    Eq15,
+    /// Bundle adjustment on the readings.
+    Bundle,
+}
+
+impl Objective {
+    pub fn name(self) -> &'static str {
+        match self {
+            Objective::Eq13 => "eq13",
+            Objective::Eq14 => "eq14",
+            Objective::Eq15 => "eq15",
+            Objective::Bundle => "bundle",
+        }
+    }
+}
+
+/// Absolute values (the paper's form) or squares.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Norm {
+    L1,
+    #[default]
+    L2,
+}
+
+/// Settings common to every objective.
+#[derive(Clone, Debug)]
+pub struct Settings {
+    pub objective: Objective,
+    pub norm: Norm,
+    /// Relative singular-value threshold for what the data determine.
+    pub rank_tol: f64,
+    pub max_iters: u64,
+}
+
+/// A calibration's outcome.
+#[derive(Clone, Debug)]
+pub struct Calibration {
+    pub params: ErrorParams,
+    pub free: Vec<bool>,
+    pub std: Vec<Option<f64>>,
+    /// Singular values of what determines the free coefficients.
+    pub analysis: Analysis,
+    pub free_index: Vec<usize>,
+    pub combinations: Vec<Combination>,
+    /// Station → campaign frame.
+    pub poses: Vec<register::Rigid>,
+    /// Standard uncertainty of each pose: position (mm) and rotation (rad),
+    /// when the objective estimates them.
+    pub pose_std: Vec<Option<(f64, f64)>>,
+    pub points: BTreeMap<usize, Vector3<f64>>,
+    pub point_std: BTreeMap<usize, f64>,
+    pub fit: FitSummary,
+    /// Per reading, for the bundle adjustment: normalised residuals in az,
+    /// el, d (units of σ) and the same in µrad, µrad, µm.
+    pub residuals: Vec<ReadingResidual>,
+}
+
+/// One reading's residual after a bundle adjustment.
+#[derive(Clone, Copy, Debug)]
+pub struct ReadingResidual {
+    pub obs: usize,
+    pub az_urad: f64,
+    pub el_urad: f64,
+    pub d_um: f64,
+    /// `(az, el, d)` divided by their σ.
+    pub normalized: Vector3<f64>,
+}
+
+/// Numbers that describe a fit.
+#[derive(Clone, Debug, Default)]
+pub struct FitSummary {
+    pub objective: String,
+    pub norm: String,
+    pub n_readings: usize,
+    pub n_residuals: usize,
+    pub n_unknowns: usize,
+    pub rank: usize,
+    pub iterations: u64,
+    pub stop: String,
+    /// Root mean square of the objective's residuals before and after
+    /// (µm for the distance objectives; units of σ for the bundle).
+    pub rms_before: f64,
+    pub rms_after: f64,
+    /// Mean absolute residual before and after (the L1 objective / count).
+    pub mean_abs_before: f64,
+    pub mean_abs_after: f64,
+    /// Bundle: Σ r², its degrees of freedom and the χ² upper-tail probability.
+    pub chi2: Option<f64>,
+    pub dof: Option<usize>,
+    pub chi2_p: Option<f64>,
+    /// Gauge lengths as measured after calibration, mean of `d/L − 1` (ppm).
+    pub gauge_scale_ppm: Option<f64>,
+}
+
+/// Runs the chosen objective.
+pub fn calibrate(
+    net: &Network,
+    start: &ErrorParams,
+    free: &[bool],
+    settings: &Settings,
+) -> Result<Calibration> {
+    match settings.objective {
+        Objective::Bundle => bundle::calibrate(net, start, free, settings),
+        _ => distances::calibrate(net, start, free, settings),
+    }
+}
+
+/// Mean of `d/L − 1` over the gauge lengths seen, with the corrected
+/// points of every station (ppm): how far the calibrated scale is off.
+pub fn gauge_scale_ppm(net: &Network, params: &ErrorParams) -> Option<f64> {
+    let pts = net.station_points(params);
+    let mut sum = 0.0;
+    let mut n = 0;
+    for g in &net.gauge {
+        for s in &pts {
+            if let (Some(a), Some(b)) = (s.get(&g.a), s.get(&g.b)) {
+                sum += ((a - b).norm() / g.length_mm - 1.0) * 1e6;
+                n += 1;
+            }
+        }
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::campaign::Aim;
+    use crate::effects::Effects;
+    use crate::error_model::ErrorModel;
+    use crate::layout::{self, Kind, Spec};
+    use crate::simulate::{CampaignSpec, simulate_campaign};
+
+    fn corner(
+        noise: Noise,
+        faces: &[Face],
+        errors: &ErrorParams,
+    ) -> crate::simulate::SimulatedCampaign {
+        let layout = layout::build(&Spec::new(Kind::Corner));
+        simulate_campaign(&CampaignSpec {
+            name: "t".into(),
+            layout: &layout,
+            errors: Some(errors),
+            faces,
+            aim: Aim::StationsCentroid,
+            max_angle_deg: 30.0,
+            noise,
+            effects: &Effects::default(),
+            gauge_u_mm: 0.0,
+            reference_u_mm: 0.0,
+            level_urad: 1000.0,
+            interval_s: 20.0,
+            record_time: true,
+            record_temperature: true,
+            seed: 3,
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn scratch_objectives() {
+        let truth = ErrorParams::table2();
+        for faces in [&[Face::Front][..], &[Face::Front, Face::Back][..]] {
+            let sim = corner(Noise::default(), faces, &truth);
+            eprintln!(
+                "readings {} not taken {}",
+                sim.campaign.readings.len(),
+                sim.not_taken
+            );
+            let net = Network::from_campaign(&sim.campaign).unwrap();
+            let start = ErrorParams::zero(&ErrorModel::constant());
+            for obj in [Objective::Eq14, Objective::Eq15, Objective::Bundle] {
+                let t0 = std::time::Instant::now();
+                let c = calibrate(
+                    &net,
+                    &start,
+                    &[true; 18],
+                    &Settings {
+                        objective: obj,
+                        norm: Norm::L2,
+                        rank_tol: 1e-9,
+                        max_iters: 100,
+                    },
+                )
+                .unwrap();
+                eprintln!(
+                    "{:?} faces {} rank {} sv {:?} rms {} -> {} it {} {} {:?} scale {:?} chi2 {:?}",
+                    obj,
+                    faces.len(),
+                    c.analysis.rank,
+                    c.analysis
+                        .singular_values
+                        .iter()
+                        .map(|s| format!("{s:.2e}"))
+                        .collect::<Vec<_>>(),
+                    c.fit.rms_before,
+                    c.fit.rms_after,
+                    c.fit.iterations,
+                    c.fit.stop,
+                    t0.elapsed(),
+                    c.fit.gauge_scale_ppm,
+                    c.fit.chi2
+                );
+                for comb in &c.combinations {
+                    eprintln!("    {}", comb.sentence());
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,233 @@
+//! Registration: bringing each station's points into one frame.
+//!
+//! Station poses are unknown in a campaign. The coordinates criterion
+//! (Eq. 17) compares the same reflector seen from different stations after
+//! "a best-fit registration of all stations into one frame"; the bundle
+//! adjustment needs a first guess of every pose and position. Both come
+//! from here: the closed-form best rigid fit of two point sets (Kabsch) and a
+//! generalised Procrustes alignment of all stations at once.
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use std::collections::BTreeMap;
+
+/// A rigid transformation `x ↦ R·x + t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rigid {
+    pub rotation: Rotation3<f64>,
+    pub translation: Vector3<f64>,
+}
+
+impl Rigid {
+    pub fn identity() -> Rigid {
+        Rigid {
+            rotation: Rotation3::identity(),
+            translation: Vector3::zeros(),
+        }
+    }
+    pub fn apply(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * x + self.translation
+    }
+}
+
+/// The rigid transformation that best maps `from[i]` onto `to[i]` in the
+/// least-squares sense (Kabsch). `None` with fewer than 3 points or points on
+/// a line.
+pub fn fit(from: &[Vector3<f64>], to: &[Vector3<f64>]) -> Option<Rigid> {
+    let n = from.len();
+    if n < 3 || to.len() != n {
+        return None;
+    }
+    let ca = from.iter().sum::<Vector3<f64>>() / n as f64;
+    let cb = to.iter().sum::<Vector3<f64>>() / n as f64;
+    let mut h = Matrix3::zeros();
+    for (a, b) in from.iter().zip(to) {
+        h += (a - ca) * (b - cb).transpose();
+    }
+    let svd = h.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let sv = svd.singular_values;
+    // Points on a line leave a rotation about it free.
+    if sv[1] <= 1e-12 * sv[0].max(1e-300) {
+        return None;
+    }
+    let v = v_t.transpose();
+    let d = (v * u.transpose()).determinant().signum();
+    let r = v * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose();
+    let rotation = Rotation3::from_matrix_unchecked(r);
+    Some(Rigid {
+        rotation,
+        translation: cb - rotation * ca,
+    })
+}
+
+/// The result of aligning several stations.
+#[derive(Clone, Debug)]
+pub struct Alignment {
+    /// Per station: station frame → common frame.
+    pub poses: Vec<Rigid>,
+    /// Per target seen by any station: its position in the common frame
+    /// (the mean of the registered observations).
+    pub points: BTreeMap<usize, Vector3<f64>>,
+}
+
+/// Generalised Procrustes: `obs[s]` maps target → point in station `s`'s
+/// frame. With `anchor`, the common frame is that of the given target
+/// positions (e.g. reference coordinates, at least 3 not on a line);
+/// without, it is station 0's frame. `None` when some station shares fewer
+/// than 3 targets (not on a line) with the stations placed before it.
+pub fn align(
+    obs: &[BTreeMap<usize, Vector3<f64>>],
+    anchor: Option<&BTreeMap<usize, Vector3<f64>>>,
+) -> Option<Alignment> {
+    let s_n = obs.len();
+    let mut poses = vec![Rigid::identity(); s_n];
+    let mut placed = vec![false; s_n];
+    let mut points: BTreeMap<usize, Vector3<f64>> = BTreeMap::new();
+    // First guess: chain stations onto what is already placed.
+    match anchor {
+        Some(a) => points.extend(a.iter().map(|(k, v)| (*k, *v))),
+        None => {
+            placed[0] = true;
+            points.extend(obs[0].iter().map(|(k, v)| (*k, *v)));
+        }
+    }
+    loop {
+        let mut progress = false;
+        for s in 0..s_n {
+            if placed[s] {
+                continue;
+            }
+            let common: Vec<usize> = obs[s]
+                .keys()
+                .filter(|k| points.contains_key(k))
+                .copied()
+                .collect();
+            let from: Vec<Vector3<f64>> = common.iter().map(|k| obs[s][k]).collect();
+            let to: Vec<Vector3<f64>> = common.iter().map(|k| points[k]).collect();
+            if let Some(p) = fit(&from, &to) {
+                poses[s] = p;
+                placed[s] = true;
+                progress = true;
+                for (k, x) in &obs[s] {
+                    points.entry(*k).or_insert_with(|| p.apply(x));
+                }
+            }
+        }
+        if !progress {
+            break;
+        }
+    }
+    if placed.iter().any(|p| !p) {
+        return None;
+    }
+    // Refine: alternate mean positions and per-station fits.
+    for _ in 0..100 {
+        let mut sum: BTreeMap<usize, (Vector3<f64>, usize)> = BTreeMap::new();
+        for (s, o) in obs.iter().enumerate() {
+            for (k, x) in o {
+                let e = sum.entry(*k).or_insert((Vector3::zeros(), 0));
+                e.0 += poses[s].apply(x);
+                e.1 += 1;
+            }
+        }
+        let mut new_points: BTreeMap<usize, Vector3<f64>> = sum
+            .into_iter()
+            .map(|(k, (v, n))| (k, v / n as f64))
+            .collect();
+        if let Some(a) = anchor {
+            for (k, v) in a {
+                new_points.insert(*k, *v);
+            }
+        }
+        let mut moved = 0.0f64;
+        for (s, o) in obs.iter().enumerate() {
+            if anchor.is_none() && s == 0 {
+                continue;
+            }
+            let keys: Vec<usize> = o.keys().copied().collect();
+            let from: Vec<Vector3<f64>> = keys.iter().map(|k| o[k]).collect();
+            let to: Vec<Vector3<f64>> = keys.iter().map(|k| new_points[k]).collect();
+            if let Some(p) = fit(&from, &to) {
+                moved = moved.max((p.translation - poses[s].translation).norm());
+                poses[s] = p;
+            }
+        }
+        if moved < 1e-10 {
+            break;
+        }
+    }
+    // Final means with the final poses (anchored targets keep their mean too:
+    // the criterion compares observations, not the anchor).
+    let mut sum: BTreeMap<usize, (Vector3<f64>, usize)> = BTreeMap::new();
+    for (s, o) in obs.iter().enumerate() {
+        for (k, x) in o {
+            let e = sum.entry(*k).or_insert((Vector3::zeros(), 0));
+            e.0 += poses[s].apply(x);
+            e.1 += 1;
+        }
+    }
+    let points = sum
+        .into_iter()
+        .map(|(k, (v, n))| (k, v / n as f64))
+        .collect();
+    Some(Alignment { poses, points })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pts() -> Vec<Vector3<f64>> {
+        vec![
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(1000.0, 0.0, 10.0),
+            Vector3::new(0.0, 2000.0, -30.0),
+            Vector3::new(500.0, 800.0, 1200.0),
+            Vector3::new(-700.0, 300.0, 400.0),
+        ]
+    }
+
+    #[test]
+    fn kabsch_recovers_a_rigid_motion() {
+        let r = Rotation3::from_euler_angles(0.1, -0.2, 2.5);
+        let t = Vector3::new(100.0, -50.0, 3.0);
+        let a = pts();
+        let b: Vec<Vector3<f64>> = a.iter().map(|x| r * x + t).collect();
+        let f = fit(&a, &b).unwrap();
+        assert!((f.rotation.matrix() - r.matrix()).norm() < 1e-12);
+        assert!((f.translation - t).norm() < 1e-9);
+        assert!(fit(&a[..2], &b[..2]).is_none());
+        let line: Vec<Vector3<f64>> = (0..4).map(|i| Vector3::new(i as f64, 0.0, 0.0)).collect();
+        assert!(fit(&line, &line).is_none());
+    }
+
+    #[test]
+    fn procrustes_aligns_three_stations() {
+        let truth = pts();
+        let poses = [
+            Rigid::identity(),
+            Rigid {
+                rotation: Rotation3::from_euler_angles(0.0, 0.01, 1.0),
+                translation: Vector3::new(300.0, 0.0, 0.0),
+            },
+            Rigid {
+                rotation: Rotation3::from_euler_angles(0.02, 0.0, -2.0),
+                translation: Vector3::new(0.0, 500.0, 10.0),
+            },
+        ];
+        let obs: Vec<BTreeMap<usize, Vector3<f64>>> = poses
+            .iter()
+            .map(|p| {
+                truth
+                    .iter()
+                    .enumerate()
+                    .map(|(k, x)| (k, p.rotation.inverse() * (x - p.translation)))
+                    .collect()
+            })
+            .collect();
+        let a = align(&obs, None).unwrap();
+        for (k, x) in &a.points {
+            assert!((x - truth[*k]).norm() < 1e-9);
+        }
+    }
+}
