@@ -141,13 +141,17 @@ impl Campaign {
             ("tracker.sigma_range_ppm", t.sigma_range_ppm),
         ] {
             if let Some(v) = v {
-                if let Some(m) = not_finite(v).or_else(|| (v < 0.0).then(|| format!("a standard deviation cannot be negative, got {v}"))) {
+                if let Some(m) = not_finite(v).or_else(|| {
+                    (v < 0.0).then(|| format!("a standard deviation cannot be negative, got {v}"))
+                }) {
                     issue(key, m);
                 }
             }
         }
         if let Some(r) = m.smr_radius_mm {
-            if let Some(msg) = not_finite(r).or_else(|| (r <= 0.0).then(|| format!("the SMR radius must be > 0 mm, got {r}"))) {
+            if let Some(msg) = not_finite(r)
+                .or_else(|| (r <= 0.0).then(|| format!("the SMR radius must be > 0 mm, got {r}")))
+            {
                 issue("smr.radius_mm", msg);
             }
         }
@@ -201,7 +205,12 @@ impl Campaign {
         let targets: BTreeSet<&str> = self.targets.iter().map(|t| t.id.as_str()).collect();
         for (i, r) in self.readings.iter().enumerate() {
             if r.station.is_empty() {
-                out.push(Issue::cell(t, i, "station", "the station id is empty".into()));
+                out.push(Issue::cell(
+                    t,
+                    i,
+                    "station",
+                    "the station id is empty".into(),
+                ));
             }
             if r.target.is_empty() {
                 out.push(Issue::cell(t, i, "target", "the target id is empty".into()));
@@ -263,7 +272,9 @@ impl Campaign {
             if let Some(u) = g.u_mm {
                 uncertainty(t, i, u, out);
             }
-            if !seen.contains(g.target_a.as_str()) && !seen.contains(g.target_b.as_str()) {
+            // Without readings no station shares anything: that is reported once.
+            let shared = seen.contains(g.target_a.as_str()) || seen.contains(g.target_b.as_str());
+            if !shared && !self.readings.is_empty() {
                 out.push(Issue::cell(
                     t,
                     i,
@@ -281,19 +292,27 @@ impl Campaign {
     /// on the nominal points of its readings in its own frame (its pose is
     /// unknown, and the frame is all the file gives).
     fn check_stations(&self, out: &mut Vec<Issue>) {
-        // station → (first row, target → nominal point of its first reading)
-        let mut stations: BTreeMap<&str, (usize, BTreeMap<&str, Vector3<f64>>)> = BTreeMap::new();
-        for (i, r) in self.readings.iter().enumerate() {
-            let (_, points) = stations
-                .entry(r.station.as_str())
-                .or_insert_with(|| (i, BTreeMap::new()));
-            points
-                .entry(r.target.as_str())
-                .or_insert_with(|| nominal_point(r.reading()));
+        let mut stations: BTreeMap<&str, Seen> = BTreeMap::new();
+        // A reading without a station id is reported on its own.
+        for (i, r) in self
+            .readings
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| !r.station.is_empty())
+        {
+            let seen = stations.entry(r.station.as_str()).or_insert_with(|| Seen {
+                first_row: i,
+                points: BTreeMap::new(),
+                all_finite: true,
+            });
+            let p = nominal_point(r.reading());
+            seen.all_finite &= p.iter().all(|v| v.is_finite());
+            seen.points.entry(r.target.as_str()).or_insert(p);
         }
         let mut by_row: Vec<_> = stations.into_iter().collect();
-        by_row.sort_by_key(|(_, (row, _))| *row);
-        for (station, (row, points)) in by_row {
+        by_row.sort_by_key(|(_, seen)| seen.first_row);
+        for (station, seen) in by_row {
+            let (row, points) = (seen.first_row, seen.points);
             let ids: Vec<&str> = points.keys().copied().collect();
             let message = if points.len() < 3 {
                 format!(
@@ -304,7 +323,9 @@ impl Campaign {
                 )
             } else {
                 let p: Vec<Vector3<f64>> = points.values().copied().collect();
-                if !on_one_line(&p, LINE_TOLERANCE_MM) {
+                // A reading that is not a number is reported on its own and
+                // leaves no geometry to judge.
+                if !seen.all_finite || !on_one_line(&p, LINE_TOLERANCE_MM) {
                     continue;
                 }
                 format!(
@@ -317,6 +338,14 @@ impl Campaign {
             out.push(Issue::cell(Table::Readings, row, "station", message));
         }
     }
+}
+
+/// What one station sees: where it first appears, and the nominal point of
+/// the first reading of each reflector, in its own frame.
+struct Seen<'a> {
+    first_row: usize,
+    points: BTreeMap<&'a str, Vector3<f64>>,
+    all_finite: bool,
 }
 
 /// Whether every point lies within `tol_mm` of the line through the two
@@ -356,7 +385,9 @@ fn not_finite(v: f64) -> Option<String> {
 fn el_out_of_range(el: f64) -> Option<String> {
     let (lo, hi) = EL_RANGE_DEG;
     (!(lo..=hi).contains(&el)).then(|| {
-        format!("el_deg must lie in [{lo}, {hi}] (front face [−90, 90], back face [90, 270]), got {el}")
+        format!(
+            "el_deg must lie in [{lo}, {hi}] (front face [−90, 90], back face [90, 270]), got {el}"
+        )
     })
 }
 

@@ -15,7 +15,7 @@ mod tables;
 mod write;
 
 pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
-pub use read::{CampaignError, Problem, read};
+pub use read::{CampaignError, FILES, Problem, content_hash, read};
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};

@@ -174,8 +174,35 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         issues.into_iter().map(|i| places.locate(i)).collect();
     located.sort_by_key(|(file, start, _)| (*file, *start));
     Err(fail(
-        located.into_iter().map(|(_, _, e)| Problem::At(e)).collect(),
+        located
+            .into_iter()
+            .map(|(_, _, e)| Problem::At(e))
+            .collect(),
     ))
+}
+
+/// The files of a campaign folder, all the reader ever looks at.
+pub const FILES: [&str; 4] = ["campaign.toml", "readings.csv", "targets.csv", "gauge.csv"];
+
+/// The blake3 hash of what [`read`] would read in `dir`: each of [`FILES`]
+/// by name, with its bytes or as absent. Two folders with the same hash read
+/// the same; other files in the folder do not count.
+pub fn content_hash(dir: &Path) -> std::io::Result<String> {
+    let mut h = blake3::Hasher::new();
+    for name in FILES {
+        h.update(name.as_bytes());
+        match std::fs::read(dir.join(name)) {
+            Ok(bytes) => {
+                h.update(&(bytes.len() as u64).to_le_bytes());
+                h.update(&bytes);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                h.update(b"\0absent");
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(h.finalize().to_hex().to_string())
 }
 
 /// A file's text: `None` (with a problem, if the file is required) when it
@@ -207,11 +234,12 @@ fn load(path: &Path, required: bool, problems: &mut Vec<Problem>) -> Option<Sour
     match std::str::from_utf8(bytes) {
         Ok(text) => Some(Source::new(path, text)),
         Err(e) => {
-            // The text up to the bad byte is intact, so the position is exact.
+            // The text up to the bad byte is intact, so the position is exact;
+            // the bad byte itself shows as one replacement character.
             let src = Source::new(path, String::from_utf8_lossy(bytes).into_owned());
             let at = e.valid_up_to();
             problems.push(Problem::At(src.error(
-                at..at + 1,
+                at..at + char::REPLACEMENT_CHARACTER.len_utf8(),
                 format!(
                     "not UTF-8: byte 0x{:02x} here is not valid UTF-8 (campaign files are UTF-8 text)",
                     bytes[at]
@@ -229,7 +257,11 @@ fn load(path: &Path, required: bool, problems: &mut Vec<Problem>) -> Option<Sour
 /// separators and surrounding spaces are not plain decimals; an empty cell
 /// is handled by the caller (it means "not known").
 fn parse_number(text: &str) -> Result<f64, String> {
-    let plain = || format!("`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)");
+    let plain = || {
+        format!(
+            "`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)"
+        )
+    };
     if text.trim() != text {
         return Err(format!(
             "`{text}` has spaces around it (numbers are plain decimals like 1234.5, written without spaces)"
@@ -360,13 +392,16 @@ impl Csv {
 }
 
 /// Splits a file into records of cells. A quote left open is reported (it
-/// means a cut file: `csv-core` would silently run the field to the end).
+/// means a cut file: `csv-core` would silently run the field to the end of
+/// the file), and its record dropped, as the width of a cut record means
+/// nothing more.
 fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> Vec<Vec<Cell>> {
     let bytes = src.text.as_bytes();
     let mut reader = csv_core::Reader::new();
     let mut out = vec![0u8; 1024];
     let mut records = Vec::new();
     let mut record: Vec<Cell> = Vec::new();
+    let mut open_quote = false;
     let mut pos = 0;
     loop {
         let start = pos;
@@ -409,6 +444,7 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> Vec<Vec<Cell>> {
         }
         let raw = &bytes[a..b];
         if raw.first() == Some(&b'"') && (raw.len() == 1 || raw.last() != Some(&b'"')) {
+            open_quote = true;
             problems.push(Problem::At(src.error(
                 a..a + 1,
                 "this quoted field has no closing quote: the file may be cut short",
@@ -419,7 +455,10 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> Vec<Vec<Cell>> {
             span: a..b,
         });
         if record_end {
-            records.push(std::mem::take(&mut record));
+            let cells = std::mem::take(&mut record);
+            if !std::mem::take(&mut open_quote) {
+                records.push(cells);
+            }
         }
     }
 }
@@ -445,14 +484,12 @@ impl<'a> Columns<'a> {
         self.index.get(name).copied()
     }
 
-    /// A required column; `why` says what requires it when the format does
-    /// not require it on its own.
-    fn require(&self, name: &str, why: Option<&str>, problems: &mut Vec<Problem>) -> Option<usize> {
+    /// A required column.
+    fn require(&self, name: &str, problems: &mut Vec<Problem>) -> Option<usize> {
         if let Some(i) = self.optional(name) {
             return Some(i);
         }
         let file = file_name(&self.csv.src);
-        let why = why.map_or_else(String::new, |w| format!(" ({w})"));
         // A header cell that is the name but for case or spaces is surely
         // meant as it: point there. Otherwise at the header as a whole.
         let near = self
@@ -470,10 +507,10 @@ impl<'a> Columns<'a> {
                 (0..end, String::new())
             }
         };
-        problems.push(
-            self.csv
-                .error(span, format!("{file} lacks the required column `{name}`{why}{hint}")),
-        );
+        problems.push(self.csv.error(
+            span,
+            format!("{file} lacks the required column `{name}`{hint}"),
+        ));
         None
     }
 
@@ -486,10 +523,14 @@ impl<'a> Columns<'a> {
         if let [Some(x), Some(y), Some(z)] = found {
             return Some([x, y, z]);
         }
-        let (have, lack): (Vec<_>, Vec<_>) = names.iter().zip(found).partition(|(_, f)| f.is_some());
+        let (have, lack): (Vec<_>, Vec<_>) =
+            names.iter().zip(found).partition(|(_, f)| f.is_some());
         let at = have[0].1.map_or(0..0, |i| self.csv.header[i].span.clone());
         let list = |v: Vec<(&&str, Option<usize>)>| {
-            v.iter().map(|(n, _)| format!("`{n}`")).collect::<Vec<_>>().join(", ")
+            v.iter()
+                .map(|(n, _)| format!("`{n}`"))
+                .collect::<Vec<_>>()
+                .join(", ")
         };
         problems.push(self.csv.error(
             at,
@@ -506,9 +547,10 @@ impl<'a> Columns<'a> {
 }
 
 fn file_name(src: &Source) -> String {
-    src.path
-        .file_name()
-        .map_or_else(|| src.path.display().to_string(), |n| n.to_string_lossy().into_owned())
+    src.path.file_name().map_or_else(
+        || src.path.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    )
 }
 
 /// The typed cells of one row, collecting what is wrong with them.
@@ -643,7 +685,8 @@ fn rows<T>(
 
 fn parse_readings(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<CampaignReading>, Csv)> {
     let c = Columns::new(&csv);
-    let required = ["station", "target", "az_deg", "el_deg", "d_mm"].map(|n| c.require(n, None, problems));
+    let required =
+        ["station", "target", "az_deg", "el_deg", "d_mm"].map(|n| c.require(n, problems));
     let [Some(station), Some(target), Some(az), Some(el), Some(d)] = required else {
         return None;
     };
@@ -682,19 +725,19 @@ fn parse_targets(
 ) -> Option<(Vec<Target>, Csv)> {
     let c = Columns::new(&csv);
     let before = problems.len();
-    let id = c.require("target", None, problems);
+    let id = c.require("target", problems);
     let reference = c.triple(["x_mm", "y_mm", "z_mm"], problems);
     let u = c.optional("u_mm");
     let aim_names = ["aim_x_mm", "aim_y_mm", "aim_z_mm"];
     let aim_cols = c.triple(aim_names, problems);
-    if aim == Some(Aim::AimColumns) && aim_cols.is_none() {
-        for n in aim_names {
-            c.require(
-                n,
-                Some("campaign.toml says [smr] aim = \"aim-columns\": every target needs its aim point"),
-                problems,
-            );
-        }
+    if aim == Some(Aim::AimColumns) && aim_names.iter().all(|n| c.optional(n).is_none()) {
+        let end = csv.header.last().map_or(0, |c| c.span.end);
+        problems.push(csv.error(
+            0..end,
+            "targets.csv lacks the columns `aim_x_mm`, `aim_y_mm`, `aim_z_mm`, which campaign.toml's \
+             [smr] aim = \"aim-columns\" requires: every target needs its aim point \
+             (or use aim = \"stations-centroid\")",
+        ));
     }
     let id = id?;
     if problems.len() > before {
@@ -716,7 +759,7 @@ fn parse_targets(
 
 fn parse_gauge(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<GaugeLength>, Option<Csv>)> {
     let c = Columns::new(&csv);
-    let required = ["target_a", "target_b", "distance_mm"].map(|n| c.require(n, None, problems));
+    let required = ["target_a", "target_b", "distance_mm"].map(|n| c.require(n, problems));
     let [Some(a), Some(b), Some(distance)] = required else {
         return None;
     };
@@ -976,7 +1019,9 @@ mod tests {
     fn cells_keep_their_exact_place_with_quotes_crlf_and_blank_lines() {
         let r = cells("a,b\r\nc,\"d,\"\"x\"\"\"\n\n\ne,\n");
         let pairs = |v: &[(&str, &str)]| -> Vec<(String, String)> {
-            v.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect()
+            v.iter()
+                .map(|(a, b)| (a.to_string(), b.to_string()))
+                .collect()
         };
         assert_eq!(r[0], pairs(&[("a", "a"), ("b", "b")]));
         assert_eq!(r[1], pairs(&[("c", "c"), ("d,\"x\"", "\"d,\"\"x\"\"\"")]));

@@ -151,7 +151,11 @@ fn readings_from(t: &TableRef) -> Result<Vec<CampaignReading>> {
 
 /// Three nullable columns that form one point: all known or all null.
 fn points(t: &TableRef, names: [&str; 3]) -> Result<Vec<Option<Vector3<f64>>>> {
-    let [x, y, z] = [t.opt_f64(names[0])?, t.opt_f64(names[1])?, t.opt_f64(names[2])?];
+    let [x, y, z] = [
+        t.opt_f64(names[0])?,
+        t.opt_f64(names[1])?,
+        t.opt_f64(names[2])?,
+    ];
     (0..t.height())
         .map(|i| match (x[i], y[i], z[i]) {
             (Some(x), Some(y), Some(z)) => Ok(Some(Vector3::new(x, y, z))),
@@ -198,7 +202,11 @@ fn gauge_from(t: &TableRef) -> Result<Vec<GaugeLength>> {
 
 fn meta_from(t: &TableRef) -> Result<Meta> {
     if t.height() != 1 {
-        bail!("table `{}` has {} rows; a campaign's meta is one row", t.name, t.height());
+        bail!(
+            "table `{}` has {} rows; a campaign's meta is one row",
+            t.name,
+            t.height()
+        );
     }
     let aim = t.str("smr_aim")?.remove(0);
     Ok(Meta {

@@ -11,17 +11,22 @@
 //! The folder is built beside its destination under a temporary name and
 //! renamed into place: the destination holds a whole campaign or nothing,
 //! even after a crash. A campaign that breaks the format's rules is refused
-//! before anything is written.
+//! before anything is written. A folder that already holds exactly the files
+//! to be written is left alone and counts as written: writing the same
+//! campaign twice (an export rerun after its cache was cleared) is not an
+//! overwrite.
 
 use super::{Campaign, check::Issue};
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::Serialize;
+use std::collections::BTreeSet;
 use std::fs;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// Writes `c` as the folder `dir`, which must not exist yet.
+/// Writes `c` as the folder `dir`, which must not exist yet (or hold
+/// exactly this campaign already).
 pub fn write(c: &Campaign, dir: &Path) -> Result<()> {
     publish(c, dir, false)
 }
@@ -36,6 +41,9 @@ fn publish(c: &Campaign, dir: &Path, replace: bool) -> Result<()> {
     refuse_invalid(c, dir)?;
     let files = files(c)?;
     let exists = fs::symlink_metadata(dir).ok();
+    if exists.as_ref().is_some_and(|m| m.is_dir()) && holds(dir, &files) {
+        return Ok(());
+    }
     match &exists {
         Some(_) if !replace => bail!(
             "{} already exists: choose another folder, or allow overwriting it",
@@ -90,6 +98,21 @@ fn publish(c: &Campaign, dir: &Path, replace: bool) -> Result<()> {
         let _ = fs::remove_dir_all(&tmp);
         anyhow!("moving the campaign into {}: {e}", dir.display())
     })
+}
+
+/// Whether `dir` holds exactly `files`, byte for byte, and nothing else.
+fn holds(dir: &Path, files: &[(&str, Vec<u8>)]) -> bool {
+    let Ok(entries) = fs::read_dir(dir) else {
+        return false;
+    };
+    let names: BTreeSet<String> = entries
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.len() == files.len()
+        && files.iter().all(|(name, bytes)| {
+            names.contains(*name) && fs::read(dir.join(name)).is_ok_and(|b| b == *bytes)
+        })
 }
 
 /// Fails, listing every broken rule, unless `c` is a valid campaign.
@@ -204,7 +227,10 @@ impl CsvOut {
         if values.iter().all(Option::is_none) {
             return self;
         }
-        self.column(name, values.into_iter().map(|v| v.map_or_else(String::new, num)))
+        self.column(
+            name,
+            values.into_iter().map(|v| v.map_or_else(String::new, num)),
+        )
     }
 
     fn bytes(self) -> Result<Vec<u8>> {

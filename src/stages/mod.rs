@@ -8,7 +8,9 @@
 
 pub mod correct;
 pub mod evaluate;
+pub mod export_campaign;
 pub mod identify;
+pub mod import_campaign;
 pub mod inject;
 pub mod measure;
 pub mod mesh;
@@ -221,4 +223,6 @@ stage_kinds! {
     Correct => correct::CorrectStage,
     Evaluate => evaluate::EvaluateStage,
     Plot => plot::PlotStage,
+    ImportCampaign => import_campaign::ImportCampaignStage,
+    ExportCampaign => export_campaign::ExportCampaignStage,
 }
