@@ -1,11 +1,14 @@
-//! The command line: `ltcal run`, `plan`, `show`, `kinds`.
+//! The command line: `ltcal run`, `plan`, `explain`, `graph`, `snapshot`,
+//! `show`, `kinds`.
 
-use crate::pipeline::{self, InputError, plan, resolve::Override, run};
+use crate::pipeline::{
+    self, InputError, cache::Store, explain, graph, plan, resolve::Override, run, snapshot,
+};
 use crate::stages;
 use crate::table;
 use anyhow::{Context as _, Result, bail};
-use clap::{Args, Parser, Subcommand};
-use std::path::PathBuf;
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
@@ -51,6 +54,41 @@ enum Command {
     Plan {
         #[command(flatten)]
         p: PipelineArgs,
+        /// Print the plan as JSON.
+        #[arg(long)]
+        json: bool,
+        /// Exit with 1 if any stage would run (for CI: results are current).
+        #[arg(long)]
+        check: bool,
+    },
+    /// Why a stage would run or is cached: its key against the last run's,
+    /// field by field.
+    Explain {
+        #[command(flatten)]
+        p: PipelineArgs,
+        stage: String,
+        /// Print the explanation as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print the stage graph, each stage coloured by whether it is cached.
+    Graph {
+        #[command(flatten)]
+        p: PipelineArgs,
+        #[arg(long, value_enum, default_value_t = GraphFormat::Dot)]
+        format: GraphFormat,
+    },
+    /// Record the tables named in the pipeline's `[snapshot]` as text, or
+    /// with `--check` compare the current results with the recording.
+    Snapshot {
+        #[command(flatten)]
+        p: PipelineArgs,
+        /// Compare instead of recording; exit with 1 on a difference.
+        #[arg(long)]
+        check: bool,
+        /// The folder of recordings: `<dir>/<pipeline>/<stage>.<table>.txt`.
+        #[arg(long, default_value = "tests/snapshots")]
+        dir: PathBuf,
     },
     /// Print a result table: `<stage>` (its first table) or `<stage>.<table>`.
     Show {
@@ -65,8 +103,15 @@ enum Command {
     Kinds,
 }
 
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum GraphFormat {
+    Dot,
+    Mermaid,
+    Svg,
+}
+
 /// Runs the command line and returns the process exit code: 0 success,
-/// 1 a stage failed, 2 the input is wrong.
+/// 1 a stage failed (or a check found a difference), 2 the input is wrong.
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
     match dispatch(cli) {
@@ -93,6 +138,113 @@ fn load(p: &PipelineArgs) -> Result<pipeline::resolve::Pipeline> {
     pipeline::load(&p.pipeline, &overrides)
 }
 
+fn store(p: &PipelineArgs, pipeline: &pipeline::resolve::Pipeline) -> Store {
+    Store::new(&run::pipeline_dir(&p.results, pipeline))
+}
+
+/// Prints the run's outcome — counts, recomputed cache entries, skipped
+/// stages, and each failure with its message — and returns the exit code.
+fn summarize(report: &run::RunReport) -> ExitCode {
+    let (ran, cached) = (report.with_status("ran"), report.with_status("cached"));
+    let damaged: Vec<&run::StageReport> = report
+        .stages
+        .iter()
+        .filter(|s| s.cache_problem.is_some())
+        .collect();
+    let failed = report.failed();
+    eprintln!(
+        "{}: {} ran, {} cached{}{}; results in {}",
+        report.pipeline,
+        ran.len(),
+        cached.len(),
+        match damaged.len() {
+            0 => String::new(),
+            n => format!(
+                ", {n} CORRUPT cache entr{} recomputed",
+                if n == 1 { "y" } else { "ies" }
+            ),
+        },
+        match failed.len() {
+            0 => String::new(),
+            n => format!(", {n} FAILED"),
+        },
+        report.results.join("index.html").display()
+    );
+    for s in &damaged {
+        eprintln!(
+            "  cache entry of `{}` was corrupt and is recomputed: {}",
+            s.stage,
+            s.cache_problem.as_deref().unwrap_or_default()
+        );
+    }
+    for s in report.stages.iter().filter(|s| s.status == "skipped") {
+        eprintln!("  skipped `{}`: {}", s.stage, s.reason);
+    }
+    for f in &failed {
+        eprintln!(
+            "\nstage `{}` ({}) failed:\n  {}",
+            f.stage,
+            f.kind,
+            f.reason.replace('\n', "\n  ")
+        );
+    }
+    if failed.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    }
+}
+
+/// `ltcal snapshot`: runs the pipeline (cached stages cost nothing), then
+/// records or checks the `[snapshot]` tables.
+fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCode> {
+    let pipeline = load(p)?;
+    let snap = snapshot::of(&pipeline)
+        .map_err(|e| InputError(vec![pipeline::Problem::Arg(e.to_string())]))?;
+    let report = run::run(
+        &pipeline,
+        &run::RunOptions {
+            results_root: p.results.clone(),
+            keep_going: false,
+            progress: false,
+        },
+    )?;
+    if !report.failed().is_empty() {
+        summarize(&report);
+        bail!("the pipeline did not complete, so there is nothing to snapshot");
+    }
+    let tables = snapshot::collect(&pipeline, snap, &report, &store(p, &pipeline))?;
+    if !check {
+        let files = snapshot::record(&pipeline, snap, &tables, dir)?;
+        for f in &files {
+            println!("recorded {}", f.display());
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let checks = snapshot::check(&pipeline, snap, &tables, dir)?;
+    print!("{}", snapshot::Report(&checks));
+    let bad = checks
+        .iter()
+        .filter(|c| !matches!(c.outcome, snapshot::Outcome::Same { .. }))
+        .count();
+    if bad == 0 {
+        println!(
+            "snapshot check: {} tables within tolerance of {}",
+            checks.len(),
+            dir.join(&pipeline.name).display()
+        );
+        Ok(ExitCode::SUCCESS)
+    } else {
+        println!(
+            "snapshot check: {bad} of {} tables differ from {}; if the change is intended, record it with `ltcal snapshot {}`",
+            checks.len(),
+            dir.join(&pipeline.name).display(),
+            p.pipeline.display()
+        );
+        Ok(ExitCode::from(1))
+    }
+}
+
 fn dispatch(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Run {
@@ -116,48 +268,56 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                     progress: !quiet,
                 },
             )?;
-            let (ran, cached) = (report.with_status("ran"), report.with_status("cached"));
-            eprintln!(
-                "{}: {} ran, {} cached{}; results in {}",
-                report.pipeline,
-                ran.len(),
-                cached.len(),
-                match report.failed().len() {
-                    0 => String::new(),
-                    n => format!(", {n} FAILED"),
-                },
-                report.results.display()
-            );
-            let failed = report.failed();
-            for f in &failed {
-                eprintln!(
-                    "\nstage `{}` ({}) failed:\n  {}",
-                    f.stage,
-                    f.kind,
-                    f.reason.replace('\n', "\n  ")
-                );
-            }
-            Ok(if failed.is_empty() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::from(1)
-            })
+            Ok(summarize(&report))
         }
-        Command::Plan { p } => {
+        Command::Plan { p, json, check } => {
             let pipeline = load(&p)?;
-            let store = pipeline::cache::Store::new(&run::pipeline_dir(&p.results, &pipeline));
-            let items = plan::plan(&pipeline, &store);
-            let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
-            for i in &items {
-                let reason = if i.reason.is_empty() {
-                    String::new()
-                } else {
-                    format!("  {}", i.reason)
-                };
-                println!("{:>6}  {:width$}  {:9}{reason}", i.status, i.stage, i.kind);
+            let items = plan::plan(&pipeline, &store(&p, &pipeline));
+            if json {
+                println!("{}", serde_json::to_string_pretty(&items)?);
+            } else {
+                let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
+                for i in &items {
+                    let reason = if i.reason.is_empty() {
+                        String::new()
+                    } else {
+                        format!("  {}", i.reason)
+                    };
+                    let line = format!("{:>6}  {:width$}  {:9}{reason}", i.status, i.stage, i.kind);
+                    println!("{}", line.trim_end());
+                }
+            }
+            let stale = items.iter().filter(|i| i.status != "cached").count();
+            if check && stale > 0 {
+                eprintln!("plan --check: {stale} of {} stages would run", items.len());
+                return Ok(ExitCode::from(1));
             }
             Ok(ExitCode::SUCCESS)
         }
+        Command::Explain { p, stage, json } => {
+            let pipeline = load(&p)?;
+            let e = explain::explain(&pipeline, &store(&p, &pipeline), &stage)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&e)?);
+            } else {
+                print!("{e}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Graph { p, format } => {
+            let pipeline = load(&p)?;
+            let statuses: graph::Statuses = plan::plan(&pipeline, &store(&p, &pipeline))
+                .into_iter()
+                .map(|i| (i.stage, i.status))
+                .collect();
+            match format {
+                GraphFormat::Dot => print!("{}", graph::dot(&pipeline, &statuses)),
+                GraphFormat::Mermaid => print!("{}", graph::mermaid(&pipeline, &statuses)),
+                GraphFormat::Svg => print!("{}", graph::svg(&pipeline, &statuses)?),
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Snapshot { p, check, dir } => snapshot_command(&p, check, &dir),
         Command::Show { p, table, digits } => {
             let pipeline = load(&p)?;
             let (stage, name) = match table.split_once('.') {

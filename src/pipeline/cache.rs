@@ -376,13 +376,13 @@ impl Store {
         Ok(())
     }
 
-    /// Removes what killed runs left behind: temporary entry directories of
-    /// processes that no longer exist. Returns how many were removed.
+    /// Removes what killed runs left behind: temporary entry directories and
+    /// files of processes that no longer exist. Returns how many were removed.
     pub fn clean_incomplete(&self) -> usize {
+        let mut n = clean_temp_files_in(&self.root.join("last"));
         let Ok(rd) = fs::read_dir(self.entries()) else {
-            return 0;
+            return n;
         };
-        let mut n = 0;
         for e in rd.flatten() {
             let name = e.file_name().to_string_lossy().into_owned();
             let stale = if let Some(rest) = name.strip_prefix(".tmp-") {

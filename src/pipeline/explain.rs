@@ -140,21 +140,17 @@ impl fmt::Display for Explanation {
             (None, _) => "—".to_string(),
         };
         let table: Vec<[String; 4]> = std::iter::once([
+            String::new(),
             "field".to_string(),
             "last run".to_string(),
             "now".to_string(),
-            String::new(),
         ])
         .chain(self.rows.iter().map(|r| {
             [
+                if r.changed { "*".into() } else { String::new() },
                 r.field.clone(),
                 cell(r, &r.last, false),
                 cell(r, &r.now, true),
-                if r.changed {
-                    "changed".into()
-                } else {
-                    String::new()
-                },
             ]
         }))
         .collect();
@@ -165,10 +161,13 @@ impl fmt::Display for Explanation {
                 .max()
                 .unwrap_or(0)
         };
-        let (w0, w1, w2) = (width(0), width(1), width(2));
+        let (w1, w2) = (width(1), width(2));
         for r in &table {
-            let line = format!("  {:w0$}  {:w1$}  {:w2$}  {}", r[0], r[1], r[2], r[3]);
+            let line = format!("{:>3} {:w1$}  {:w2$}  {}", r[0], r[1], r[2], r[3]);
             writeln!(f, "{}", line.trim_end())?;
+        }
+        if self.rows.iter().any(|r| r.changed) {
+            writeln!(f, "(* changed since the last run)")?;
         }
         Ok(())
     }

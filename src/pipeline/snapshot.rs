@@ -473,16 +473,18 @@ fn compare(snap: &Snapshot, recorded: &str, now: &str) -> Result<Outcome> {
     })
 }
 
+/// Decimal places of a number as written.
+fn decimals(s: &str) -> usize {
+    s.split_once('.').map_or(0, |(_, d)| d.len())
+}
+
 /// The checks as a readable report: a line per table, and for a table that
 /// differs, which rows and columns, recorded against now and by how much.
-pub struct Report<'a> {
-    pub checks: &'a [TableCheck],
-    pub digits: usize,
-}
+pub struct Report<'a>(pub &'a [TableCheck]);
 
 impl fmt::Display for Report<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        for c in self.checks {
+        for c in self.0 {
             match &c.outcome {
                 Outcome::Same { values } => {
                     writeln!(f, "  same     {}  ({values} values)", c.table)?
@@ -518,10 +520,12 @@ impl fmt::Display for Report<'_> {
                         for d in &r.cells {
                             let by = match (d.delta, d.tolerance) {
                                 (Some(delta), Some(tol)) => format!(
-                                    "  off by {}{} (tolerance {})",
+                                    "  off by {}{} (tolerance {tol})",
                                     if delta >= 0.0 { "+" } else { "" },
-                                    table::format_float(delta, self.digits),
-                                    table::format_float(tol, self.digits)
+                                    table::format_float(
+                                        delta,
+                                        decimals(&d.recorded).max(decimals(&d.now))
+                                    ),
                                 ),
                                 _ => String::new(),
                             };

@@ -1,6 +1,8 @@
 //! ltcal's integration tests: one binary, one module per area.
 
+mod cache_safety;
 mod campaign_io;
+mod cli;
 mod errors;
 mod runner;
 mod synthetic;
