@@ -229,20 +229,24 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
         .count();
     if bad == 0 {
         println!(
-            "snapshot check: {} tables within tolerance of {}",
-            checks.len(),
+            "snapshot check: {} within tolerance of {}",
+            n_tables(checks.len()),
             dir.join(&pipeline.name).display()
         );
         Ok(ExitCode::SUCCESS)
     } else {
         println!(
-            "snapshot check: {bad} of {} tables differ from {}; if the change is intended, record it with `ltcal snapshot {}`",
-            checks.len(),
+            "snapshot check: {bad} of {} differ from {}; if the change is intended, record it with `ltcal snapshot {}`",
+            n_tables(checks.len()),
             dir.join(&pipeline.name).display(),
             p.pipeline.display()
         );
         Ok(ExitCode::from(1))
     }
+}
+
+fn n_tables(n: usize) -> String {
+    format!("{n} table{}", if n == 1 { "" } else { "s" })
 }
 
 fn dispatch(cli: Cli) -> Result<ExitCode> {

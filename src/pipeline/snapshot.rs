@@ -405,8 +405,8 @@ fn compare(snap: &Snapshot, recorded: &str, now: &str) -> Result<Outcome> {
     }
     if old.rows.len() != new.rows.len() {
         shape.push(format!(
-            "{} rows recorded, {} now",
-            old.rows.len(),
+            "{} recorded, {} now",
+            n_rows(old.rows.len()),
             new.rows.len()
         ));
     }
@@ -473,6 +473,10 @@ fn compare(snap: &Snapshot, recorded: &str, now: &str) -> Result<Outcome> {
     })
 }
 
+fn n_rows(n: usize) -> String {
+    format!("{n} row{}", if n == 1 { "" } else { "s" })
+}
+
 /// Decimal places of a number as written.
 fn decimals(s: &str) -> usize {
     s.split_once('.').map_or(0, |(_, d)| d.len())
@@ -499,11 +503,10 @@ impl fmt::Display for Report<'_> {
                     let n: usize = rows.iter().map(|r| r.cells.len()).sum();
                     writeln!(
                         f,
-                        "  DIFFERS  {}  ({n} value{} in {} row{} beyond tolerance; recorded in {})",
+                        "  DIFFERS  {}  ({n} value{} in {} beyond tolerance; recorded in {})",
                         c.table,
                         if n == 1 { "" } else { "s" },
-                        rows.len(),
-                        if rows.len() == 1 { "" } else { "s" },
+                        n_rows(rows.len()),
                         c.file.display()
                     )?;
                     for s in shape {
@@ -615,6 +618,6 @@ mod tests {
         let Outcome::Differs { shape, .. } = compare(&snap(&[], 1.0), &rec, &now).unwrap() else {
             panic!()
         };
-        assert_eq!(shape, ["1 rows recorded, 2 now"]);
+        assert_eq!(shape, ["1 row recorded, 2 now"]);
     }
 }

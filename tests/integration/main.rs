@@ -4,6 +4,8 @@ mod cache_safety;
 mod campaign_io;
 mod cli;
 mod errors;
+mod report;
 mod runner;
+mod snapshots;
 mod synthetic;
 mod util;
