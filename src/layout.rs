@@ -150,8 +150,14 @@ pub struct Layout {
     pub references: bool,
 }
 
+/// `T01 … T24` for reflectors; `S1 … S5` for stations (as the example
+/// campaigns name them).
 fn ids(prefix: &str, n: usize) -> Vec<String> {
-    let w = if n >= 100 { 3 } else { 2 };
+    let w = match (prefix, n) {
+        ("S", _) => 1,
+        (_, n) if n >= 100 => 3,
+        _ => 2,
+    };
     (1..=n).map(|i| format!("{prefix}{i:0w$}")).collect()
 }
 
@@ -256,12 +262,15 @@ fn cmm_table(spec: &Spec) -> Layout {
     }
     pts.push(Vector3::new(900.0, 600.0, 600.0));
     let targets: Vec<(String, Vector3<f64>)> = ids("T", pts.len()).into_iter().zip(pts).collect();
+    // The SMRs face the stations' centroid and accept ±30°: the stations
+    // stand on a 50° arc in front of the table, the tracker head 0.7 m
+    // above its surface.
     let centre = Vector3::new(900.0, 600.0, 0.0);
     let stations = arc(
         centre,
-        3000.0,
+        3500.0,
         -PI / 2.0,
-        PI,
+        50f64.to_radians(),
         spec.stations,
         spec.tracker_height_mm - 800.0,
     );

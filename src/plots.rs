@@ -214,6 +214,65 @@ fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) ->
     Ok(())
 }
 
+/// Figures 10 and 15–18: every compared quantity of a criterion (a
+/// distance between stations, a reflector's coordinates) before and after
+/// calibration, in the order of the larger error before.
+pub fn criterion_errors(title: &str, y_label: &str, before: &[f64], after: &[f64]) -> Result<String> {
+    let mut order: Vec<usize> = (0..before.len()).collect();
+    order.sort_by(|&a, &b| before[b].total_cmp(&before[a]));
+    let top = before
+        .iter()
+        .chain(after)
+        .copied()
+        .fold(0.0, f64::max)
+        .max(1e-9)
+        * 1.05;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (1000, 520)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(20)
+            .caption(title, ("sans-serif", 22))
+            .x_label_area_size(45)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0..order.len().max(1), 0.0..top)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("compared quantity (sorted by error before calibration)")
+            .y_desc(y_label)
+            .label_style(("sans-serif", 13))
+            .draw()
+            .map_err(err)?;
+        let series = [
+            ("before calibration", RGBColor(200, 60, 40), before),
+            ("after calibration", RGBColor(30, 90, 200), after),
+        ];
+        for (name, colour, values) in series {
+            chart
+                .draw_series(
+                    order
+                        .iter()
+                        .enumerate()
+                        .map(|(x, &i)| Circle::new((x, values[i]), 2, colour.filled())),
+                )
+                .map_err(err)?
+                .label(name)
+                .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.9))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(err)?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

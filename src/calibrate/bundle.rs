@@ -25,7 +25,7 @@
 //! positions a gauge couples.
 
 use super::register::{Rigid, align};
-use super::{Calibration, FitSummary, Network, Norm, ReadingResidual, Settings, gauge_scale_ppm};
+use super::{Calibration, FitSummary, Network, Norm, Settings, gauge_scale_ppm};
 use crate::error_model::{ErrorParams, Links};
 use crate::identifiability;
 use crate::kinematics::nominal_jacobian;
@@ -646,22 +646,7 @@ pub fn calibrate(
             }
         })
         .collect();
-    let residuals = net
-        .obs
-        .iter()
-        .enumerate()
-        .map(|(i, o)| {
-            let nr = Vector3::new(r[3 * i], r[3 * i + 1], r[3 * i + 2]);
-            let phys = nr.component_mul(&o.sigma);
-            ReadingResidual {
-                obs: i,
-                az_urad: phys.x * 1e6,
-                el_urad: phys.y * 1e6,
-                d_um: phys.z * 1e3,
-                normalized: nr,
-            }
-        })
-        .collect();
+    let residuals = super::reading_residuals(net, &params, &poses, &points);
     let rms = |r: &DVector<f64>| (r.norm_squared() / m as f64).sqrt();
     let mean_abs = |r: &DVector<f64>| r.iter().map(|v| v.abs()).sum::<f64>() / m as f64;
     Ok(Calibration {

@@ -391,8 +391,8 @@ pub fn calibrate(
         free_index,
         combinations,
         pose_std: vec![None; alignment.poses.len()],
-        poses: alignment.poses,
-        points: alignment.points,
+        poses: alignment.poses.clone(),
+        points: alignment.points.clone(),
         point_std: BTreeMap::new(),
         fit: FitSummary {
             objective: settings.objective.name().into(),
@@ -415,7 +415,7 @@ pub fn calibrate(
             chi2_p: None,
             gauge_scale_ppm: gauge_scale_ppm(net, &params),
         },
+        residuals: super::reading_residuals(net, &params, &alignment.poses, &alignment.points),
         params,
-        residuals: Vec::new(),
     })
 }

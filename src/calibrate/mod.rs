@@ -321,6 +321,38 @@ pub fn calibrate(
     }
 }
 
+/// Per reading, the residual of the corrected reading against the
+/// estimated network: `J(q)⁻¹·(P(q; p) − R_sᵀ·(X_t − c_s))` in µrad, µrad,
+/// µm, and divided by the reading's σ. Readings of reflectors without an
+/// estimated position are left out.
+pub fn reading_residuals(
+    net: &Network,
+    params: &ErrorParams,
+    poses: &[register::Rigid],
+    points: &BTreeMap<usize, Vector3<f64>>,
+) -> Vec<ReadingResidual> {
+    let eval = params.evaluator();
+    net.obs
+        .iter()
+        .enumerate()
+        .filter_map(|(i, o)| {
+            let x = points.get(&o.target)?;
+            let pose = &poses[o.station];
+            let y = pose.rotation.inverse() * (x - pose.translation);
+            let e = eval.point(o.q, &o.links) - y;
+            let jinv = crate::kinematics::nominal_jacobian(o.reading).try_inverse()?;
+            let phys = jinv * e;
+            Some(ReadingResidual {
+                obs: i,
+                az_urad: phys.x * 1e6,
+                el_urad: phys.y * 1e6,
+                d_um: phys.z * 1e3,
+                normalized: phys.component_div(&o.sigma),
+            })
+        })
+        .collect()
+}
+
 /// Mean of `d/L − 1` over the gauge lengths seen, with the corrected
 /// points of every station (ppm): how far the calibrated scale is off.
 pub fn gauge_scale_ppm(net: &Network, params: &ErrorParams) -> Option<f64> {
@@ -336,91 +368,4 @@ pub fn gauge_scale_ppm(net: &Network, params: &ErrorParams) -> Option<f64> {
         }
     }
     (n > 0).then(|| sum / n as f64)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::campaign::Aim;
-    use crate::effects::Effects;
-    use crate::error_model::ErrorModel;
-    use crate::layout::{self, Kind, Spec};
-    use crate::simulate::{CampaignSpec, simulate_campaign};
-
-    fn corner(
-        noise: Noise,
-        faces: &[Face],
-        errors: &ErrorParams,
-    ) -> crate::simulate::SimulatedCampaign {
-        let layout = layout::build(&Spec::new(Kind::Corner));
-        simulate_campaign(&CampaignSpec {
-            name: "t".into(),
-            layout: &layout,
-            errors: Some(errors),
-            faces,
-            aim: Aim::StationsCentroid,
-            max_angle_deg: 30.0,
-            noise,
-            effects: &Effects::default(),
-            gauge_u_mm: 0.0,
-            reference_u_mm: 0.0,
-            level_urad: 1000.0,
-            interval_s: 20.0,
-            record_time: true,
-            record_temperature: true,
-            seed: 3,
-        })
-        .unwrap()
-    }
-
-    #[test]
-    fn scratch_objectives() {
-        let truth = ErrorParams::table2();
-        for faces in [&[Face::Front][..], &[Face::Front, Face::Back][..]] {
-            let sim = corner(Noise::default(), faces, &truth);
-            eprintln!(
-                "readings {} not taken {}",
-                sim.campaign.readings.len(),
-                sim.not_taken
-            );
-            let net = Network::from_campaign(&sim.campaign).unwrap();
-            let start = ErrorParams::zero(&ErrorModel::constant());
-            for obj in [Objective::Eq14, Objective::Eq15, Objective::Bundle] {
-                let t0 = std::time::Instant::now();
-                let c = calibrate(
-                    &net,
-                    &start,
-                    &[true; 18],
-                    &Settings {
-                        objective: obj,
-                        norm: Norm::L2,
-                        rank_tol: 1e-9,
-                        max_iters: 100,
-                    },
-                )
-                .unwrap();
-                eprintln!(
-                    "{:?} faces {} rank {} sv {:?} rms {} -> {} it {} {} {:?} scale {:?} chi2 {:?}",
-                    obj,
-                    faces.len(),
-                    c.analysis.rank,
-                    c.analysis
-                        .singular_values
-                        .iter()
-                        .map(|s| format!("{s:.2e}"))
-                        .collect::<Vec<_>>(),
-                    c.fit.rms_before,
-                    c.fit.rms_after,
-                    c.fit.iterations,
-                    c.fit.stop,
-                    t0.elapsed(),
-                    c.fit.gauge_scale_ppm,
-                    c.fit.chi2
-                );
-                for comb in &c.combinations {
-                    eprintln!("    {}", comb.sentence());
-                }
-            }
-        }
-    }
 }

@@ -16,6 +16,7 @@
 //! max; `before_um`, `after_um`, `reduction_pct`).
 
 use super::{Context, Slot, StageInputs, StageKind, StageOutput};
+use crate::criteria::improvement_pct;
 use crate::schema;
 use crate::table::TableBuilder;
 use anyhow::{Result, bail};
@@ -34,15 +35,6 @@ pub fn stats(e: &[f64]) -> [f64; 3] {
         (e.iter().map(|x| x * x).sum::<f64>() / n).sqrt(),
         e.iter().copied().fold(0.0, f64::max),
     ]
-}
-
-/// `100·(1 − after/before)`.
-pub fn reduction_pct(before: f64, after: f64) -> f64 {
-    if before > 0.0 {
-        100.0 * (1.0 - after / before)
-    } else {
-        0.0
-    }
 }
 
 impl StageKind for EvaluateStage {
@@ -100,7 +92,7 @@ impl StageKind for EvaluateStage {
             .f64("after_um", a.to_vec())
             .f64(
                 "reduction_pct",
-                (0..3).map(|k| reduction_pct(b[k], a[k])).collect(),
+                (0..3).map(|k| improvement_pct(b[k], a[k])).collect(),
             )
             .build()?;
         Ok(StageOutput::default()

@@ -12,8 +12,8 @@
 //!
 //! Output `params` (see [`crate::schema`]).
 
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
-use crate::error_model::{Coef, ErrorModel, ErrorParams, ParamId, Shape, Term};
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
+use crate::error_model::{Coef, ErrorParams, ParamId, Shape, Term};
 use crate::random;
 use crate::schema;
 use anyhow::Result;
@@ -58,19 +58,9 @@ fn one() -> f64 {
 }
 
 impl InjectStage {
-    fn model(&self) -> Result<ErrorModel, Invalid> {
-        let mut m = ErrorModel::constant();
-        for (&p, &s) in &self.shapes {
-            m = m
-                .with_shape(p, s)
-                .map_err(|e| Invalid::new(format!("shapes.{}", p.id()), e))?;
-        }
-        Ok(m)
-    }
-
     /// The parameter set these settings describe.
     pub fn params(&self) -> Result<ErrorParams, Invalid> {
-        let model = self.model()?;
+        let model = fitting::model(&self.shapes)?;
         let mut p = ErrorParams::zero(&model);
         let coefs = p.coefs().to_vec();
         let preset = match self.preset {

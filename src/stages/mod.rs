@@ -6,15 +6,19 @@
 //! config except through [`StageConfig`]. Adding a kind means adding a module
 //! and one line to [`stage_kinds!`].
 
+pub mod calibrate;
 pub mod correct;
 pub mod evaluate;
+pub mod evaluate_campaign;
 pub mod export_campaign;
+pub mod fitting;
 pub mod identify;
 pub mod import_campaign;
 pub mod inject;
 pub mod measure;
 pub mod mesh;
 pub mod plot;
+pub mod simulate_campaign;
 
 use crate::table::TableRef;
 use anyhow::{Result, anyhow};
@@ -223,6 +227,9 @@ stage_kinds! {
     Correct => correct::CorrectStage,
     Evaluate => evaluate::EvaluateStage,
     Plot => plot::PlotStage,
+    SimulateCampaign => simulate_campaign::SimulateCampaignStage,
+    Calibrate => calibrate::CalibrateStage,
+    EvaluateCampaign => evaluate_campaign::EvaluateCampaignStage,
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,
 }

@@ -9,10 +9,13 @@
 //! file = "figure8.svg"                       # optional, default "<plot>.svg"
 //! ```
 //!
-//! `mesh-errors` reads an `evaluate` stage's `points` table. Output: the SVG
+//! `mesh-errors` reads an `evaluate` stage's `points` table; `criterion`
+//! (with `criterion = "distances"` or another of `evaluate_campaign`'s
+//! criteria; Figures 10, 15–18) its `terms` table. Output: the SVG
 //! file, and a table `figure` (`file`, `plot`, `title`, `rows`) that records it.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use super::evaluate_campaign::CRITERIA;
 use crate::plots::{self, PointError};
 use crate::table::TableBuilder;
 use anyhow::Result;
@@ -23,12 +26,16 @@ use serde::{Deserialize, Serialize};
 pub enum PlotKind {
     /// Figures 6–8: error of each mesh point before and after calibration.
     MeshErrors,
+    /// Figures 10, 15–18: one criterion of an `evaluate_campaign` stage's
+    /// `terms` table, before and after.
+    Criterion,
 }
 
 impl PlotKind {
     fn name(self) -> &'static str {
         match self {
             PlotKind::MeshErrors => "mesh-errors",
+            PlotKind::Criterion => "criterion",
         }
     }
 }
@@ -41,6 +48,10 @@ pub struct PlotStage {
     pub title: String,
     #[serde(default)]
     pub file: String,
+    /// For `plot = "criterion"`: `distances`, `coordinates`,
+    /// `reference_distances` or `reference_coordinates`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub criterion: Option<String>,
 }
 
 impl StageKind for PlotStage {
@@ -57,21 +68,39 @@ impl StageKind for PlotStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
+        let mut out = Vec::new();
         let ok = !self.file.contains(['/', '\\'])
             && self.file.ends_with(".svg")
             && self.file.len() > 4
             && !self.file.starts_with('.');
-        if ok {
-            Vec::new()
-        } else {
-            vec![Invalid::new(
+        if !ok {
+            out.push(Invalid::new(
                 "file",
                 format!(
                     "`file` must be a plain file name ending in .svg, got \"{}\"",
                     self.file
                 ),
-            )]
+            ));
         }
+        match (self.plot, &self.criterion) {
+            (PlotKind::Criterion, None) => out.push(Invalid::new(
+                "plot",
+                format!(
+                    "plot = \"criterion\" needs `criterion`: one of {}",
+                    CRITERIA.join(", ")
+                ),
+            )),
+            (PlotKind::Criterion, Some(c)) if !CRITERIA.contains(&c.as_str()) => out.push(Invalid::new(
+                "criterion",
+                format!("unknown criterion `{c}`; one of {}", CRITERIA.join(", ")),
+            )),
+            (PlotKind::MeshErrors, Some(_)) => out.push(Invalid::new(
+                "criterion",
+                "`criterion` applies to plot = \"criterion\" only",
+            )),
+            _ => {}
+        }
+        out
     }
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
@@ -90,6 +119,21 @@ impl StageKind for PlotStage {
                     })
                     .collect();
                 plots::mesh_errors(&self.title, &pts)?
+            }
+            PlotKind::Criterion => {
+                let want = self.criterion.as_deref().unwrap_or_default();
+                let names = t.str("criterion")?;
+                let (b, a) = (t.f64("before_um")?, t.f64("after_um")?);
+                let keep: Vec<usize> = (0..names.len()).filter(|&i| names[i] == want).collect();
+                let before: Vec<f64> = keep.iter().map(|&i| b[i]).collect();
+                let after: Vec<f64> = keep.iter().map(|&i| a[i]).collect();
+                let label = match want {
+                    "distances" => "distance difference between stations (µm)",
+                    "coordinates" => "coordinate difference between stations (µm)",
+                    "reference_distances" => "distance error against references (µm)",
+                    _ => "coordinate error against references (µm)",
+                };
+                plots::criterion_errors(&self.title, label, &before, &after)?
             }
         };
         let figure = TableBuilder::new()

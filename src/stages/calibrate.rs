@@ -1,0 +1,210 @@
+//! `calibrate`: the error parameters from a campaign with unknown station
+//! poses (Sections 5.2, 7, 8).
+//!
+//! ```toml
+//! [stages.calibration]
+//! kind = "calibrate"
+//! inputs = { campaign = "corner" }    # a whole campaign (import or simulate); start = "…" optional
+//! objective = "eq15"                  # "eq13", "eq14", "eq15" or "bundle"
+//! norm = "l1"                         # "l1" (the paper's |…|) or "l2"; the bundle is "l2"
+//! fixed = ["ez3"]                     # held at their start value
+//! shapes = { dz3 = "poly:1" }         # the model to fit; constants by default
+//! ```
+//!
+//! Outputs: `params`, `singular_values`, `combinations` (as `identify`:
+//! what the campaign determines once poses are free), `fit` (one row:
+//! `objective`, `norm`, `n_readings`, `n_residuals`, `n_unknowns`, `rank`,
+//! `iterations`, `stop`, `rms_before`, `rms_after`, `mean_abs_before`,
+//! `mean_abs_after` — µm for Eq. 13–15, units of σ for the bundle —
+//! `chi2`, `dof`, `chi2_p`, `gauge_scale_ppm`, `noise_stated`), `stations`
+//! (`station`, `x_mm`, `y_mm`, `z_mm`, `roll_urad`, `pitch_urad`, `yaw_deg`,
+//! `std_position_mm`, `std_rotation_urad`), `targets` (`target`, `x_mm`,
+//! `y_mm`, `z_mm`, `std_mm`) and `residuals` (per reading: `station`,
+//! `target`, `face`, `az_urad`, `el_urad`, `d_um`, and the same over σ:
+//! `az_sigma`, `el_sigma`, `d_sigma`).
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
+use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
+use crate::campaign::{self, Campaign};
+use crate::error_model::{ParamId, Shape};
+use crate::identifiability;
+use crate::table::TableBuilder;
+use anyhow::{Result, anyhow};
+use polars::prelude::DataFrame;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrateStage {
+    pub objective: Objective,
+    #[serde(default)]
+    pub norm: Norm,
+    #[serde(default)]
+    pub fixed: Vec<ParamId>,
+    #[serde(default)]
+    pub shapes: BTreeMap<ParamId, Shape>,
+    #[serde(default = "default_rank_tol")]
+    pub rank_tol: f64,
+    #[serde(default = "default_max_iters")]
+    pub max_iters: u64,
+}
+
+fn default_rank_tol() -> f64 {
+    identifiability::DEFAULT_REL_TOL
+}
+fn default_max_iters() -> u64 {
+    100
+}
+
+impl CalibrateStage {
+    /// Calibrates a campaign; also what `diagnose` builds on.
+    pub fn calibrate(&self, c: &Campaign, inputs: Option<&StageInputs>) -> Result<(Network, Calibration)> {
+        let net = Network::from_campaign(c)?;
+        let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
+        let start = match inputs {
+            Some(i) => fitting::start(&model, i)?,
+            None => crate::error_model::ErrorParams::zero(&model),
+        };
+        let free = fitting::free(&start, &self.fixed);
+        let cal = calibrate::calibrate(
+            &net,
+            &start,
+            &free,
+            &Settings {
+                objective: self.objective,
+                norm: self.norm,
+                rank_tol: self.rank_tol,
+                max_iters: self.max_iters,
+            },
+        )?;
+        Ok((net, cal))
+    }
+}
+
+impl StageKind for CalibrateStage {
+    const KIND: &'static str = "calibrate";
+    const SUMMARY: &'static str = "error parameters from a campaign with unknown poses: Eq. 13-15 (L1 or L2) or a bundle adjustment";
+    const INPUTS: &'static [Slot] = &[
+        Slot::group("campaign", true, "a campaign (`import_campaign` or `simulate_campaign`)", campaign::TABLES),
+        Slot::table(
+            "start",
+            false,
+            "start values (a params table); fixed and undetermined coefficients keep them",
+        ),
+    ];
+    const OUTPUTS: &'static [&'static str] = &[
+        "params",
+        "singular_values",
+        "combinations",
+        "fit",
+        "stations",
+        "targets",
+        "residuals",
+    ];
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
+        if self.objective == Objective::Bundle && self.norm == Norm::L1 {
+            out.push(Invalid::new(
+                "norm",
+                "the bundle adjustment is a least-squares fit of the readings: use norm = \"l2\"",
+            ));
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+        let c = Campaign::from_inputs(inputs, "campaign")?;
+        let (net, cal) = self.calibrate(&c, Some(inputs))?;
+        tables(&net, &cal)
+    }
+}
+
+/// The output tables of a calibration.
+pub fn tables(net: &Network, cal: &Calibration) -> Result<StageOutput> {
+    let [params, singular_values, combinations] = fitting::tables(&fitting::Determined {
+        params: &cal.params,
+        free: &cal.free,
+        std: &cal.std,
+        analysis: &cal.analysis,
+        free_index: &cal.free_index,
+        combinations: &cal.combinations,
+    })?;
+    Ok(StageOutput::default()
+        .table("params", params)
+        .table("singular_values", singular_values)
+        .table("combinations", combinations)
+        .table("fit", fit_table(net, cal)?)
+        .table("stations", stations_table(net, cal)?)
+        .table("targets", targets_table(net, cal)?)
+        .table("residuals", residuals_table(net, cal)?))
+}
+
+fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
+    let f = &cal.fit;
+    TableBuilder::new()
+        .str("objective", &[&f.objective])
+        .str("norm", &[&f.norm])
+        .i64("n_readings", vec![f.n_readings as i64])
+        .i64("n_residuals", vec![f.n_residuals as i64])
+        .i64("n_unknowns", vec![f.n_unknowns as i64])
+        .i64("rank", vec![f.rank as i64])
+        .i64("iterations", vec![f.iterations as i64])
+        .str("stop", &[&f.stop])
+        .f64("rms_before", vec![f.rms_before])
+        .f64("rms_after", vec![f.rms_after])
+        .f64("mean_abs_before", vec![f.mean_abs_before])
+        .f64("mean_abs_after", vec![f.mean_abs_after])
+        .opt_f64("chi2", vec![f.chi2])
+        .opt_f64("dof", vec![f.dof.map(|d| d as f64)])
+        .opt_f64("chi2_p", vec![f.chi2_p])
+        .opt_f64("gauge_scale_ppm", vec![f.gauge_scale_ppm])
+        .bool("noise_stated", vec![net.noise_stated])
+        .build()
+}
+
+fn stations_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
+    let e: Vec<(f64, f64, f64)> = cal.poses.iter().map(|p| p.rotation.euler_angles()).collect();
+    TableBuilder::new()
+        .str("station", &net.stations)
+        .f64("x_mm", cal.poses.iter().map(|p| p.translation.x).collect())
+        .f64("y_mm", cal.poses.iter().map(|p| p.translation.y).collect())
+        .f64("z_mm", cal.poses.iter().map(|p| p.translation.z).collect())
+        .f64("roll_urad", e.iter().map(|a| a.0 * 1e6).collect())
+        .f64("pitch_urad", e.iter().map(|a| a.1 * 1e6).collect())
+        .f64("yaw_deg", e.iter().map(|a| a.2.to_degrees()).collect())
+        .opt_f64("std_position_mm", cal.pose_std.iter().map(|s| s.map(|s| s.0)).collect())
+        .opt_f64("std_rotation_urad", cal.pose_std.iter().map(|s| s.map(|s| s.1 * 1e6)).collect())
+        .build()
+}
+
+fn targets_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
+    let ids: Vec<&str> = cal.points.keys().map(|&t| net.targets[t].as_str()).collect();
+    let pts: Vec<_> = cal.points.values().collect();
+    TableBuilder::new()
+        .str("target", &ids)
+        .f64("x_mm", pts.iter().map(|p| p.x).collect())
+        .f64("y_mm", pts.iter().map(|p| p.y).collect())
+        .f64("z_mm", pts.iter().map(|p| p.z).collect())
+        .opt_f64("std_mm", cal.points.keys().map(|t| cal.point_std.get(t).copied()).collect())
+        .build()
+}
+
+fn residuals_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
+    let r = &cal.residuals;
+    let obs = |f: &dyn Fn(&crate::calibrate::Observation) -> String| {
+        r.iter().map(|x| f(&net.obs[x.obs])).collect::<Vec<_>>()
+    };
+    TableBuilder::new()
+        .str("station", &obs(&|o| net.stations[o.station].clone()))
+        .str("target", &obs(&|o| net.targets[o.target].clone()))
+        .i64("face", r.iter().map(|x| net.obs[x.obs].face.number()).collect())
+        .f64("az_urad", r.iter().map(|x| x.az_urad).collect())
+        .f64("el_urad", r.iter().map(|x| x.el_urad).collect())
+        .f64("d_um", r.iter().map(|x| x.d_um).collect())
+        .f64("az_sigma", r.iter().map(|x| x.normalized.x).collect())
+        .f64("el_sigma", r.iter().map(|x| x.normalized.y).collect())
+        .f64("d_sigma", r.iter().map(|x| x.normalized.z).collect())
+        .build()
+}

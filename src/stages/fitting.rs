@@ -1,0 +1,131 @@
+//! What the fitting stages (`identify`, `calibrate`) share: the model they
+//! estimate (shapes, fixed parameters, start values) and the tables that
+//! say what the data determined.
+
+use super::{Invalid, StageInputs};
+use crate::error_model::{ErrorModel, ErrorParams, ParamId, Shape};
+use crate::identifiability::{Analysis, Combination};
+use crate::schema::{self, IdentifiedColumns};
+use crate::table::TableBuilder;
+use anyhow::Result;
+use polars::prelude::DataFrame;
+use std::collections::BTreeMap;
+
+/// The error model with the given shapes (constants elsewhere).
+pub fn model(shapes: &BTreeMap<ParamId, Shape>) -> Result<ErrorModel, Invalid> {
+    let mut m = ErrorModel::constant();
+    for (&p, &s) in shapes {
+        m = m
+            .with_shape(p, s)
+            .map_err(|e| Invalid::new(format!("shapes.{}", p.id()), e))?;
+    }
+    Ok(m)
+}
+
+/// Start values: zero, or those of the optional `start` input where it has
+/// the same coefficient.
+pub fn start(model: &ErrorModel, inputs: &StageInputs) -> Result<ErrorParams> {
+    let mut start = ErrorParams::zero(model);
+    if let Some(t) = inputs.optional("start") {
+        let given = schema::params_from(&t)?;
+        let coefs = start.coefs().to_vec();
+        for (c, v) in coefs.iter().zip(start.values_mut()) {
+            if let Some(g) = given.get(c) {
+                *v = g;
+            }
+        }
+    }
+    Ok(start)
+}
+
+/// Which coefficients are free: all but those of the fixed parameters.
+pub fn free(start: &ErrorParams, fixed: &[ParamId]) -> Vec<bool> {
+    start.coefs().iter().map(|c| !fixed.contains(&c.param)).collect()
+}
+
+/// Checks the settings every fitting stage has.
+pub fn check(shapes: &BTreeMap<ParamId, Shape>, rank_tol: f64, max_iters: u64) -> Vec<Invalid> {
+    let mut out = Vec::new();
+    if !(rank_tol > 0.0 && rank_tol < 1.0) {
+        out.push(Invalid::new(
+            "rank_tol",
+            format!("`rank_tol` must lie in (0, 1), got {rank_tol}"),
+        ));
+    }
+    if max_iters == 0 {
+        out.push(Invalid::new("max_iters", "`max_iters` must be at least 1"));
+    }
+    if let Err(e) = model(shapes) {
+        out.push(e);
+    }
+    out
+}
+
+/// An estimate and what the data determined about it.
+pub struct Determined<'a> {
+    pub params: &'a ErrorParams,
+    pub free: &'a [bool],
+    pub std: &'a [Option<f64>],
+    pub analysis: &'a Analysis,
+    /// The free coefficients the analysis columns refer to.
+    pub free_index: &'a [usize],
+    pub combinations: &'a [Combination],
+}
+
+/// `params`, `singular_values` and `combinations` (see the `identify` stage).
+pub fn tables(d: &Determined) -> Result<[DataFrame; 3]> {
+    let mut determined = d.free.to_vec();
+    for c in d.combinations {
+        for &(k, _) in &c.direction {
+            determined[d.free_index[k]] = false;
+        }
+    }
+    let params = schema::params_table(
+        d.params,
+        Some(&IdentifiedColumns {
+            free: d.free.to_vec(),
+            std: d.std.to_vec(),
+            determined,
+        }),
+    )?;
+    let sv = &d.analysis.singular_values;
+    let smax = sv.first().copied().unwrap_or(0.0);
+    let singular_values = TableBuilder::new()
+        .i64("index", (1..=sv.len() as i64).collect())
+        .f64("sigma", sv.clone())
+        .f64(
+            "sigma_rel",
+            sv.iter()
+                .map(|s| if smax > 0.0 { s / smax } else { 0.0 })
+                .collect(),
+        )
+        .bool(
+            "determined",
+            (0..sv.len()).map(|i| i < d.analysis.rank).collect(),
+        )
+        .build()?;
+    let x: Vec<f64> = d.free_index.iter().map(|&i| d.params.values()[i]).collect();
+    let combos = d.combinations;
+    let combinations = TableBuilder::new()
+        .str(
+            "direction",
+            &combos.iter().map(|c| c.direction_text.clone()).collect::<Vec<_>>(),
+        )
+        .str(
+            "determined",
+            &combos
+                .iter()
+                .map(|c| c.determined_text.clone().unwrap_or_default())
+                .collect::<Vec<_>>(),
+        )
+        .opt_f64(
+            "value",
+            combos.iter().map(|c| c.determined_value(&x)).collect(),
+        )
+        .str(
+            "sentence",
+            &combos.iter().map(|c| c.sentence()).collect::<Vec<_>>(),
+        )
+        .build()?;
+    Ok([params, singular_values, combinations])
+}

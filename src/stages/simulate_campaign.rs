@@ -1,0 +1,278 @@
+//! `simulate_campaign`: a campaign as a tracker with error parameters would
+//! take it — a layout of reflectors, stations with unknown (to the
+//! calibration) poses, SMR aim and acceptance, reading noise and any of the
+//! effects of `effects.md`.
+//!
+//! ```toml
+//! [stages.corner]
+//! kind = "simulate_campaign"
+//! inputs = { errors = "truth" }          # optional: the tracker's error parameters
+//! layout = { kind = "corner" }           # "corner" (Section 7), "cmm-table" (5.2), "hall";
+//!                                        # stations, pan_deg, levels, per_level, distance_mm, tracker_height_mm
+//! faces = "front"                        # "front", "back" or "both"
+//! aim = "stations-centroid"              # or "aim-columns" (written to targets.csv)
+//! max_angle_deg = 30                     # SMR acceptance: readings beyond it are not taken
+//! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0, sigma_range_ppm = 0.3 }
+//! seed = 1
+//! [stages.corner.effects.incidence]     # any effect of effects.md, by its id
+//! e_axial_um = 5.0
+//! ```
+//!
+//! Outputs: the campaign (`readings`, `targets`, `gauge`, `meta`: a group
+//! other stages take whole, e.g. `inputs = { campaign = "corner" }`) and the
+//! truth a calibration must not see: `truth_stations` (`station`, `x_mm`,
+//! `y_mm`, `z_mm`, `roll_urad`, `pitch_urad`, `yaw_deg`), `truth_targets`
+//! (`target`, `x_mm`, `y_mm`, `z_mm`) and `truth_effects` (`effect`,
+//! `where`, `parameter`, `value`).
+
+use super::measure::Faces;
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use crate::campaign::Aim;
+use crate::effects::Effects;
+use crate::layout::{self, Spec};
+use crate::schema;
+use crate::simulate::{self, CampaignSpec, Noise, SimulatedCampaign};
+use crate::table::TableBuilder;
+use anyhow::{Result, anyhow};
+use polars::prelude::DataFrame;
+use serde::{Deserialize, Serialize};
+
+/// How the SMR axes are given.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum AimRule {
+    #[default]
+    StationsCentroid,
+    AimColumns,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimulateCampaignStage {
+    #[serde(default = "default_name")]
+    pub name: String,
+    pub layout: Spec,
+    #[serde(default)]
+    pub faces: Faces,
+    #[serde(default)]
+    pub aim: AimRule,
+    #[serde(default = "default_max_angle")]
+    pub max_angle_deg: f64,
+    #[serde(default)]
+    pub noise: Noise,
+    #[serde(default)]
+    pub effects: Effects,
+    #[serde(default = "default_gauge_u")]
+    pub gauge_u_mm: f64,
+    #[serde(default = "default_reference_u")]
+    pub reference_u_mm: f64,
+    #[serde(default = "default_level")]
+    pub level_urad: f64,
+    #[serde(default = "default_interval")]
+    pub interval_s: f64,
+    #[serde(default = "yes")]
+    pub record_time: bool,
+    #[serde(default = "yes")]
+    pub record_temperature: bool,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_name() -> String {
+    "simulated".into()
+}
+fn default_max_angle() -> f64 {
+    crate::effects::DEFAULT_MAX_ANGLE_DEG
+}
+/// A CMM-calibrated gauge: 0.5 µm (as in the example campaigns).
+fn default_gauge_u() -> f64 {
+    0.0005
+}
+/// CMM coordinates: 2 µm.
+fn default_reference_u() -> f64 {
+    0.002
+}
+/// Stations levelled within about 1 mrad.
+fn default_level() -> f64 {
+    1000.0
+}
+fn default_interval() -> f64 {
+    20.0
+}
+fn yes() -> bool {
+    true
+}
+
+impl SimulateCampaignStage {
+    pub fn simulate(&self, errors: Option<&crate::error_model::ErrorParams>) -> Result<SimulatedCampaign> {
+        let layout = layout::build(&self.layout);
+        simulate::simulate_campaign(&CampaignSpec {
+            name: self.name.clone(),
+            layout: &layout,
+            errors,
+            faces: self.faces.list(),
+            aim: match self.aim {
+                AimRule::StationsCentroid => Aim::StationsCentroid,
+                AimRule::AimColumns => Aim::AimColumns,
+            },
+            max_angle_deg: self.max_angle_deg,
+            noise: self.noise,
+            effects: &self.effects,
+            gauge_u_mm: self.gauge_u_mm,
+            reference_u_mm: self.reference_u_mm,
+            level_urad: self.level_urad,
+            interval_s: self.interval_s,
+            record_time: self.record_time,
+            record_temperature: self.record_temperature,
+            seed: self.seed,
+        })
+        .map_err(|e| anyhow!(e))
+    }
+}
+
+impl StageKind for SimulateCampaignStage {
+    const KIND: &'static str = "simulate_campaign";
+    const SUMMARY: &'static str = "a simulated campaign: layout, stations, SMR aim and acceptance, noise and the effects of effects.md";
+    const INPUTS: &'static [Slot] = &[Slot::table(
+        "errors",
+        false,
+        "the tracker's error parameters (an `inject` stage); none: a perfect tracker",
+    )];
+    const OUTPUTS: &'static [&'static str] = &[
+        "readings",
+        "targets",
+        "gauge",
+        "meta",
+        "truth_stations",
+        "truth_targets",
+        "truth_effects",
+    ];
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out: Vec<Invalid> = self
+            .layout
+            .check()
+            .into_iter()
+            .map(|(f, m)| Invalid::new(format!("layout.{f}"), m))
+            .collect();
+        out.extend(
+            self.effects
+                .check()
+                .into_iter()
+                .map(|(f, m)| Invalid::new(format!("effects.{f}"), m)),
+        );
+        if let Err((f, v)) = self.noise.check() {
+            out.push(Invalid::new(format!("noise.{f}"), format!("`noise.{f}` must be ≥ 0, got {v}")));
+        }
+        for (f, v, lo, hi) in [
+            ("max_angle_deg", self.max_angle_deg, 0.0, 90.0),
+            ("gauge_u_mm", self.gauge_u_mm, 0.0, 1.0),
+            ("reference_u_mm", self.reference_u_mm, 0.0, 1.0),
+            ("level_urad", self.level_urad, 0.0, 100_000.0),
+            ("interval_s", self.interval_s, 0.0, 86_400.0),
+        ] {
+            if !(v >= lo && v <= hi) {
+                out.push(Invalid::new(f, format!("`{f}` must lie in [{lo}, {hi}], got {v}")));
+            }
+        }
+        if self.max_angle_deg == 0.0 {
+            out.push(Invalid::new("max_angle_deg", "`max_angle_deg` must be > 0"));
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+        let errors = inputs
+            .optional("errors")
+            .map(|t| schema::params_from(&t))
+            .transpose()?;
+        let sim = self.simulate(errors.as_ref())?;
+        let mut out = StageOutput::default();
+        for (name, df) in sim.campaign.to_tables()? {
+            out = out.table(&name, df);
+        }
+        Ok(out
+            .table("truth_stations", truth_stations(&sim)?)
+            .table("truth_targets", truth_targets(&sim)?)
+            .table("truth_effects", truth_effects(self, &sim)?))
+    }
+}
+
+fn truth_stations(sim: &SimulatedCampaign) -> Result<DataFrame> {
+    let ids: Vec<&str> = sim.poses.iter().map(|p| p.id.as_str()).collect();
+    let e: Vec<(f64, f64, f64)> = sim.poses.iter().map(|p| p.rotation.euler_angles()).collect();
+    TableBuilder::new()
+        .str("station", &ids)
+        .f64("x_mm", sim.poses.iter().map(|p| p.position.x).collect())
+        .f64("y_mm", sim.poses.iter().map(|p| p.position.y).collect())
+        .f64("z_mm", sim.poses.iter().map(|p| p.position.z).collect())
+        .f64("roll_urad", e.iter().map(|a| a.0 * 1e6).collect())
+        .f64("pitch_urad", e.iter().map(|a| a.1 * 1e6).collect())
+        .f64("yaw_deg", e.iter().map(|a| a.2.to_degrees()).collect())
+        .build()
+}
+
+fn truth_targets(sim: &SimulatedCampaign) -> Result<DataFrame> {
+    let ids: Vec<&str> = sim.targets.iter().map(|t| t.0.as_str()).collect();
+    TableBuilder::new()
+        .str("target", &ids)
+        .f64("x_mm", sim.targets.iter().map(|t| t.1.x).collect())
+        .f64("y_mm", sim.targets.iter().map(|t| t.1.y).collect())
+        .f64("z_mm", sim.targets.iter().map(|t| t.1.z).collect())
+        .build()
+}
+
+/// Every numeric parameter of every effect, one row each; `where` is a
+/// station or reflector id, or `all`.
+fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Result<DataFrame> {
+    let mut rows: Vec<(String, String, String, f64)> = Vec::new();
+    let fx = serde_json::to_value(&stage.effects)?;
+    for (id, params) in fx.as_object().into_iter().flatten() {
+        let place = params
+            .get("station")
+            .or_else(|| params.get("target"))
+            .and_then(|v| v.as_str())
+            .unwrap_or("all")
+            .to_string();
+        if id == "range-scale" {
+            for (station, ppm) in &sim.range_ppm {
+                rows.push((id.clone(), station.clone(), "ppm".into(), *ppm));
+            }
+            continue;
+        }
+        for (k, v) in params.as_object().into_iter().flatten() {
+            match v {
+                serde_json::Value::Number(n) => {
+                    rows.push((id.clone(), place.clone(), k.clone(), n.as_f64().unwrap_or(f64::NAN)))
+                }
+                serde_json::Value::Array(a) => {
+                    for (i, x) in a.iter().enumerate() {
+                        let axis = ["x", "y", "z"].get(i).copied().unwrap_or("?");
+                        rows.push((id.clone(), place.clone(), format!("{k}.{axis}"), x.as_f64().unwrap_or(f64::NAN)));
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+    if rows.is_empty() {
+        rows.push(("none".into(), "all".into(), String::new(), 0.0));
+    }
+    let col = |f: &dyn Fn(&(String, String, String, f64)) -> String| rows.iter().map(f).collect::<Vec<_>>();
+    TableBuilder::new()
+        .str("effect", &col(&|r| r.0.clone()))
+        .str("where", &col(&|r| r.1.clone()))
+        .str("parameter", &col(&|r| r.2.clone()))
+        .f64("value", rows.iter().map(|r| r.3).collect())
+        .build()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn campaign_tables_are_the_campaign_group() {
+        assert_eq!(&SimulateCampaignStage::OUTPUTS[..4], crate::campaign::TABLES);
+    }
+}
