@@ -3,6 +3,8 @@
 mod cache_safety;
 mod campaign_io;
 mod cli;
+mod calibration;
+mod effects;
 mod errors;
 mod report;
 mod runner;
