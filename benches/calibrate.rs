@@ -1,0 +1,56 @@
+//! `calibrate_corner`: the bundle adjustment of the corner campaign of
+//! Section 7 — 24 reflectors, 5 stations, the 18 error parameters with the
+//! station poses and reflector positions — as the `calibrate` stage runs it
+//! (identifiability analysis included).
+//!
+//!     cargo bench --bench calibrate
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use ltcal::calibrate::{Network, Norm, Objective, Settings, calibrate};
+use ltcal::campaign::Aim;
+use ltcal::effects::Effects;
+use ltcal::error_model::{ErrorModel, ErrorParams};
+use ltcal::kinematics::Face;
+use ltcal::layout::{self, Kind, Spec};
+use ltcal::simulate::{CampaignSpec, Noise, simulate_campaign};
+use std::hint::black_box;
+
+fn calibrate_corner(c: &mut Criterion) {
+    let layout = layout::build(&Spec::new(Kind::Corner));
+    let sim = simulate_campaign(&CampaignSpec {
+        name: "corner".into(),
+        layout: &layout,
+        errors: Some(&ErrorParams::table2()),
+        faces: &[Face::Front],
+        aim: Aim::StationsCentroid,
+        max_angle_deg: 30.0,
+        noise: Noise {
+            sigma_angle_urad: 1.0,
+            sigma_range_um: 2.0,
+            sigma_range_ppm: 0.3,
+        },
+        effects: &Effects::default(),
+        gauge_u_mm: 0.0005,
+        reference_u_mm: 0.002,
+        level_urad: 1000.0,
+        interval_s: 20.0,
+        record_time: true,
+        record_temperature: true,
+        seed: 7,
+    })
+    .unwrap();
+    let net = Network::from_campaign(&sim.campaign).unwrap();
+    let start = ErrorParams::zero(&ErrorModel::constant());
+    let settings = Settings {
+        objective: Objective::Bundle,
+        norm: Norm::L2,
+        rank_tol: 1e-9,
+        max_iters: 100,
+    };
+    c.bench_function("calibrate_corner", |b| {
+        b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &settings).unwrap())
+    });
+}
+
+criterion_group!(benches, calibrate_corner);
+criterion_main!(benches);
