@@ -5,13 +5,15 @@
 //! first re-reads TOML:
 //!
 //! 1. [`raw`] — the file as written, with spans, every stage table
-//!    deserialized into its kind's typed settings;
+//!    deserialized into its kind's typed settings, `[snapshot]` typed;
 //! 2. [`resolve`] — `--set` overrides applied, defaults filled in, settings
-//!    validated, the graph checked;
+//!    validated, the graph checked, `[snapshot]` resolved ([`snapshot`]);
 //! 3. [`plan`] — execution order, parallel levels and cache keys.
 //!
-//! [`run`] executes a plan against the [`cache`]; [`explain`] says why a
-//! stage would run.
+//! [`run`] executes a plan against the [`cache`] (stage panics caught by
+//! [`panics`]) and writes the page [`crate::report`]; [`explain`] says why a
+//! stage would run, [`graph`] draws the stages, [`snapshot`] records and
+//! checks result tables.
 
 pub mod cache;
 pub mod explain;
