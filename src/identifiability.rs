@@ -71,6 +71,53 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Analysis {
     }
 }
 
+/// The observability indices of robot calibration, computed over the
+/// determined singular values σ₁ ≥ … ≥ σ_L of a Jacobian with `m` rows:
+/// O1 = (σ₁⋯σ_L)^(1/L)/√m (Borm & Menq), O2 = σ_L/σ₁ (the inverse
+/// condition number), O3 = σ_L (minimum singular value, Nahvi & Hollerbach),
+/// O4 = σ_L²/σ₁ (noise amplification index), O5 = 1/Σ 1/σᵢ (Sun &
+/// Hollerbach). Larger is better for all five.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Observability {
+    pub o1: f64,
+    pub o2: f64,
+    pub o3: f64,
+    pub o4: f64,
+    pub o5: f64,
+}
+
+impl Analysis {
+    pub fn observability(&self, m: usize) -> Observability {
+        let sv = &self.singular_values[..self.rank];
+        if sv.is_empty() {
+            return Observability {
+                o1: 0.0,
+                o2: 0.0,
+                o3: 0.0,
+                o4: 0.0,
+                o5: 0.0,
+            };
+        }
+        let (first, last) = (sv[0], sv[sv.len() - 1]);
+        let log_mean = sv.iter().map(|s| s.ln()).sum::<f64>() / sv.len() as f64;
+        Observability {
+            o1: log_mean.exp() / (m.max(1) as f64).sqrt(),
+            o2: last / first,
+            o3: last,
+            o4: last * last / first,
+            o5: 1.0 / sv.iter().map(|s| 1.0 / s).sum::<f64>(),
+        }
+    }
+
+    /// σ_max/σ_min over the determined directions.
+    pub fn condition_number(&self) -> f64 {
+        match self.rank {
+            0 => f64::INFINITY,
+            r => self.singular_values[0] / self.singular_values[r - 1],
+        }
+    }
+}
+
 /// Extends orthonormal vectors to a basis of ℝⁿ (Gram–Schmidt on unit vectors).
 fn complete_basis(basis: &mut Vec<DVector<f64>>, n: usize) {
     let mut k = 0;
@@ -249,5 +296,12 @@ mod tests {
         );
         let ab = combos.iter().find(|c| c.direction.len() == 2).unwrap();
         assert_eq!(ab.determined_value(&[3.0, 4.0, 0.0, 0.0]), Some(7.0));
+        let o = a.observability(4);
+        let (s1, s2) = (a.singular_values[0], a.singular_values[1]);
+        assert!((o.o1 - (s1 * s2).sqrt() / 2.0).abs() < 1e-12);
+        assert!((o.o2 - s2 / s1).abs() < 1e-12 && (o.o3 - s2).abs() < 1e-12);
+        assert!((o.o4 - s2 * s2 / s1).abs() < 1e-12);
+        assert!((o.o5 - 1.0 / (1.0 / s1 + 1.0 / s2)).abs() < 1e-12);
+        assert!((a.condition_number() - s1 / s2).abs() < 1e-12);
     }
 }

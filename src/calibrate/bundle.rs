@@ -27,7 +27,7 @@
 use super::register::{Rigid, align};
 use super::{Calibration, FitSummary, Network, Norm, Settings, gauge_scale_ppm};
 use crate::error_model::{ErrorParams, Links};
-use crate::identifiability;
+use crate::identifiability::{self, Analysis, Combination};
 use crate::kinematics::nominal_jacobian;
 use crate::solver::{LevenbergMarquardt, LmJacobian, NormalEquations};
 use anyhow::{Result, anyhow, bail};
@@ -372,10 +372,11 @@ impl<'a> Bundle<'a> {
         }
     }
 
-    /// The whole Jacobian, densely: for the identifiability analysis only.
-    fn dense_jacobian(&self, x: &DVector<f64>) -> DMatrix<f64> {
+    /// The whole Jacobian, densely, of the network at `x` (`design`: of the
+    /// consistent network, see [`Self::visit`]).
+    fn dense_jacobian(&self, x: &DVector<f64>, design: bool) -> DMatrix<f64> {
         let mut rows: Vec<Vec<f64>> = Vec::new();
-        self.visit(x, true, true, |r, blocks| {
+        self.visit(x, true, design, |r, blocks| {
             for k in 0..r.len() {
                 let mut row = vec![0.0; self.layout.n];
                 for (off, b) in blocks {
@@ -485,6 +486,119 @@ fn project_out(j: &DMatrix<f64>, k: usize) -> Result<DMatrix<f64>> {
     Ok(&jp - &q * (q.transpose() * &jp))
 }
 
+/// What the analysis and the fit share: the free coefficients, the frame,
+/// the first guess of every pose and position, the reading weights.
+struct Setup {
+    free_index: Vec<usize>,
+    use_references: bool,
+    fixed_station: Option<usize>,
+    poses0: Vec<Rigid>,
+    points0: BTreeMap<usize, Vector3<f64>>,
+    weights: Vec<Matrix3<f64>>,
+}
+
+impl Setup {
+    fn new(net: &Network, start: &ErrorParams, free: &[bool]) -> Result<Setup> {
+        let use_references = net.references_fix_frame();
+        let anchor = use_references.then(|| net.reference_points());
+        let alignment = align(&net.station_points(start), anchor.as_ref())
+            .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
+        Ok(Setup {
+            free_index: (0..free.len()).filter(|&i| free[i]).collect(),
+            use_references,
+            fixed_station: (!use_references).then_some(0),
+            poses0: alignment.poses,
+            points0: alignment.points,
+            weights: net.obs.iter().map(|o| design_weight(o, o.reading)).collect(),
+        })
+    }
+
+    fn layout(&self, net: &Network, n_z: usize) -> Layout {
+        Layout::new(net, n_z, self.fixed_station)
+    }
+
+    fn initial(&self, layout: &Layout) -> DVector<f64> {
+        let mut x = DVector::zeros(layout.n);
+        for (s, off) in layout.station.iter().enumerate() {
+            if let Some(o) = off {
+                x.fixed_rows_mut::<3>(o + 3)
+                    .copy_from(&self.poses0[s].translation);
+            }
+        }
+        for (t, off) in layout.point.iter().enumerate() {
+            if let Some((o, _)) = off {
+                x.fixed_rows_mut::<3>(*o).copy_from(&self.points0[&t]);
+            }
+        }
+        x
+    }
+
+    fn problem<'a>(
+        &'a self,
+        net: &'a Network,
+        start: &'a ErrorParams,
+        basis: &'a DMatrix<f64>,
+        layout: &'a Layout,
+    ) -> Bundle<'a> {
+        Bundle {
+            net,
+            start,
+            free_index: &self.free_index,
+            basis,
+            layout,
+            poses0: &self.poses0,
+            weights: &self.weights,
+            use_references: self.use_references,
+            point_index: point_index(layout),
+        }
+    }
+}
+
+/// What a campaign determines about the free coefficients once station
+/// poses and reflector positions are free: the singular values of their
+/// Jacobian with everything poses and positions can absorb projected out,
+/// and the undetermined directions in words.
+pub fn analyse(
+    net: &Network,
+    start: &ErrorParams,
+    free: &[bool],
+    rank_tol: f64,
+) -> Result<(Analysis, Vec<Combination>)> {
+    let setup = Setup::new(net, start, free)?;
+    analyse_setup(net, start, &setup, rank_tol)
+}
+
+fn analyse_setup(
+    net: &Network,
+    start: &ErrorParams,
+    setup: &Setup,
+    rank_tol: f64,
+) -> Result<(Analysis, Vec<Combination>)> {
+    let n = setup.free_index.len();
+    let identity = DMatrix::identity(n, n);
+    let layout = setup.layout(net, n);
+    let probe = setup.problem(net, start, &identity, &layout);
+    let j = probe.dense_jacobian(&setup.initial(&layout), true);
+    let analysis = identifiability::analyse(&project_out(&j, n)?, rank_tol);
+    let names: Vec<String> = setup
+        .free_index
+        .iter()
+        .map(|&i| start.coefs()[i].symbol())
+        .collect();
+    let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
+    Ok((analysis, combinations))
+}
+
+/// The linearised problem at a bundle adjustment's solution, for tests of
+/// added effects: the Jacobian of all residuals (readings first, three rows
+/// each in units of σ; then gauge and reference rows) with respect to every
+/// unknown, and the residuals.
+#[derive(Clone, Debug)]
+pub struct Linearisation {
+    pub jacobian: DMatrix<f64>,
+    pub residuals: DVector<f64>,
+}
+
 pub fn calibrate(
     net: &Network,
     start: &ErrorParams,
@@ -494,92 +608,19 @@ pub fn calibrate(
     if settings.norm == Norm::L1 {
         bail!("the bundle adjustment is a least-squares fit: use norm = \"l2\"");
     }
-    let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
-    let use_references = net.references_fix_frame();
-    let anchor = use_references.then(|| net.reference_points());
-    let alignment = align(&net.station_points(start), anchor.as_ref())
-        .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
-    let fixed_station = (!use_references).then_some(0);
-    let poses0 = alignment.poses.clone();
-    let weights: Vec<Matrix3<f64>> = net
-        .obs
-        .iter()
-        .map(|o| {
-            let jinv = nominal_jacobian(o.reading)
-                .try_inverse()
-                .unwrap_or_else(Matrix3::zeros);
-            Matrix3::from_diagonal(&o.sigma.map(|s| 1.0 / s)) * jinv
-        })
-        .collect();
-    let initial = |layout: &Layout| {
-        let mut x = DVector::zeros(layout.n);
-        for (s, off) in layout.station.iter().enumerate() {
-            if let Some(o) = off {
-                x.fixed_rows_mut::<3>(o + 3)
-                    .copy_from(&poses0[s].translation);
-            }
-        }
-        for (t, off) in layout.point.iter().enumerate() {
-            if let Some((o, _)) = off {
-                x.fixed_rows_mut::<3>(*o).copy_from(&alignment.points[&t]);
-            }
-        }
-        x
-    };
-
-    // What the campaign determines: the free coefficients' Jacobian with
-    // everything poses and positions can absorb projected out.
-    let identity = DMatrix::identity(free_index.len(), free_index.len());
-    let full_layout = Layout::new(net, free_index.len(), fixed_station);
-    let probe = Bundle {
-        net,
-        start,
-        free_index: &free_index,
-        basis: &identity,
-        layout: &full_layout,
-        poses0: &poses0,
-        weights: &weights,
-        use_references,
-        point_index: point_index(&full_layout),
-    };
-    let j = probe.dense_jacobian(&initial(&full_layout));
-    let analysis = identifiability::analyse(&project_out(&j, free_index.len())?, settings.rank_tol);
-    let names: Vec<String> = free_index
-        .iter()
-        .map(|&i| start.coefs()[i].symbol())
-        .collect();
-    let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
+    let setup = Setup::new(net, start, free)?;
+    let free_index = setup.free_index.clone();
+    let (analysis, combinations) = analyse_setup(net, start, &setup, settings.rank_tol)?;
     let basis = analysis.row_basis.clone();
-
-    let layout = Layout::new(net, basis.ncols(), fixed_station);
-    let problem = Bundle {
-        net,
-        start,
-        free_index: &free_index,
-        basis: &basis,
-        layout: &layout,
-        poses0: &poses0,
-        weights: &weights,
-        use_references,
-        point_index: point_index(&layout),
-    };
-    let x0 = initial(&layout);
+    let layout = setup.layout(net, basis.ncols());
+    let problem = setup.problem(net, start, &basis, &layout);
+    let x0 = setup.initial(&layout);
     let r0 = problem.residuals(&x0);
     let fit = LevenbergMarquardt::new()
         .with_initial_lambda(1e-4)
         .and_then(|lm| lm.minimize(problem, x0, settings.max_iters))
         .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?;
-    let problem = Bundle {
-        net,
-        start,
-        free_index: &free_index,
-        basis: &basis,
-        layout: &layout,
-        poses0: &poses0,
-        weights: &weights,
-        use_references,
-        point_index: point_index(&layout),
-    };
+    let problem = setup.problem(net, start, &basis, &layout);
     let x = fit.x;
     let params = problem.params(&x);
     let r = problem.residuals(&x);
@@ -647,6 +688,10 @@ pub fn calibrate(
         })
         .collect();
     let residuals = super::reading_residuals(net, &params, &poses, &points);
+    let linearisation = Linearisation {
+        jacobian: problem.dense_jacobian(&x, false),
+        residuals: r.clone(),
+    };
     let rms = |r: &DVector<f64>| (r.norm_squared() / m as f64).sqrt();
     let mean_abs = |r: &DVector<f64>| r.iter().map(|v| v.abs()).sum::<f64>() / m as f64;
     Ok(Calibration {
@@ -679,6 +724,7 @@ pub fn calibrate(
         analysis,
         params,
         residuals,
+        linearisation: Some(linearisation),
     })
 }
 

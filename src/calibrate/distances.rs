@@ -416,6 +416,7 @@ pub fn calibrate(
             gauge_scale_ppm: gauge_scale_ppm(net, &params),
         },
         residuals: super::reading_residuals(net, &params, &alignment.poses, &alignment.points),
+        linearisation: None,
         params,
     })
 }

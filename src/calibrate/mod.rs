@@ -266,9 +266,11 @@ pub struct Calibration {
     pub points: BTreeMap<usize, Vector3<f64>>,
     pub point_std: BTreeMap<usize, f64>,
     pub fit: FitSummary,
-    /// Per reading, for the bundle adjustment: normalised residuals in az,
-    /// el, d (units of σ) and the same in µrad, µrad, µm.
+    /// Per reading: residuals in az, el, d against the estimated network,
+    /// in µrad, µrad, µm and in units of σ.
     pub residuals: Vec<ReadingResidual>,
+    /// The bundle adjustment's linearised problem at its solution.
+    pub linearisation: Option<bundle::Linearisation>,
 }
 
 /// One reading's residual after a bundle adjustment.
