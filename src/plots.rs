@@ -217,7 +217,12 @@ fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) ->
 /// Figures 10 and 15–18: every compared quantity of a criterion (a
 /// distance between stations, a reflector's coordinates) before and after
 /// calibration, in the order of the larger error before.
-pub fn criterion_errors(title: &str, y_label: &str, before: &[f64], after: &[f64]) -> Result<String> {
+pub fn criterion_errors(
+    title: &str,
+    y_label: &str,
+    before: &[f64],
+    after: &[f64],
+) -> Result<String> {
     let mut order: Vec<usize> = (0..before.len()).collect();
     order.sort_by(|&a, &b| before[b].total_cmp(&before[a]));
     let top = before
@@ -268,6 +273,168 @@ pub fn criterion_errors(title: &str, y_label: &str, before: &[f64], after: &[f64
             .label_font(("sans-serif", 14))
             .draw()
             .map_err(err)?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
+/// One panel of Figure 11: a parameter's error at every mesh point.
+pub struct ParamField {
+    /// E.g. "εx1 = 1 µrad".
+    pub label: String,
+    pub err_um: Vec<f64>,
+    pub d_mm: Vec<f64>,
+}
+
+/// Figure 11: one small panel per parameter (6 × 3), the error of every
+/// mesh point in mesh order, coloured by the point's distance d.
+pub fn sensitivity_fields(title: &str, panels: &[ParamField]) -> Result<String> {
+    let (d_lo, d_hi) = panels
+        .iter()
+        .flat_map(|p| p.d_mm.iter().copied())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
+            (a.min(d), b.max(d))
+        });
+    let (d_lo, d_hi) = if d_lo < d_hi {
+        (d_lo, d_hi)
+    } else {
+        (0.0, d_hi.max(1.0))
+    };
+    let rows = panels.len().div_ceil(3).max(1);
+    let mut svg = String::new();
+    {
+        let root =
+            SVGBackend::with_string(&mut svg, (1250, 170 * rows as u32 + 60)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
+        let (grid, bar) = root.split_horizontally(1150);
+        for (area, p) in grid.split_evenly((rows, 3)).iter().zip(panels) {
+            let top = p.err_um.iter().copied().fold(0.0, f64::max);
+            // A parameter that moves nothing gets a 1 µm axis, not a degenerate one.
+            let top = if top > 1e-6 { top * 1.1 } else { 1.0 };
+            let mut chart = ChartBuilder::on(area)
+                .margin(6)
+                .caption(&p.label, ("sans-serif", 14))
+                .x_label_area_size(28)
+                .y_label_area_size(48)
+                .build_cartesian_2d(0..p.err_um.len().max(1), 0.0..top)
+                .map_err(err)?;
+            chart
+                .configure_mesh()
+                .x_desc("mesh point")
+                .y_desc("error (µm)")
+                .x_labels(5)
+                .y_labels(4)
+                .label_style(("sans-serif", 10))
+                .axis_desc_style(("sans-serif", 11))
+                .draw()
+                .map_err(err)?;
+            chart
+                .draw_series(
+                    p.err_um
+                        .iter()
+                        .zip(&p.d_mm)
+                        .enumerate()
+                        .map(|(i, (&e, &d))| {
+                            Circle::new((i, e), 1, viridis((d - d_lo) / (d_hi - d_lo)).filled())
+                        }),
+                )
+                .map_err(err)?;
+        }
+        colour_bar(&bar, d_lo / 1000.0, d_hi / 1000.0, "distance d (m)")?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
+/// Figure 12's data for one parameter: its error on a grid of directions at
+/// one distance, as curves against θ (one per φ) and against φ (one per θ).
+pub struct DirectionCurves {
+    pub label: String,
+    pub theta_deg: Vec<f64>,
+    /// `(φ in degrees, error in µm at every θ)`.
+    pub by_theta: Vec<(f64, Vec<f64>)>,
+    pub phi_deg: Vec<f64>,
+    /// `(θ in degrees, error in µm at every φ)`.
+    pub by_phi: Vec<(f64, Vec<f64>)>,
+}
+
+/// Figure 12: for each parameter with a variable error, its error against θ
+/// (left, one line per mesh φ) and against φ (right, one line per mesh θ)
+/// at distance `d_mm`; a line's colour is its φ or θ, dark to light.
+pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) -> Result<String> {
+    let n = rows.len().max(1);
+    let mut svg = String::new();
+    {
+        let root =
+            SVGBackend::with_string(&mut svg, (1100, 230 * n as u32 + 80)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let root = root
+            .titled(
+                &format!(
+                    "{title} (d = {:.1} m; line colour: the other angle, low dark, high light)",
+                    d_mm / 1000.0
+                ),
+                ("sans-serif", 18),
+            )
+            .map_err(err)?;
+        let cells = root.split_evenly((n, 2));
+        for (k, c) in rows.iter().enumerate() {
+            let top = c
+                .by_theta
+                .iter()
+                .chain(&c.by_phi)
+                .flat_map(|l| l.1.iter().copied())
+                .fold(0.0, f64::max)
+                .max(1e-6)
+                * 1.1;
+            let panels = [
+                (&cells[2 * k], "θ (deg)", &c.theta_deg, &c.by_theta, "by φ"),
+                (&cells[2 * k + 1], "φ (deg)", &c.phi_deg, &c.by_phi, "by θ"),
+            ];
+            for (area, x_desc, xs, lines, by) in panels {
+                let (x0, x1) = (
+                    xs.first().copied().unwrap_or(0.0),
+                    xs.last().copied().unwrap_or(1.0),
+                );
+                let mut chart = ChartBuilder::on(area)
+                    .margin(8)
+                    .caption(
+                        format!(
+                            "{}, against {} ({by})",
+                            c.label,
+                            &x_desc[..x_desc.find(' ').unwrap_or(0)]
+                        ),
+                        ("sans-serif", 14),
+                    )
+                    .x_label_area_size(32)
+                    .y_label_area_size(52)
+                    .build_cartesian_2d(x0..x1, 0.0..top)
+                    .map_err(err)?;
+                chart
+                    .configure_mesh()
+                    .x_desc(x_desc)
+                    .y_desc("error (µm)")
+                    .x_label_formatter(&|v| format!("{v:.0}"))
+                    .label_style(("sans-serif", 11))
+                    .draw()
+                    .map_err(err)?;
+                let (lo, hi) = lines
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), l| {
+                        (a.min(l.0), b.max(l.0))
+                    });
+                for (at, ys) in lines.iter() {
+                    let t = if hi > lo { (at - lo) / (hi - lo) } else { 0.5 };
+                    chart
+                        .draw_series(LineSeries::new(
+                            xs.iter().copied().zip(ys.iter().copied()),
+                            viridis(0.9 * t).stroke_width(1),
+                        ))
+                        .map_err(err)?;
+                }
+            }
+        }
         root.present().map_err(err)?;
     }
     Ok(svg)

@@ -18,6 +18,7 @@ pub mod inject;
 pub mod measure;
 pub mod mesh;
 pub mod plot;
+pub mod sensitivity;
 pub mod simulate_campaign;
 
 use crate::table::TableRef;
@@ -232,4 +233,5 @@ stage_kinds! {
     EvaluateCampaign => evaluate_campaign::EvaluateCampaignStage,
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,
+    Sensitivity => sensitivity::SensitivityStage,
 }
