@@ -246,7 +246,7 @@ impl Effects {
             }
         }
         if let Some(a) = &self.air_refraction {
-            if !(a.period_s > 0.0) {
+            if a.period_s.is_nan() || a.period_s <= 0.0 {
                 out.push((
                     "air-refraction.period_s".into(),
                     format!("`period_s` must be > 0, got {}", a.period_s),
@@ -420,10 +420,10 @@ mod tests {
         assert!((a.alpha - (1.0f64 / 3f64.sqrt()).acos()).abs() < 1e-15);
         assert!((a.alpha_h - std::f64::consts::FRAC_PI_4).abs() < 1e-15);
         assert!((a.alpha_v - std::f64::consts::FRAC_PI_4).abs() < 1e-15);
-        // Vertical axis: h = x̂.
+        // Vertical axis: h = x̂, v = ẑ × x̂ = ŷ.
         let a = incidence_angles(&Vector3::z(), &Vector3::new(0.0, 0.1, 1.0).normalize());
         assert!(a.alpha_h.abs() < 1e-15);
-        assert!((a.alpha_v + 0.1f64.atan()).abs() < 1e-12, "{a:?}");
+        assert!((a.alpha_v - 0.1f64.atan()).abs() < 1e-12, "{a:?}");
     }
 
     #[test]

@@ -7,6 +7,7 @@ pub mod calibrate;
 pub mod campaign;
 pub mod cli;
 pub mod criteria;
+pub mod diagnose;
 pub mod effects;
 pub mod error_model;
 pub mod identifiability;

@@ -37,7 +37,9 @@ use std::collections::BTreeMap;
 
 /// `W·J(q)⁻¹` for a reading `r` with the σ of observation `o`.
 fn design_weight(o: &super::Observation, r: crate::kinematics::Reading) -> Matrix3<f64> {
-    let jinv = nominal_jacobian(r).try_inverse().unwrap_or_else(Matrix3::zeros);
+    let jinv = nominal_jacobian(r)
+        .try_inverse()
+        .unwrap_or_else(Matrix3::zeros);
     Matrix3::from_diagonal(&o.sigma.map(|s| 1.0 / s)) * jinv
 }
 
@@ -106,6 +108,10 @@ impl Layout {
     }
 }
 
+/// The reduced system of [`BlockNormal::reduce`]: `S`, `b` and each
+/// eliminated point's damped `H_XX⁻¹`.
+type Reduced = (DMatrix<f64>, DVector<f64>, Vec<Matrix3<f64>>);
+
 /// Normal equations with the reflector positions as 3 × 3 diagonal blocks.
 #[derive(Clone, Debug)]
 pub struct BlockNormal {
@@ -172,7 +178,7 @@ impl BlockNormal {
 
     /// `S = H_AA − Σ H_AX·H_XX⁻¹·H_XA` and `b = g_A − Σ H_AX·H_XX⁻¹·g_X`,
     /// with the diagonal damped by `1 + λ`.
-    fn reduce(&self, lambda: f64) -> Option<(DMatrix<f64>, DVector<f64>, Vec<Matrix3<f64>>)> {
+    fn reduce(&self, lambda: f64) -> Option<Reduced> {
         let mut s = self.h_aa.clone();
         for i in 0..self.n_a {
             s[(i, i)] += lambda * self.h_aa[(i, i)].max(1e-300);
@@ -398,7 +404,9 @@ impl<'a> Bundle<'a> {
 
     fn normal(&self, x: &DVector<f64>) -> BlockNormal {
         let mut n = BlockNormal::new(self.layout.n_a, self.layout.n, self.layout);
-        self.visit(x, true, false, |r, blocks| n.add(r, blocks, &self.point_index));
+        self.visit(x, true, false, |r, blocks| {
+            n.add(r, blocks, &self.point_index)
+        });
         n
     }
 }
@@ -509,7 +517,11 @@ impl Setup {
             fixed_station: (!use_references).then_some(0),
             poses0: alignment.poses,
             points0: alignment.points,
-            weights: net.obs.iter().map(|o| design_weight(o, o.reading)).collect(),
+            weights: net
+                .obs
+                .iter()
+                .map(|o| design_weight(o, o.reading))
+                .collect(),
         })
     }
 

@@ -135,6 +135,10 @@ fn terms(net: &Network, views: &[View], objective: Objective) -> Result<Vec<Term
     Ok(out)
 }
 
+/// Per target of a view: the mean corrected point and its derivative with
+/// respect to each listed coefficient.
+type ViewPoints = BTreeMap<usize, (Vector3<f64>, Vec<Vector3<f64>>)>;
+
 /// The objective's residuals (µm) and, when asked, their Jacobian with
 /// respect to the listed coefficients (µm per display unit).
 struct Evaluation {
@@ -153,8 +157,7 @@ fn evaluate(
     let eval = params.evaluator();
     let n = cols.len();
     // Per view and target: the mean corrected point and its derivative.
-    let mut pts: Vec<BTreeMap<usize, (Vector3<f64>, Vec<Vector3<f64>>)>> =
-        Vec::with_capacity(views.len());
+    let mut pts: Vec<ViewPoints> = Vec::with_capacity(views.len());
     let mut buf = Vec::new();
     for view in views {
         let mut m = BTreeMap::new();

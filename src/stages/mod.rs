@@ -159,7 +159,7 @@ macro_rules! stage_kinds {
         /// The resolved settings of one stage, of any kind.
         #[derive(Clone, Debug)]
         pub enum StageConfig {
-            $($variant($ty)),*
+            $($variant(Box<$ty>)),*
         }
 
         /// Every kind name, for messages.
@@ -174,7 +174,7 @@ macro_rules! stage_kinds {
             {
                 match kind {
                     $(<$ty as StageKind>::KIND => Some(
-                        <$ty as serde::Deserialize>::deserialize(de).map(StageConfig::$variant),
+                        <$ty as serde::Deserialize>::deserialize(de).map(|c| StageConfig::$variant(Box::new(c))),
                     ),)*
                     _ => None,
                 }

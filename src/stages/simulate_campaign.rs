@@ -104,7 +104,10 @@ fn yes() -> bool {
 }
 
 impl SimulateCampaignStage {
-    pub fn simulate(&self, errors: Option<&crate::error_model::ErrorParams>) -> Result<SimulatedCampaign> {
+    pub fn simulate(
+        &self,
+        errors: Option<&crate::error_model::ErrorParams>,
+    ) -> Result<SimulatedCampaign> {
         let layout = layout::build(&self.layout);
         simulate::simulate_campaign(&CampaignSpec {
             name: self.name.clone(),
@@ -162,7 +165,10 @@ impl StageKind for SimulateCampaignStage {
                 .map(|(f, m)| Invalid::new(format!("effects.{f}"), m)),
         );
         if let Err((f, v)) = self.noise.check() {
-            out.push(Invalid::new(format!("noise.{f}"), format!("`noise.{f}` must be ≥ 0, got {v}")));
+            out.push(Invalid::new(
+                format!("noise.{f}"),
+                format!("`noise.{f}` must be ≥ 0, got {v}"),
+            ));
         }
         for (f, v, lo, hi) in [
             ("max_angle_deg", self.max_angle_deg, 0.0, 90.0),
@@ -172,7 +178,10 @@ impl StageKind for SimulateCampaignStage {
             ("interval_s", self.interval_s, 0.0, 86_400.0),
         ] {
             if !(v >= lo && v <= hi) {
-                out.push(Invalid::new(f, format!("`{f}` must lie in [{lo}, {hi}], got {v}")));
+                out.push(Invalid::new(
+                    f,
+                    format!("`{f}` must lie in [{lo}, {hi}], got {v}"),
+                ));
             }
         }
         if self.max_angle_deg == 0.0 {
@@ -200,7 +209,11 @@ impl StageKind for SimulateCampaignStage {
 
 fn truth_stations(sim: &SimulatedCampaign) -> Result<DataFrame> {
     let ids: Vec<&str> = sim.poses.iter().map(|p| p.id.as_str()).collect();
-    let e: Vec<(f64, f64, f64)> = sim.poses.iter().map(|p| p.rotation.euler_angles()).collect();
+    let e: Vec<(f64, f64, f64)> = sim
+        .poses
+        .iter()
+        .map(|p| p.rotation.euler_angles())
+        .collect();
     TableBuilder::new()
         .str("station", &ids)
         .f64("x_mm", sim.poses.iter().map(|p| p.position.x).collect())
@@ -242,13 +255,21 @@ fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Resu
         }
         for (k, v) in params.as_object().into_iter().flatten() {
             match v {
-                serde_json::Value::Number(n) => {
-                    rows.push((id.clone(), place.clone(), k.clone(), n.as_f64().unwrap_or(f64::NAN)))
-                }
+                serde_json::Value::Number(n) => rows.push((
+                    id.clone(),
+                    place.clone(),
+                    k.clone(),
+                    n.as_f64().unwrap_or(f64::NAN),
+                )),
                 serde_json::Value::Array(a) => {
                     for (i, x) in a.iter().enumerate() {
                         let axis = ["x", "y", "z"].get(i).copied().unwrap_or("?");
-                        rows.push((id.clone(), place.clone(), format!("{k}.{axis}"), x.as_f64().unwrap_or(f64::NAN)));
+                        rows.push((
+                            id.clone(),
+                            place.clone(),
+                            format!("{k}.{axis}"),
+                            x.as_f64().unwrap_or(f64::NAN),
+                        ));
                     }
                 }
                 _ => {}
@@ -258,11 +279,19 @@ fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Resu
     if rows.is_empty() {
         rows.push(("none".into(), "all".into(), String::new(), 0.0));
     }
-    let col = |f: &dyn Fn(&(String, String, String, f64)) -> String| rows.iter().map(f).collect::<Vec<_>>();
     TableBuilder::new()
-        .str("effect", &col(&|r| r.0.clone()))
-        .str("where", &col(&|r| r.1.clone()))
-        .str("parameter", &col(&|r| r.2.clone()))
+        .str(
+            "effect",
+            &rows.iter().map(|r| r.0.as_str()).collect::<Vec<_>>(),
+        )
+        .str(
+            "where",
+            &rows.iter().map(|r| r.1.as_str()).collect::<Vec<_>>(),
+        )
+        .str(
+            "parameter",
+            &rows.iter().map(|r| r.2.as_str()).collect::<Vec<_>>(),
+        )
         .f64("value", rows.iter().map(|r| r.3).collect())
         .build()
 }
@@ -273,6 +302,9 @@ mod tests {
 
     #[test]
     fn campaign_tables_are_the_campaign_group() {
-        assert_eq!(&SimulateCampaignStage::OUTPUTS[..4], crate::campaign::TABLES);
+        assert_eq!(
+            &SimulateCampaignStage::OUTPUTS[..4],
+            crate::campaign::TABLES
+        );
     }
 }

@@ -1,0 +1,363 @@
+//! The candidate explanations: every effect of `effects.md`, and the
+//! per-station and per-reflector variants of `range-scale`, `station-drift`
+//! and `target-shift`, as signatures on the readings.
+//!
+//! A signature is how the effect's parameters move each reading, in units
+//! of the reading's σ (see [`super::linear`]): an effect that adds Δ to a
+//! reading moves its residual by `W·Δ`; one that moves the reflector or the
+//! station by `s` moves it by `W·J⁻¹·R_sᵀ·s`. Effects whose inputs the
+//! campaign lacks are skipped, with the reason.
+
+use crate::effects::{IncidenceAngles, incidence_angles, table9_delta_d_um};
+use nalgebra::{DMatrix, Matrix3, Vector3};
+
+/// What the candidates need to know about one reading.
+#[derive(Clone, Debug)]
+pub struct ReadingInfo {
+    pub station: usize,
+    pub target: usize,
+    /// Reading az and el (rad), d (mm).
+    pub az: f64,
+    pub el: f64,
+    pub d: f64,
+    /// 1 σ of az, el (rad) and d (mm).
+    pub sigma: Vector3<f64>,
+    /// `J_nom(q)⁻¹`: point increments (mm) → reading increments.
+    pub jinv: Matrix3<f64>,
+    /// Station → campaign rotation of the reading's station.
+    pub rotation: Matrix3<f64>,
+    /// Seconds since the station's first reading.
+    pub since_station_s: Option<f64>,
+    pub temperature_c: Option<f64>,
+    pub incidence: Option<IncidenceAngles>,
+}
+
+/// One candidate explanation.
+#[derive(Clone, Debug)]
+pub struct Candidate {
+    /// The id of `effects.md`.
+    pub effect: &'static str,
+    /// `all`, a station or reflector id, or an axis.
+    pub place: String,
+    /// Signature columns, one per parameter (rows: the model's rows).
+    pub columns: DMatrix<f64>,
+    /// Parameter names and units, for the report.
+    pub params: Vec<(&'static str, &'static str)>,
+    /// The magnitude reported from the fitted parameters, and its unit.
+    pub magnitude: fn(&[f64]) -> f64,
+    pub unit: &'static str,
+    /// Alternatives this candidate was chosen from (orders, stations):
+    /// counted in the multiple-testing correction.
+    pub alternatives: usize,
+    /// Details of the chosen alternative (e.g. `order 3`).
+    pub detail: String,
+}
+
+/// A candidate that could not be tried, and why.
+#[derive(Clone, Debug)]
+pub struct Skipped {
+    pub effect: &'static str,
+    pub reason: String,
+}
+
+/// Signature builder over the model's rows.
+struct Sig {
+    rows: usize,
+}
+
+impl Sig {
+    fn columns(&self, k: usize) -> DMatrix<f64> {
+        DMatrix::zeros(self.rows, k)
+    }
+}
+
+fn norm(b: &[f64]) -> f64 {
+    b.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+fn first(b: &[f64]) -> f64 {
+    b[0]
+}
+
+/// Adds `w_d·value` to reading i's range row of column `col`.
+fn put_d(c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
+    c[(3 * i + 2, col)] += value_mm / r.sigma.z;
+}
+
+/// Adds a point displacement `s_mm` (campaign frame, per unit of the
+/// column's parameter) to reading i.
+fn put_point(c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo, col: usize, s_mm: Vector3<f64>) {
+    let dq = r.jinv * (r.rotation.transpose() * s_mm);
+    for a in 0..3 {
+        c[(3 * i + a, col)] += dq[a] / r.sigma[a];
+    }
+}
+
+/// Every candidate for these readings. `stations`, `targets`: ids by
+/// index; `station_order`: stations in the order they measured.
+pub fn build(
+    readings: &[ReadingInfo],
+    rows: usize,
+    stations: &[String],
+    targets: &[String],
+    station_order: &[usize],
+    enabled: &dyn Fn(&str) -> bool,
+) -> (Vec<Candidate>, Vec<Skipped>) {
+    let sig = Sig { rows };
+    let mut out = Vec::new();
+    let mut skipped = Vec::new();
+    let skip = |effect: &'static str, reason: &str, skipped: &mut Vec<Skipped>| {
+        skipped.push(Skipped {
+            effect,
+            reason: reason.to_string(),
+        })
+    };
+
+    // incidence and incidence-table9: the SMR axes.
+    let has_incidence = readings.iter().all(|r| r.incidence.is_some());
+    if enabled("incidence") {
+        if has_incidence {
+            let mut c = sig.columns(3);
+            for (i, r) in readings.iter().enumerate() {
+                let a = r.incidence.expect("checked");
+                put_d(&mut c, i, r, 0, 1e-3 * (1.0 - a.alpha.cos()));
+                put_d(&mut c, i, r, 1, 1e-3 * a.alpha_h.sin());
+                put_d(&mut c, i, r, 2, 1e-3 * a.alpha_v.sin());
+            }
+            out.push(Candidate {
+                effect: "incidence",
+                place: "all".into(),
+                columns: c,
+                params: vec![("e_axial_um", "µm"), ("e_h_um", "µm"), ("e_v_um", "µm")],
+                magnitude: first,
+                unit: "µm",
+                alternatives: 1,
+                detail: String::new(),
+            });
+        } else {
+            skip(
+                "incidence",
+                "the SMR axes are unknown: no aim columns usable in this frame and no aim rule",
+                &mut skipped,
+            );
+        }
+    }
+    if enabled("incidence-table9") {
+        if has_incidence {
+            let mut c = sig.columns(1);
+            for (i, r) in readings.iter().enumerate() {
+                let a = r.incidence.expect("checked");
+                if let Some(um) = table9_delta_d_um(a.alpha_v, a.alpha_h) {
+                    put_d(&mut c, i, r, 0, 1e-3 * um);
+                }
+            }
+            out.push(Candidate {
+                effect: "incidence-table9",
+                place: "all".into(),
+                columns: c,
+                params: vec![("scale", "×")],
+                magnitude: first,
+                unit: "× Table 9",
+                alternatives: 1,
+                detail: String::new(),
+            });
+        } else {
+            skip(
+                "incidence-table9",
+                "the SMR axes are unknown: no aim columns usable in this frame and no aim rule",
+                &mut skipped,
+            );
+        }
+    }
+
+    // range-scale: each station alone, and every station at once.
+    if enabled("range-scale") {
+        for (s, id) in stations.iter().enumerate() {
+            let mut c = sig.columns(1);
+            for (i, r) in readings.iter().enumerate().filter(|(_, r)| r.station == s) {
+                put_d(&mut c, i, r, 0, 1e-6 * r.d);
+            }
+            out.push(Candidate {
+                effect: "range-scale",
+                place: id.clone(),
+                columns: c,
+                params: vec![("ppm", "ppm")],
+                magnitude: first,
+                unit: "ppm",
+                alternatives: 1,
+                detail: String::new(),
+            });
+        }
+        let mut c = sig.columns(stations.len());
+        for (i, r) in readings.iter().enumerate() {
+            put_d(&mut c, i, r, r.station, 1e-6 * r.d);
+        }
+        out.push(Candidate {
+            effect: "range-scale",
+            place: "all".into(),
+            columns: c,
+            params: vec![("ppm", "ppm"); stations.len()],
+            magnitude: |b| b.iter().fold(0.0, |m: f64, x| m.max(x.abs())),
+            unit: "ppm (largest)",
+            alternatives: 1,
+            detail: String::new(),
+        });
+    }
+
+    // air-refraction: a scale that follows the recorded temperature.
+    if enabled("air-refraction") {
+        if readings.iter().all(|r| r.temperature_c.is_some()) {
+            let mean = readings.iter().filter_map(|r| r.temperature_c).sum::<f64>()
+                / readings.len() as f64;
+            let mut c = sig.columns(2);
+            for (i, r) in readings.iter().enumerate() {
+                let t = r.temperature_c.expect("checked");
+                put_d(&mut c, i, r, 0, 1e-6 * (t - mean) * r.d);
+                put_d(&mut c, i, r, 1, 1e-6 * r.d);
+            }
+            out.push(Candidate {
+                effect: "air-refraction",
+                place: "all".into(),
+                columns: c,
+                params: vec![("ppm_per_k", "ppm/K"), ("ppm", "ppm")],
+                magnitude: first,
+                unit: "ppm/K",
+                alternatives: 1,
+                detail: String::new(),
+            });
+        } else {
+            skip(
+                "air-refraction",
+                "readings.csv has no temperature_c for every reading",
+                &mut skipped,
+            );
+        }
+    }
+
+    // encoder-harmonic: orders 2–4 on each axis; the order is chosen later.
+    if enabled("encoder-harmonic") {
+        for (axis, a) in [("az", 0usize), ("el", 1usize)] {
+            for order in 2..=4u32 {
+                let mut c = sig.columns(2);
+                for (i, r) in readings.iter().enumerate() {
+                    let angle = if a == 0 { r.az } else { r.el };
+                    let k = order as f64 * angle;
+                    c[(3 * i + a, 0)] = 1e-6 * k.sin() / r.sigma[a];
+                    c[(3 * i + a, 1)] = 1e-6 * k.cos() / r.sigma[a];
+                }
+                out.push(Candidate {
+                    effect: "encoder-harmonic",
+                    place: axis.into(),
+                    columns: c,
+                    params: vec![("a_sin_urad", "µrad"), ("b_cos_urad", "µrad")],
+                    magnitude: norm,
+                    unit: "µrad",
+                    alternatives: 3,
+                    detail: format!("order {order}"),
+                });
+            }
+        }
+    }
+
+    // station-drift: each station, and one velocity for all.
+    if enabled("station-drift") {
+        if readings.iter().all(|r| r.since_station_s.is_some()) {
+            let drift = |c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo| {
+                let minutes = r.since_station_s.expect("checked") / 60.0;
+                for a in 0..3 {
+                    let mut s = Vector3::zeros();
+                    // The origin moves by v·τ: the reflector seems to move by −v·τ.
+                    s[a] = -1e-3 * minutes;
+                    put_point(c, i, r, a, s);
+                }
+            };
+            for (s, id) in stations.iter().enumerate() {
+                let mut c = sig.columns(3);
+                for (i, r) in readings.iter().enumerate().filter(|(_, r)| r.station == s) {
+                    drift(&mut c, i, r);
+                }
+                out.push(Candidate {
+                    effect: "station-drift",
+                    place: id.clone(),
+                    columns: c,
+                    params: vec![
+                        ("vx_um_per_min", "µm/min"),
+                        ("vy_um_per_min", "µm/min"),
+                        ("vz_um_per_min", "µm/min"),
+                    ],
+                    magnitude: norm,
+                    unit: "µm/min",
+                    alternatives: 1,
+                    detail: String::new(),
+                });
+            }
+            let mut c = sig.columns(3);
+            for (i, r) in readings.iter().enumerate() {
+                drift(&mut c, i, r);
+            }
+            out.push(Candidate {
+                effect: "station-drift",
+                place: "all".into(),
+                columns: c,
+                params: vec![
+                    ("vx_um_per_min", "µm/min"),
+                    ("vy_um_per_min", "µm/min"),
+                    ("vz_um_per_min", "µm/min"),
+                ],
+                magnitude: norm,
+                unit: "µm/min",
+                alternatives: 1,
+                detail: String::new(),
+            });
+        } else {
+            skip(
+                "station-drift",
+                "readings.csv has no time_s for every reading",
+                &mut skipped,
+            );
+        }
+    }
+
+    // target-shift: each reflector, from each station but the first.
+    if enabled("target-shift") {
+        let n_from = station_order.len().saturating_sub(1);
+        for (t, id) in targets.iter().enumerate() {
+            if !readings.iter().any(|r| r.target == t) {
+                continue;
+            }
+            for k in 1..station_order.len() {
+                let after: Vec<usize> = station_order[k..].to_vec();
+                let mut c = sig.columns(3);
+                for (i, r) in readings.iter().enumerate() {
+                    if r.target == t && after.contains(&r.station) {
+                        for a in 0..3 {
+                            let mut s = Vector3::zeros();
+                            s[a] = 1e-3;
+                            put_point(&mut c, i, r, a, s);
+                        }
+                    }
+                }
+                out.push(Candidate {
+                    effect: "target-shift",
+                    place: id.clone(),
+                    columns: c,
+                    params: vec![("sx_um", "µm"), ("sy_um", "µm"), ("sz_um", "µm")],
+                    magnitude: norm,
+                    unit: "µm",
+                    alternatives: n_from,
+                    detail: format!("from station {}", stations[station_order[k]]),
+                });
+            }
+        }
+    }
+    (out, skipped)
+}
+
+/// The incidence geometry of a reading from estimated positions: `n` the
+/// SMR axis, the tracker at `station_mm`, the reflector at `target_mm`.
+pub fn incidence(
+    n: &Vector3<f64>,
+    target_mm: &Vector3<f64>,
+    station_mm: &Vector3<f64>,
+) -> IncidenceAngles {
+    incidence_angles(n, &(station_mm - target_mm).normalize())
+}
