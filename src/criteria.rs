@@ -86,7 +86,11 @@ pub fn distances(net: &Network, params: &ErrorParams) -> Criterion {
     let mut terms = Vec::new();
     for m in 0..pts.len() {
         for n in m + 1..pts.len() {
-            let common: Vec<usize> = pts[m].keys().filter(|k| pts[n].contains_key(k)).copied().collect();
+            let common: Vec<usize> = pts[m]
+                .keys()
+                .filter(|k| pts[n].contains_key(k))
+                .copied()
+                .collect();
             for (a, &i) in common.iter().enumerate() {
                 for &j in &common[a + 1..] {
                     let dm = (pts[m][&i] - pts[m][&j]).norm();
@@ -164,7 +168,9 @@ pub fn reference_coordinates(net: &Network, params: &ErrorParams) -> Criterion {
         let ids: Vec<usize> = p.keys().filter(|i| refs.contains_key(i)).copied().collect();
         let from: Vec<Vector3<f64>> = ids.iter().map(|i| p[i]).collect();
         let to: Vec<Vector3<f64>> = ids.iter().map(|i| refs[i]).collect();
-        let Some(pose) = fit(&from, &to) else { continue };
+        let Some(pose) = fit(&from, &to) else {
+            continue;
+        };
         for (i, x) in ids.iter().zip(&from) {
             terms.push(Term {
                 stations: (k, k),

@@ -59,7 +59,11 @@ fn default_max_iters() -> u64 {
 
 impl CalibrateStage {
     /// Calibrates a campaign; also what `diagnose` builds on.
-    pub fn calibrate(&self, c: &Campaign, inputs: Option<&StageInputs>) -> Result<(Network, Calibration)> {
+    pub fn calibrate(
+        &self,
+        c: &Campaign,
+        inputs: Option<&StageInputs>,
+    ) -> Result<(Network, Calibration)> {
         let net = Network::from_campaign(c)?;
         let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
         let start = match inputs {
@@ -86,7 +90,12 @@ impl StageKind for CalibrateStage {
     const KIND: &'static str = "calibrate";
     const SUMMARY: &'static str = "error parameters from a campaign with unknown poses: Eq. 13-15 (L1 or L2) or a bundle adjustment";
     const INPUTS: &'static [Slot] = &[
-        Slot::group("campaign", true, "a campaign (`import_campaign` or `simulate_campaign`)", campaign::TABLES),
+        Slot::group(
+            "campaign",
+            true,
+            "a campaign (`import_campaign` or `simulate_campaign`)",
+            campaign::TABLES,
+        ),
         Slot::table(
             "start",
             false,
@@ -165,7 +174,11 @@ fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
 }
 
 fn stations_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
-    let e: Vec<(f64, f64, f64)> = cal.poses.iter().map(|p| p.rotation.euler_angles()).collect();
+    let e: Vec<(f64, f64, f64)> = cal
+        .poses
+        .iter()
+        .map(|p| p.rotation.euler_angles())
+        .collect();
     TableBuilder::new()
         .str("station", &net.stations)
         .f64("x_mm", cal.poses.iter().map(|p| p.translation.x).collect())
@@ -174,20 +187,36 @@ fn stations_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
         .f64("roll_urad", e.iter().map(|a| a.0 * 1e6).collect())
         .f64("pitch_urad", e.iter().map(|a| a.1 * 1e6).collect())
         .f64("yaw_deg", e.iter().map(|a| a.2.to_degrees()).collect())
-        .opt_f64("std_position_mm", cal.pose_std.iter().map(|s| s.map(|s| s.0)).collect())
-        .opt_f64("std_rotation_urad", cal.pose_std.iter().map(|s| s.map(|s| s.1 * 1e6)).collect())
+        .opt_f64(
+            "std_position_mm",
+            cal.pose_std.iter().map(|s| s.map(|s| s.0)).collect(),
+        )
+        .opt_f64(
+            "std_rotation_urad",
+            cal.pose_std.iter().map(|s| s.map(|s| s.1 * 1e6)).collect(),
+        )
         .build()
 }
 
 fn targets_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
-    let ids: Vec<&str> = cal.points.keys().map(|&t| net.targets[t].as_str()).collect();
+    let ids: Vec<&str> = cal
+        .points
+        .keys()
+        .map(|&t| net.targets[t].as_str())
+        .collect();
     let pts: Vec<_> = cal.points.values().collect();
     TableBuilder::new()
         .str("target", &ids)
         .f64("x_mm", pts.iter().map(|p| p.x).collect())
         .f64("y_mm", pts.iter().map(|p| p.y).collect())
         .f64("z_mm", pts.iter().map(|p| p.z).collect())
-        .opt_f64("std_mm", cal.points.keys().map(|t| cal.point_std.get(t).copied()).collect())
+        .opt_f64(
+            "std_mm",
+            cal.points
+                .keys()
+                .map(|t| cal.point_std.get(t).copied())
+                .collect(),
+        )
         .build()
 }
 
@@ -199,7 +228,10 @@ fn residuals_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
     TableBuilder::new()
         .str("station", &obs(&|o| net.stations[o.station].clone()))
         .str("target", &obs(&|o| net.targets[o.target].clone()))
-        .i64("face", r.iter().map(|x| net.obs[x.obs].face.number()).collect())
+        .i64(
+            "face",
+            r.iter().map(|x| net.obs[x.obs].face.number()).collect(),
+        )
         .f64("az_urad", r.iter().map(|x| x.az_urad).collect())
         .f64("el_urad", r.iter().map(|x| x.el_urad).collect())
         .f64("d_um", r.iter().map(|x| x.d_um).collect())

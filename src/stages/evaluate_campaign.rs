@@ -41,7 +41,12 @@ use serde::{Deserialize, Serialize};
 pub struct EvaluateCampaignStage {}
 
 /// The four criteria names, in output order.
-pub const CRITERIA: [&str; 4] = ["coordinates", "distances", "reference_coordinates", "reference_distances"];
+pub const CRITERIA: [&str; 4] = [
+    "coordinates",
+    "distances",
+    "reference_coordinates",
+    "reference_distances",
+];
 
 /// Each criterion before and after.
 pub struct Evaluation {
@@ -54,13 +59,24 @@ pub struct Evaluation {
 pub fn evaluate(net: &Network, params: &ErrorParams) -> Evaluation {
     let zero = ErrorParams::zero(&ErrorModel::constant());
     let mut criteria = Vec::new();
-    if let (Some(b), Some(a)) = (criteria::coordinates(net, &zero), criteria::coordinates(net, params)) {
+    if let (Some(b), Some(a)) = (
+        criteria::coordinates(net, &zero),
+        criteria::coordinates(net, params),
+    ) {
         criteria.push((CRITERIA[0], b, a));
     }
-    criteria.push((CRITERIA[1], criteria::distances(net, &zero), criteria::distances(net, params)));
+    criteria.push((
+        CRITERIA[1],
+        criteria::distances(net, &zero),
+        criteria::distances(net, params),
+    ));
     let rb = criteria::reference_coordinates(net, &zero);
     if rb.overall.count > 0 {
-        criteria.push((CRITERIA[2], rb, criteria::reference_coordinates(net, params)));
+        criteria.push((
+            CRITERIA[2],
+            rb,
+            criteria::reference_coordinates(net, params),
+        ));
         criteria.push((
             CRITERIA[3],
             criteria::reference_distances(net, &zero),
@@ -78,8 +94,17 @@ impl StageKind for EvaluateCampaignStage {
     const KIND: &'static str = "evaluate_campaign";
     const SUMMARY: &'static str = "Eq. 16 and 17 per station before and after, and against reference coordinates (Tables 4-8)";
     const INPUTS: &'static [Slot] = &[
-        Slot::group("campaign", true, "the campaign to evaluate", campaign::TABLES),
-        Slot::table("params", false, "error parameters to apply (none: the uncorrected readings only)"),
+        Slot::group(
+            "campaign",
+            true,
+            "the campaign to evaluate",
+            campaign::TABLES,
+        ),
+        Slot::table(
+            "params",
+            false,
+            "error parameters to apply (none: the uncorrected readings only)",
+        ),
     ];
     const OUTPUTS: &'static [&'static str] = &["criteria", "table5", "table6", "table7", "terms"];
 
@@ -114,11 +139,17 @@ fn criteria_table(e: &Evaluation) -> Result<DataFrame> {
     }
     TableBuilder::new()
         .str("criterion", &rows.iter().map(|r| r.0).collect::<Vec<_>>())
-        .str("station", &rows.iter().map(|r| r.1.clone()).collect::<Vec<_>>())
+        .str(
+            "station",
+            &rows.iter().map(|r| r.1.clone()).collect::<Vec<_>>(),
+        )
         .str("statistic", &rows.iter().map(|r| r.2).collect::<Vec<_>>())
         .f64("before_um", rows.iter().map(|r| r.3).collect())
         .f64("after_um", rows.iter().map(|r| r.4).collect())
-        .f64("improvement_pct", rows.iter().map(|r| improvement_pct(r.3, r.4)).collect())
+        .f64(
+            "improvement_pct",
+            rows.iter().map(|r| improvement_pct(r.3, r.4)).collect(),
+        )
         .build()
 }
 
@@ -135,7 +166,13 @@ fn wide(e: &Evaluation, name: &str) -> Result<DataFrame> {
     b.f64("all_um", vec![after.overall.mean_um, after.overall.max_um])
         .opt_f64(
             "improvement_pct",
-            vec![Some(improvement_pct(before.overall.mean_um, after.overall.mean_um)), None],
+            vec![
+                Some(improvement_pct(
+                    before.overall.mean_um,
+                    after.overall.mean_um,
+                )),
+                None,
+            ],
         )
         .build()
 }
@@ -156,8 +193,14 @@ fn summary(e: &Evaluation) -> Result<DataFrame> {
         }
     };
     TableBuilder::new()
-        .str("error", &["initial", "initial", "residual", "residual", "improvement"])
-        .str("statistic", &["maximum", "average", "maximum", "average", "pct"])
+        .str(
+            "error",
+            &["initial", "initial", "residual", "residual", "improvement"],
+        )
+        .str(
+            "statistic",
+            &["maximum", "average", "maximum", "average", "pct"],
+        )
         .opt_f64("coordinates_um", col("coordinates"))
         .opt_f64("distances_um", col("distances"))
         .opt_f64("reference_coordinates_um", col("reference_coordinates"))
@@ -174,7 +217,10 @@ fn terms_table(e: &Evaluation) -> Result<DataFrame> {
                 &e.stations[tb.stations.0],
                 &e.stations[tb.stations.1],
                 &e.targets[tb.targets.0],
-                tb.targets.1.map(|t| e.targets[t].clone()).unwrap_or_default(),
+                tb.targets
+                    .1
+                    .map(|t| e.targets[t].clone())
+                    .unwrap_or_default(),
                 tb.error_um,
                 ta.error_um,
             ));
@@ -185,7 +231,10 @@ fn terms_table(e: &Evaluation) -> Result<DataFrame> {
         .str("station_a", &rows.iter().map(|r| r.1).collect::<Vec<_>>())
         .str("station_b", &rows.iter().map(|r| r.2).collect::<Vec<_>>())
         .str("target_a", &rows.iter().map(|r| r.3).collect::<Vec<_>>())
-        .str("target_b", &rows.iter().map(|r| r.4.clone()).collect::<Vec<_>>())
+        .str(
+            "target_b",
+            &rows.iter().map(|r| r.4.clone()).collect::<Vec<_>>(),
+        )
         .f64("before_um", rows.iter().map(|r| r.5).collect())
         .f64("after_um", rows.iter().map(|r| r.6).collect())
         .build()

@@ -40,7 +40,11 @@ pub fn start(model: &ErrorModel, inputs: &StageInputs) -> Result<ErrorParams> {
 
 /// Which coefficients are free: all but those of the fixed parameters.
 pub fn free(start: &ErrorParams, fixed: &[ParamId]) -> Vec<bool> {
-    start.coefs().iter().map(|c| !fixed.contains(&c.param)).collect()
+    start
+        .coefs()
+        .iter()
+        .map(|c| !fixed.contains(&c.param))
+        .collect()
 }
 
 /// Checks the settings every fitting stage has.
@@ -109,7 +113,10 @@ pub fn tables(d: &Determined) -> Result<[DataFrame; 3]> {
     let combinations = TableBuilder::new()
         .str(
             "direction",
-            &combos.iter().map(|c| c.direction_text.clone()).collect::<Vec<_>>(),
+            &combos
+                .iter()
+                .map(|c| c.direction_text.clone())
+                .collect::<Vec<_>>(),
         )
         .str(
             "determined",

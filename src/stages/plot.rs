@@ -14,8 +14,8 @@
 //! criteria; Figures 10, 15–18) its `terms` table. Output: the SVG
 //! file, and a table `figure` (`file`, `plot`, `title`, `rows`) that records it.
 
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use super::evaluate_campaign::CRITERIA;
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::plots::{self, PointError};
 use crate::table::TableBuilder;
 use anyhow::Result;
@@ -90,10 +90,12 @@ impl StageKind for PlotStage {
                     CRITERIA.join(", ")
                 ),
             )),
-            (PlotKind::Criterion, Some(c)) if !CRITERIA.contains(&c.as_str()) => out.push(Invalid::new(
-                "criterion",
-                format!("unknown criterion `{c}`; one of {}", CRITERIA.join(", ")),
-            )),
+            (PlotKind::Criterion, Some(c)) if !CRITERIA.contains(&c.as_str()) => {
+                out.push(Invalid::new(
+                    "criterion",
+                    format!("unknown criterion `{c}`; one of {}", CRITERIA.join(", ")),
+                ))
+            }
             (PlotKind::MeshErrors, Some(_)) => out.push(Invalid::new(
                 "criterion",
                 "`criterion` applies to plot = \"criterion\" only",

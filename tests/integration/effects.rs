@@ -3,8 +3,8 @@
 
 use ltcal::campaign::{Aim, CampaignReading};
 use ltcal::effects::{
-    AirRefraction, Axis, Effects, EncoderHarmonic, Incidence, IncidenceTable9, RangeScale, StationDrift,
-    TargetShift,
+    AirRefraction, Axis, Effects, EncoderHarmonic, Incidence, IncidenceTable9, RangeScale,
+    StationDrift, TargetShift,
 };
 use ltcal::kinematics::{Face, nominal_reading};
 use ltcal::layout::Layout;
@@ -59,7 +59,13 @@ fn reading<'a>(s: &'a SimulatedCampaign, station: &str, target: &str) -> &'a Cam
 
 /// The exact reading of `target` from `station` without any effect,
 /// with the station's origin moved by `shift` and the target by `moved`.
-fn exact(s: &SimulatedCampaign, station: &str, target: &str, origin_shift: Vector3<f64>, moved: Vector3<f64>) -> (f64, f64, f64) {
+fn exact(
+    s: &SimulatedCampaign,
+    station: &str,
+    target: &str,
+    origin_shift: Vector3<f64>,
+    moved: Vector3<f64>,
+) -> (f64, f64, f64) {
     let pose = s.poses.iter().find(|p| p.id == station).unwrap();
     let x = s.targets.iter().find(|t| t.0 == target).unwrap().1 + moved;
     let local = pose.rotation.inverse() * (x - pose.position - origin_shift);
@@ -83,7 +89,11 @@ fn angles(s: &SimulatedCampaign, station: &str, target: &str) -> (f64, f64, f64)
 }
 
 fn assert_close(what: &str, got: f64, want: f64, tol: f64) {
-    assert!((got - want).abs() <= tol, "{what}: got {got}, want {want} (Δ {:e})", got - want);
+    assert!(
+        (got - want).abs() <= tol,
+        "{what}: got {got}, want {want} (Δ {:e})",
+        got - want
+    );
 }
 
 #[test]
@@ -112,7 +122,10 @@ fn incidence() {
     let dd_um = 200.0 * (1.0 - a.cos()) - 20.0 * ah.sin() + 12.0 * av.sin();
     let (_, _, d) = exact(&s, "S2", "T02", Vector3::zeros(), Vector3::zeros());
     assert_close("d", reading(&s, "S2", "T02").d_mm, d + dd_um * 1e-3, 1e-9);
-    assert!(dd_um.abs() > 1.0, "the geometry should give a visible effect: {dd_um} µm");
+    assert!(
+        dd_um.abs() > 1.0,
+        "the geometry should give a visible effect: {dd_um} µm"
+    );
 }
 
 #[test]
@@ -129,7 +142,8 @@ fn incidence_table9() {
     let (fi, fj) = ((v + 30.0) / 7.5, (h + 30.0) / 7.5);
     let (i, j) = (fi.floor() as usize, fj.floor() as usize);
     let (u, w) = (fi - i as f64, fj - j as f64);
-    let dd_um = (1.0 - u) * ((1.0 - w) * t[i][j] + w * t[i][j + 1]) + u * ((1.0 - w) * t[i + 1][j] + w * t[i + 1][j + 1]);
+    let dd_um = (1.0 - u) * ((1.0 - w) * t[i][j] + w * t[i][j + 1])
+        + u * ((1.0 - w) * t[i + 1][j] + w * t[i + 1][j + 1]);
     let (_, _, d) = exact(&s, "S1", "T03", Vector3::zeros(), Vector3::zeros());
     assert_close("d", reading(&s, "S1", "T03").d_mm, d + dd_um * 1e-3, 1e-9);
 }
@@ -167,7 +181,9 @@ fn air_refraction() {
     let s = simulate(&fx, Noise::default());
     let r = reading(&s, "S2", "T03");
     let t = r.time_s.unwrap();
-    let temp = 20.0 + 0.3 + 1.5 * (2.0 * std::f64::consts::PI * t / 600.0 + 40f64.to_radians()).sin() - 0.8 * t / 3600.0;
+    let temp =
+        20.0 + 0.3 + 1.5 * (2.0 * std::f64::consts::PI * t / 600.0 + 40f64.to_radians()).sin()
+            - 0.8 * t / 3600.0;
     assert_close("temperature", r.temperature_c.unwrap(), temp, 1e-12);
     let (_, _, d) = exact(&s, "S2", "T03", Vector3::zeros(), Vector3::zeros());
     assert_close("d", r.d_mm, d - 0.93e-6 * (temp - 20.0) * d, 1e-9);
@@ -231,9 +247,19 @@ fn target_shift() {
     let s = simulate(&fx, Noise::default());
     let moved = Vector3::new(0.080, -0.040, 0.025);
     let (_, _, d2) = exact(&s, "S2", "T01", Vector3::zeros(), moved);
-    assert_close("S2 (after the knock)", reading(&s, "S2", "T01").d_mm, d2, 1e-9);
+    assert_close(
+        "S2 (after the knock)",
+        reading(&s, "S2", "T01").d_mm,
+        d2,
+        1e-9,
+    );
     let (_, _, d1) = exact(&s, "S1", "T01", Vector3::zeros(), Vector3::zeros());
-    assert_close("S1 (before the knock)", reading(&s, "S1", "T01").d_mm, d1, 1e-9);
+    assert_close(
+        "S1 (before the knock)",
+        reading(&s, "S1", "T01").d_mm,
+        d1,
+        1e-9,
+    );
 }
 
 /// `noise`: the reading minus the exact one, over σ, is standard normal.
@@ -266,9 +292,19 @@ fn noise() {
         })
         .unwrap();
         for r in &s.campaign.readings {
-            let (az, el, d) = exact(&s, &r.station, &r.target, Vector3::zeros(), Vector3::zeros());
+            let (az, el, d) = exact(
+                &s,
+                &r.station,
+                &r.target,
+                Vector3::zeros(),
+                Vector3::zeros(),
+            );
             let sd = 3.0f64.hypot(0.5 * d / 1000.0) * 1e-3;
-            z.push([(r.az_deg.to_radians() - az) / 2e-6, (r.el_deg.to_radians() - el) / 2e-6, (r.d_mm - d) / sd]);
+            z.push([
+                (r.az_deg.to_radians() - az) / 2e-6,
+                (r.el_deg.to_radians() - el) / 2e-6,
+                (r.d_mm - d) / sd,
+            ]);
         }
     }
     for k in 0..3 {

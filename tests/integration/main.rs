@@ -1,9 +1,9 @@
 //! ltcal's integration tests: one binary, one module per area.
 
 mod cache_safety;
+mod calibration;
 mod campaign_io;
 mod cli;
-mod calibration;
 mod effects;
 mod errors;
 mod report;
