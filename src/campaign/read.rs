@@ -113,10 +113,9 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         }]));
     }
     let mut problems = Vec::new();
-    let toml_src = load(&dir.join("campaign.toml"), true, &mut problems);
-    let meta = match &toml_src {
-        Some(src) => match parse_meta(src) {
-            Ok(m) => Some(m),
+    let meta = match load(&dir.join("campaign.toml"), true, &mut problems) {
+        Some(src) => match parse_meta(&src) {
+            Ok((meta, spans)) => Some((meta, spans, src)),
             Err(MetaError::Version(e)) => {
                 // Another version may lay out every file differently: what
                 // else the folder holds means nothing to this reader.
@@ -129,7 +128,7 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         },
         None => None,
     };
-    let aim = meta.as_ref().map(|(m, _)| m.aim);
+    let aim = meta.as_ref().map(|(m, ..)| m.aim);
     let readings = load(&dir.join("readings.csv"), true, &mut problems)
         .and_then(|s| Csv::parse(s, &mut problems))
         .and_then(|csv| parse_readings(csv, &mut problems));
@@ -141,7 +140,7 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         None => Some((Vec::new(), None)),
     };
     let (
-        Some((meta, spans)),
+        Some((meta, spans, toml_src)),
         Some((readings, readings_csv)),
         Some((targets, targets_csv)),
         Some((gauge, gauge_csv)),
@@ -162,7 +161,6 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
     if issues.is_empty() {
         return Ok(campaign);
     }
-    let toml_src = toml_src.expect("campaign.toml was read, since its meta was parsed");
     let places = Places {
         toml: &toml_src,
         toml_spans: &spans,

@@ -385,6 +385,114 @@ fn every_column_and_value_survives_the_round_trip() {
     );
 }
 
+/// Rewrites a CSV text with its columns in another order, an unknown
+/// column, every cell quoted and CRLF line ends, behind a byte-order mark.
+fn shuffled_csv(text: &str) -> String {
+    let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
+    let mut out = String::from("\u{feff}");
+    for (i, row) in rows.iter().enumerate() {
+        let mut cells: Vec<String> = row.iter().rev().map(|c| format!("\"{c}\"")).collect();
+        cells.insert(
+            1,
+            if i == 0 {
+                "operator".into()
+            } else {
+                "\"A. N. Other, CMM lab\"".into()
+            },
+        );
+        out.push_str(&cells.join(","));
+        out.push_str("\r\n");
+    }
+    out.push_str("\r\n");
+    out
+}
+
+#[test]
+fn column_order_unknown_columns_quotes_crlf_and_a_bom_read_the_same() {
+    let base = bad_dir().join("base");
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("shuffled");
+    std::fs::create_dir(&dir).unwrap();
+    std::fs::copy(base.join("campaign.toml"), dir.join("campaign.toml")).unwrap();
+    for f in ["readings.csv", "targets.csv", "gauge.csv"] {
+        let text = std::fs::read_to_string(base.join(f)).unwrap();
+        std::fs::write(dir.join(f), shuffled_csv(&text)).unwrap();
+    }
+    assert_eq!(read_ok(&dir), read_ok(&base));
+}
+
+#[test]
+fn a_campaign_without_gauge_survives_the_tables_through_parquet() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("no-gauge");
+    let mut c = read_ok(&bad_dir().join("base"));
+    c.gauge.clear();
+    campaign::write(&c, &dir).unwrap();
+    assert!(!dir.join("gauge.csv").exists());
+    let back = read_ok(&dir);
+    assert_eq!(back, c);
+    let mut inputs = StageInputs::default();
+    for (name, df) in back.to_tables().unwrap() {
+        let bytes = ltcal::table::to_parquet_bytes(&df).unwrap();
+        let df = ltcal::table::from_parquet_bytes(&bytes).unwrap();
+        inputs.insert(&format!("c.{name}"), name.clone(), Arc::new(df));
+    }
+    assert_eq!(Campaign::from_inputs(&inputs, "c").unwrap(), c);
+}
+
+#[test]
+fn the_tables_have_the_files_columns() {
+    let c = read_ok(&bad_dir().join("base"));
+    let tables = c.to_tables().unwrap();
+    let names: Vec<&str> = tables.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, campaign::TABLES);
+    let columns = |i: usize| -> Vec<String> {
+        tables[i]
+            .1
+            .get_column_names()
+            .iter()
+            .map(|s| s.to_string())
+            .collect()
+    };
+    assert_eq!(
+        columns(0),
+        [
+            "station",
+            "target",
+            "az_deg",
+            "el_deg",
+            "d_mm",
+            "face",
+            "time_s",
+            "temperature_c",
+            "pressure_hpa",
+            "humidity_pct"
+        ]
+    );
+    assert_eq!(
+        columns(1),
+        [
+            "target", "x_mm", "y_mm", "z_mm", "u_mm", "aim_x_mm", "aim_y_mm", "aim_z_mm"
+        ]
+    );
+    assert_eq!(columns(2), ["target_a", "target_b", "distance_mm", "u_mm"]);
+    assert_eq!(
+        columns(3),
+        [
+            "format",
+            "name",
+            "description",
+            "tracker_model",
+            "sigma_angle_urad",
+            "sigma_range_um",
+            "sigma_range_ppm",
+            "smr_aim",
+            "smr_radius_mm"
+        ]
+    );
+    assert_eq!(tables[3].1.height(), 1);
+}
+
 #[test]
 fn optional_columns_are_written_only_when_known() {
     let c = read_ok(&examples_dir().join("example-00-none"));
