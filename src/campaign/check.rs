@@ -26,8 +26,8 @@ pub const LINE_TOLERANCE_MM: f64 = 1.0;
 /// [−90°, 90°], the back face `180° − el`, i.e. [90°, 270°].
 const EL_RANGE_DEG: (f64, f64) = (-90.0, 270.0);
 
-/// The data tables of a campaign, as files (`readings.csv`) and as pipeline
-/// tables (`readings`).
+/// The data tables of a campaign: a CSV file each (`readings.csv`), a
+/// pipeline table each (`readings`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Table {
     Readings,
@@ -41,13 +41,6 @@ impl Table {
             Table::Readings => "readings",
             Table::Targets => "targets",
             Table::Gauge => "gauge",
-        }
-    }
-    pub fn file_name(self) -> &'static str {
-        match self {
-            Table::Readings => "readings.csv",
-            Table::Targets => "targets.csv",
-            Table::Gauge => "gauge.csv",
         }
     }
 }
