@@ -440,6 +440,375 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
     Ok(svg)
 }
 
+/// Residuals against one factor (the "where" of a diagnosis): three
+/// stacked panels, az and el in µrad and d in µm, against the factor's
+/// value — or its group, with the group names under the axis.
+pub fn residuals_by_factor(
+    title: &str,
+    x_label: &str,
+    categories: Option<&[String]>,
+    x: &[f64],
+    panels: [(&str, &[f64]); 3],
+) -> Result<String> {
+    let finite = |v: &[f64]| {
+        v.iter()
+            .copied()
+            .filter(|x| x.is_finite())
+            .collect::<Vec<f64>>()
+    };
+    let xs = finite(x);
+    let (x0, x1) = match categories {
+        Some(c) => (-0.5, c.len() as f64 - 0.5),
+        None => bounds(xs.into_iter()),
+    };
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (900, 820)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
+        for (area, (label, values)) in root.split_evenly((3, 1)).iter().zip(panels) {
+            let m = finite(values)
+                .iter()
+                .fold(0.0f64, |a, v| a.max(v.abs()))
+                .max(1e-9)
+                * 1.1;
+            let mut chart = ChartBuilder::on(area)
+                .margin(10)
+                .x_label_area_size(40)
+                .y_label_area_size(70)
+                .build_cartesian_2d(x0..x1, -m..m)
+                .map_err(err)?;
+            let cats = categories.map(|c| c.to_vec());
+            chart
+                .configure_mesh()
+                .x_desc(x_label)
+                .y_desc(label)
+                .x_labels(categories.map_or(8, |c| c.len().min(24)))
+                .x_label_formatter(&move |v| match &cats {
+                    Some(c) => c.get(v.round() as usize).cloned().unwrap_or_default(),
+                    None => format!("{v:.0}"),
+                })
+                .label_style(("sans-serif", 12))
+                .draw()
+                .map_err(err)?;
+            chart
+                .draw_series(
+                    x.iter()
+                        .zip(values)
+                        .filter(|(a, b)| a.is_finite() && b.is_finite())
+                        .map(|(&a, &b)| Circle::new((a, b), 2, RGBColor(30, 90, 200).filled())),
+                )
+                .map_err(err)?;
+            chart
+                .draw_series(LineSeries::new([(x0, 0.0), (x1, 0.0)], BLACK.mix(0.4)))
+                .map_err(err)?;
+        }
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
+/// A diverging colour map for signed values: blue (0) through white (0.5)
+/// to red (1).
+pub fn diverging(t: f64) -> RGBColor {
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.5
+    };
+    let (lo, mid, hi) = (
+        (33.0, 102.0, 172.0),
+        (247.0, 247.0, 247.0),
+        (178.0, 24.0, 43.0),
+    );
+    let (a, b, f) = if t < 0.5 {
+        (lo, mid, t * 2.0)
+    } else {
+        (mid, hi, t * 2.0 - 1.0)
+    };
+    let lerp = |x: f64, y: f64| (x + f * (y - x)).round() as u8;
+    RGBColor(lerp(a.0, b.0), lerp(a.1, b.1), lerp(a.2, b.2))
+}
+
+/// A vertical colour bar from `lo` to `hi` in any colour map.
+pub fn colour_bar_with(
+    area: &DrawingArea<SVGBackend, Shift>,
+    lo: f64,
+    hi: f64,
+    label: &str,
+    map: fn(f64) -> RGBColor,
+) -> Result<()> {
+    let mut chart = ChartBuilder::on(area)
+        .margin_top(30)
+        .margin_bottom(40)
+        .margin_right(4)
+        .y_label_area_size(0)
+        .right_y_label_area_size(50)
+        .build_cartesian_2d(0.0..1.0, lo..hi)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .disable_y_mesh()
+        .disable_x_axis()
+        .y_desc(label)
+        .y_labels(6)
+        .label_style(("sans-serif", 11))
+        .draw()
+        .map_err(err)?;
+    let n = 64;
+    let step = (hi - lo) / n as f64;
+    chart
+        .draw_series((0..n).map(|i| {
+            let a = lo + i as f64 * step;
+            Rectangle::new(
+                [(0.0, a), (1.0, a + step)],
+                map((i as f64 + 0.5) / n as f64).filled(),
+            )
+        }))
+        .map_err(err)?;
+    Ok(())
+}
+
+/// One heat map: `z[i][j]` at `(x[j], y[i])`, each cell a rectangle with its
+/// value written in it, coloured by `map` over `lo … hi`.
+struct HeatMap<'a> {
+    caption: &'a str,
+    x: &'a [f64],
+    y: &'a [f64],
+    z: &'a [Vec<f64>],
+    lo: f64,
+    hi: f64,
+    map: fn(f64) -> RGBColor,
+    bar_label: &'a str,
+}
+
+fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
+    let (plot, bar) = area.split_horizontally(area.dim_in_pixel().0 as i32 - 85);
+    // Cells centred on the grid values, as wide as the spacing.
+    let half = |v: &[f64], k: usize| {
+        let left = if k > 0 { v[k] - v[k - 1] } else { v[1] - v[0] };
+        let right = if k + 1 < v.len() {
+            v[k + 1] - v[k]
+        } else {
+            left
+        };
+        (v[k] - left / 2.0, v[k] + right / 2.0)
+    };
+    let (x0, x1) = (half(h.x, 0).0, half(h.x, h.x.len() - 1).1);
+    let (y0, y1) = (half(h.y, 0).0, half(h.y, h.y.len() - 1).1);
+    let mut chart = ChartBuilder::on(&plot)
+        .margin(8)
+        .caption(h.caption, ("sans-serif", 14))
+        .x_label_area_size(34)
+        .y_label_area_size(44)
+        .build_cartesian_2d(x0..x1, y0..y1)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .x_desc("α_h (deg)")
+        .y_desc("α_v (deg)")
+        .x_labels(h.x.len())
+        .y_labels(h.y.len())
+        .x_label_formatter(&|v| format!("{v}"))
+        .y_label_formatter(&|v| format!("{v}"))
+        .label_style(("sans-serif", 10))
+        .draw()
+        .map_err(err)?;
+    let span = (h.hi - h.lo).max(1e-12);
+    for (i, row) in h.z.iter().enumerate() {
+        for (j, &v) in row.iter().enumerate() {
+            let ((a, b), (c, d)) = (half(h.x, j), half(h.y, i));
+            let t = (v - h.lo) / span;
+            chart
+                .draw_series(std::iter::once(Rectangle::new(
+                    [(a, c), (b, d)],
+                    (h.map)(t).filled(),
+                )))
+                .map_err(err)?;
+            // Dark text on light cells, light on dark.
+            let RGBColor(r, g, bl) = (h.map)(t);
+            let light = 0.299 * r as f64 + 0.587 * g as f64 + 0.114 * bl as f64 > 140.0;
+            let colour = if light { BLACK } else { WHITE };
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    crate::table::format_float(v, 1),
+                    (h.x[j], h.y[i]),
+                    ("sans-serif", 9).into_font().color(&colour).pos(
+                        plotters::style::text_anchor::Pos::new(
+                            plotters::style::text_anchor::HPos::Center,
+                            plotters::style::text_anchor::VPos::Center,
+                        ),
+                    ),
+                )))
+                .map_err(err)?;
+        }
+    }
+    colour_bar_with(&bar, h.lo, h.hi, h.bar_label, h.map)
+}
+
+/// One fitted model of an incidence grid, for [`incidence_maps`].
+pub struct FitMaps<'a> {
+    pub label: String,
+    pub fitted: &'a [Vec<f64>],
+}
+
+/// Table 9 and its fits: one row per model — the data, the fit and the
+/// residual (data − fit) as heat maps over `(α_h, α_v)`. Data and fits share
+/// one colour scale; residuals share a symmetric one.
+pub fn incidence_maps(
+    title: &str,
+    alpha_h_deg: &[f64],
+    alpha_v_deg: &[f64],
+    data_um: &[Vec<f64>],
+    fits: &[FitMaps],
+) -> Result<String> {
+    let all = data_um
+        .iter()
+        .chain(fits.iter().flat_map(|f| f.fitted.iter()))
+        .flatten()
+        .copied();
+    let (lo, hi) = all.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+        (a.min(v), b.max(v))
+    });
+    let residuals: Vec<Vec<Vec<f64>>> = fits
+        .iter()
+        .map(|f| {
+            data_um
+                .iter()
+                .zip(f.fitted)
+                .map(|(d, m)| d.iter().zip(m).map(|(a, b)| a - b).collect())
+                .collect()
+        })
+        .collect();
+    let r = residuals
+        .iter()
+        .flatten()
+        .flatten()
+        .fold(0.0f64, |a, v| a.max(v.abs()))
+        .max(1e-9);
+    let mut svg = String::new();
+    {
+        let rows = fits.len().max(1);
+        let root =
+            SVGBackend::with_string(&mut svg, (1500, 440 * rows as u32 + 50)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
+        let cells = root.split_evenly((rows, 3));
+        for (k, f) in fits.iter().enumerate() {
+            let data_caption = "Table 9: measured (µm)".to_string();
+            let fit_caption = format!("{}: fit (µm)", f.label);
+            let res_caption = format!("{}: data − fit (µm)", f.label);
+            let maps = [
+                HeatMap {
+                    caption: &data_caption,
+                    x: alpha_h_deg,
+                    y: alpha_v_deg,
+                    z: data_um,
+                    lo,
+                    hi,
+                    map: viridis,
+                    bar_label: "reading (µm)",
+                },
+                HeatMap {
+                    caption: &fit_caption,
+                    x: alpha_h_deg,
+                    y: alpha_v_deg,
+                    z: f.fitted,
+                    lo,
+                    hi,
+                    map: viridis,
+                    bar_label: "reading (µm)",
+                },
+                HeatMap {
+                    caption: &res_caption,
+                    x: alpha_h_deg,
+                    y: alpha_v_deg,
+                    z: &residuals[k],
+                    lo: -r,
+                    hi: r,
+                    map: diverging,
+                    bar_label: "residual (µm)",
+                },
+            ];
+            for (c, m) in maps.iter().enumerate() {
+                heat_map(&cells[3 * k + c], m)?;
+            }
+        }
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
+/// Layout design: one panel of horizontal bars per quantity (σ_min, O1, …),
+/// one bar per layout, the value written at its end.
+pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Result<String> {
+    let n = names.len().max(1);
+    let mut svg = String::new();
+    {
+        let root =
+            SVGBackend::with_string(&mut svg, (1200, 60 + 34 * n as u32 + 120)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let root = root.titled(title, ("sans-serif", 20)).map_err(err)?;
+        let areas = root.split_evenly((1, panels.len().max(1)));
+        for (area, (label, values)) in areas.iter().zip(panels) {
+            let top = values.iter().copied().fold(0.0, f64::max).max(1e-12) * 1.25;
+            let mut chart = ChartBuilder::on(area)
+                .margin(12)
+                .x_label_area_size(40)
+                .y_label_area_size(150)
+                // n segments, the first layout at the top.
+                .build_cartesian_2d(0.0..top, (0..n - 1).into_segmented())
+                .map_err(err)?;
+            chart
+                .configure_mesh()
+                .disable_y_mesh()
+                .light_line_style(WHITE)
+                .x_desc(*label)
+                .y_labels(n)
+                .y_label_formatter(&|v| match v {
+                    SegmentValue::CenterOf(i) => {
+                        names.get(n - 1 - *i).copied().unwrap_or("").to_string()
+                    }
+                    _ => String::new(),
+                })
+                .label_style(("sans-serif", 12))
+                .draw()
+                .map_err(err)?;
+            chart
+                .draw_series(values.iter().rev().enumerate().map(|(i, &v)| {
+                    let mut bar = Rectangle::new(
+                        [
+                            (0.0, SegmentValue::Exact(i)),
+                            (v, SegmentValue::Exact(i + 1)),
+                        ],
+                        RGBColor(44, 113, 142).filled(),
+                    );
+                    bar.set_margin(5, 5, 0, 0);
+                    bar
+                }))
+                .map_err(err)?;
+            chart
+                .draw_series(values.iter().rev().enumerate().map(|(i, &v)| {
+                    Text::new(
+                        format!(" {v:.3}"),
+                        (v, SegmentValue::CenterOf(i)),
+                        ("sans-serif", 11).into_font().color(&BLACK).pos(
+                            plotters::style::text_anchor::Pos::new(
+                                plotters::style::text_anchor::HPos::Left,
+                                plotters::style::text_anchor::VPos::Center,
+                            ),
+                        ),
+                    )
+                }))
+                .map_err(err)?;
+        }
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -14,7 +14,9 @@ pub mod export_campaign;
 pub mod fitting;
 pub mod identify;
 pub mod import_campaign;
+pub mod incidence_fit;
 pub mod inject;
+pub mod layout_design;
 pub mod measure;
 pub mod mesh;
 pub mod plot;
@@ -234,4 +236,6 @@ stage_kinds! {
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,
     Sensitivity => sensitivity::SensitivityStage,
+    IncidenceFit => incidence_fit::IncidenceFitStage,
+    LayoutDesign => layout_design::LayoutDesignStage,
 }
