@@ -99,6 +99,27 @@ enum Command {
         #[arg(long, default_value_t = 6)]
         digits: usize,
     },
+    /// Diagnose a campaign folder: where its residual lies, which
+    /// unmodelled effect causes it, how far the gap shrinks.
+    Diagnose {
+        /// The campaign folder (campaign-format.md).
+        campaign: PathBuf,
+        /// Where to write diagnosis.csv, report.md and the figures.
+        #[arg(long)]
+        out: PathBuf,
+        /// Effect ids to try (repeatable; default: all of effects.md).
+        #[arg(long = "effect", value_name = "ID")]
+        effects: Vec<String>,
+        /// Cross-validation folds.
+        #[arg(long, default_value_t = 5)]
+        folds: usize,
+        /// Monte Carlo draws of the noise floor.
+        #[arg(long, default_value_t = 100)]
+        mc_draws: usize,
+        /// Seed of the folds and the Monte Carlo draws.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// List the stage kinds.
     Kinds,
 }
@@ -245,6 +266,46 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
     }
 }
 
+/// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs written
+/// to `out` (each file atomically).
+fn diagnose_command(
+    campaign: &Path,
+    out: &Path,
+    effects: Vec<String>,
+    folds: usize,
+    mc_draws: usize,
+    seed: u64,
+) -> Result<ExitCode> {
+    use crate::stages::StageKind;
+    let stage = stages::diagnose::DiagnoseStage {
+        effects,
+        folds,
+        mc_draws,
+        seed,
+        ..Default::default()
+    };
+    if let Some(bad) = stage.validate().first() {
+        return Err(InputError(vec![pipeline::Problem::Arg(bad.message.clone())]).into());
+    }
+    let c = crate::campaign::read(campaign)
+        .map_err(|e| InputError(vec![pipeline::Problem::Arg(e.to_string())]))?;
+    let d = stage.diagnose(&c)?;
+    let output = stages::diagnose::outputs(&d)?;
+    for (name, df) in &output.tables {
+        let path = out.join(format!("{name}.parquet"));
+        pipeline::cache::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
+        if name == "where" {
+            pipeline::cache::write_atomic(&out.join("where.csv"), &crate::diagnose::output::csv(df)?)?;
+        }
+    }
+    for (name, bytes) in &output.files {
+        pipeline::cache::write_atomic(&out.join(name), bytes)?;
+    }
+    println!("{}", crate::diagnose::output::verdict(&d));
+    eprintln!("diagnosis of {} written to {}", campaign.display(), out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
 fn n_tables(n: usize) -> String {
     format!("{n} table{}", if n == 1 { "" } else { "s" })
 }
@@ -344,6 +405,14 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             print!("{}", table::to_text(&df, digits));
             Ok(ExitCode::SUCCESS)
         }
+        Command::Diagnose {
+            campaign,
+            out,
+            effects,
+            folds,
+            mc_draws,
+            seed,
+        } => diagnose_command(&campaign, &out, effects, folds, mc_draws, seed),
         Command::Kinds => {
             for (k, s) in stages::summaries() {
                 println!("{k:10}  {s}");

@@ -23,6 +23,7 @@
 pub mod candidates;
 pub mod factors;
 pub mod linear;
+pub mod output;
 
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
 use crate::campaign::{Aim, Campaign};

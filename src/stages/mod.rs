@@ -8,6 +8,7 @@
 
 pub mod calibrate;
 pub mod correct;
+pub mod diagnose;
 pub mod evaluate;
 pub mod evaluate_campaign;
 pub mod export_campaign;
@@ -233,6 +234,7 @@ stage_kinds! {
     SimulateCampaign => simulate_campaign::SimulateCampaignStage,
     Calibrate => calibrate::CalibrateStage,
     EvaluateCampaign => evaluate_campaign::EvaluateCampaignStage,
+    Diagnose => diagnose::DiagnoseStage,
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,
     Sensitivity => sensitivity::SensitivityStage,

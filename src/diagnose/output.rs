@@ -1,0 +1,259 @@
+//! The diagnosis as files: `diagnosis.csv` (the output contract: `rank,
+//! effect, where, magnitude, unit, score, significant, rms_before_um,
+//! rms_after_um, gap_before_um, gap_after_um, gap_shrink_pct`, then the
+//! supporting `k, delta_chi2, p_corrected, delta_bic, detail`), the same as
+//! Parquet, `where.csv`, `report.md` in words, and a residual plot per
+//! factor.
+
+use super::Diagnosis;
+use crate::plots;
+use crate::table::TableBuilder;
+use anyhow::{Result, anyhow};
+use polars::prelude::DataFrame;
+use std::fmt::Write as _;
+
+/// The contract's columns, in order.
+pub const CONTRACT: [&str; 12] = [
+    "rank",
+    "effect",
+    "where",
+    "magnitude",
+    "unit",
+    "score",
+    "significant",
+    "rms_before_um",
+    "rms_after_um",
+    "gap_before_um",
+    "gap_after_um",
+    "gap_shrink_pct",
+];
+
+pub fn diagnosis_table(d: &Diagnosis) -> Result<DataFrame> {
+    let r = &d.rows;
+    let col = |f: fn(&super::Row) -> f64| r.iter().map(f).collect::<Vec<f64>>();
+    TableBuilder::new()
+        .i64("rank", r.iter().map(|x| x.rank as i64).collect())
+        .str("effect", &r.iter().map(|x| x.effect.as_str()).collect::<Vec<_>>())
+        .str("where", &r.iter().map(|x| x.place.as_str()).collect::<Vec<_>>())
+        .f64("magnitude", col(|x| x.magnitude))
+        .str("unit", &r.iter().map(|x| x.unit.as_str()).collect::<Vec<_>>())
+        .f64("score", col(|x| x.score))
+        .bool("significant", r.iter().map(|x| x.significant).collect())
+        .f64("rms_before_um", col(|x| x.rms_before_um))
+        .f64("rms_after_um", col(|x| x.rms_after_um))
+        .f64("gap_before_um", col(|x| x.gap_before_um))
+        .f64("gap_after_um", col(|x| x.gap_after_um))
+        .f64("gap_shrink_pct", col(|x| x.gap_shrink_pct))
+        .i64("k", r.iter().map(|x| x.k as i64).collect())
+        .f64("delta_chi2", col(|x| x.delta_chi2))
+        .f64("p_corrected", col(|x| x.p_corrected))
+        .f64("delta_bic", col(|x| x.delta_bic))
+        .str("detail", &r.iter().map(|x| x.detail.as_str()).collect::<Vec<_>>())
+        .build()
+}
+
+pub fn where_table(d: &Diagnosis) -> Result<DataFrame> {
+    let f = &d.factors;
+    TableBuilder::new()
+        .str("factor", &f.iter().map(|t| t.factor).collect::<Vec<_>>())
+        .str("component", &f.iter().map(|t| t.component).collect::<Vec<_>>())
+        .i64("groups", f.iter().map(|t| t.groups as i64).collect())
+        .f64("eta2", f.iter().map(|t| t.eta2).collect())
+        .f64("f", f.iter().map(|t| t.f).collect())
+        .f64("p", f.iter().map(|t| t.p).collect())
+        .bool("significant", f.iter().map(|t| t.significant).collect())
+        .str("worst_group", &f.iter().map(|t| t.worst_group.as_str()).collect::<Vec<_>>())
+        .f64("worst_mean_sigma", f.iter().map(|t| t.worst_mean_sigma).collect())
+        .build()
+}
+
+pub fn residuals_table(d: &Diagnosis) -> Result<DataFrame> {
+    let r = &d.residuals;
+    let opt = |f: fn(&super::factors::ResidualRow) -> Option<f64>| r.iter().map(f).collect::<Vec<_>>();
+    TableBuilder::new()
+        .str("station", &r.iter().map(|x| x.station.as_str()).collect::<Vec<_>>())
+        .str("target", &r.iter().map(|x| x.target.as_str()).collect::<Vec<_>>())
+        .i64("face", r.iter().map(|x| x.face).collect())
+        .f64("az_urad", r.iter().map(|x| x.physical[0]).collect())
+        .f64("el_urad", r.iter().map(|x| x.physical[1]).collect())
+        .f64("d_um", r.iter().map(|x| x.physical[2]).collect())
+        .f64("az_sigma", r.iter().map(|x| x.sigma_units[0]).collect())
+        .f64("el_sigma", r.iter().map(|x| x.sigma_units[1]).collect())
+        .f64("d_sigma", r.iter().map(|x| x.sigma_units[2]).collect())
+        .opt_f64("incidence_deg", opt(|x| x.incidence_deg))
+        .f64("range_mm", r.iter().map(|x| x.range_mm).collect())
+        .f64("azimuth_deg", r.iter().map(|x| x.azimuth_deg).collect())
+        .f64("elevation_deg", r.iter().map(|x| x.elevation_deg).collect())
+        .opt_f64("time_s", opt(|x| x.time_s))
+        .opt_f64("temperature_c", opt(|x| x.temperature_c))
+        .build()
+}
+
+pub fn summary_table(d: &Diagnosis) -> Result<DataFrame> {
+    TableBuilder::new()
+        .str("campaign", &[&d.campaign])
+        .f64("chi2", vec![d.chi2])
+        .i64("dof", vec![d.dof as i64])
+        .f64("chi2_p", vec![d.chi2_p])
+        .bool("noise_stated", vec![d.noise_stated])
+        .f64("noise_floor_um", vec![d.noise_floor_um])
+        .i64("tried", vec![d.tried as i64])
+        .str("verdict", &[verdict(d)])
+        .build()
+}
+
+pub fn skipped_table(d: &Diagnosis) -> Result<DataFrame> {
+    TableBuilder::new()
+        .str("effect", &d.skipped.iter().map(|s| s.effect).collect::<Vec<_>>())
+        .str("reason", &d.skipped.iter().map(|s| s.reason.as_str()).collect::<Vec<_>>())
+        .build()
+}
+
+/// Rank 1 in one sentence.
+pub fn verdict(d: &Diagnosis) -> String {
+    let b = d.best();
+    if b.effect == "none" {
+        if b.significant {
+            "none: no candidate effect is significant and the residual is consistent with the stated noise".into()
+        } else {
+            format!("none: no candidate effect is significant, but the residual is not consistent with the stated noise ({})", b.place)
+        }
+    } else {
+        format!(
+            "{} at {}{}: {:.3} {}, {:.1} % of the held-out residual explained",
+            b.effect,
+            b.place,
+            if b.detail.is_empty() { String::new() } else { format!(" ({})", b.detail) },
+            b.magnitude,
+            b.unit,
+            b.score
+        )
+    }
+}
+
+/// A table as CSV text (floats written to round-trip).
+pub fn csv(df: &DataFrame) -> Result<Vec<u8>> {
+    let mut w = csv::Writer::from_writer(Vec::new());
+    let names: Vec<String> = df.get_column_names().iter().map(|s| s.to_string()).collect();
+    w.write_record(&names)?;
+    for i in 0..df.height() {
+        let row: Vec<String> = df
+            .columns()
+            .iter()
+            .map(|c| match c.get(i) {
+                Ok(polars::prelude::AnyValue::Float64(x)) => format!("{x}"),
+                Ok(v) => crate::table::cell_text(&v, 12),
+                Err(_) => String::new(),
+            })
+            .collect();
+        w.write_record(&row)?;
+    }
+    w.into_inner().map_err(|e| anyhow!("writing CSV: {e}"))
+}
+
+/// The diagnosis in words.
+pub fn report(d: &Diagnosis) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# Diagnosis of `{}`\n", d.campaign);
+    let _ = writeln!(s, "**Verdict:** {}.\n", verdict(d));
+    let _ = writeln!(s, "## Base calibration\n");
+    let _ = writeln!(
+        s,
+        "Bundle adjustment with the base model: χ² = {:.1} on {} degrees of freedom (χ²/dof = {:.2}, p = {:.3}). The residual is {} with the {} noise.",
+        d.chi2,
+        d.dof,
+        d.chi2 / d.dof as f64,
+        d.chi2_p,
+        if d.chi2_p >= 0.01 { "consistent" } else { "not consistent" },
+        if d.noise_stated { "stated" } else { "assumed (the campaign states none)" }
+    );
+    let _ = writeln!(
+        s,
+        "Held-out residual (5-fold cross-validation): {:.2} µm RMS; noise alone would leave {:.2} µm in this geometry (Monte Carlo), so the gap is {:.2} µm.\n",
+        d.rows[0].rms_before_um,
+        d.noise_floor_um,
+        d.rows[0].rms_before_um - d.noise_floor_um
+    );
+    let _ = writeln!(s, "## Where\n");
+    let sig: Vec<_> = d.factors.iter().filter(|t| t.significant).collect();
+    if sig.is_empty() {
+        let _ = writeln!(s, "No factor explains a significant share of the residual variance.\n");
+    } else {
+        let _ = writeln!(s, "| factor | component | share of variance (η²) | p | worst group | its mean (σ) |\n|---|---|---|---|---|---|");
+        let mut sig = sig;
+        sig.sort_by(|a, b| b.eta2.total_cmp(&a.eta2));
+        for t in sig.iter().take(10) {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {:.3} | {:.2e} | {} | {:+.2} |",
+                t.factor, t.component, t.eta2, t.p, t.worst_group, t.worst_mean_sigma
+            );
+        }
+        s.push('\n');
+    }
+    let _ = writeln!(s, "## Which\n");
+    let _ = writeln!(
+        s,
+        "{} candidate explanations were tried (alternatives included; the significance threshold is Bonferroni-corrected for them).\n",
+        d.tried
+    );
+    let _ = writeln!(s, "| rank | effect | where | magnitude | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|");
+    for r in d.rows.iter().take(10) {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:.3} {} | {:.1} | {} | {:.2} → {:.2} | {:.1} |",
+            r.rank,
+            r.effect,
+            r.place,
+            r.magnitude,
+            r.unit,
+            r.score,
+            if r.significant { "yes" } else { "no" },
+            r.rms_before_um,
+            r.rms_after_um,
+            r.gap_shrink_pct
+        );
+    }
+    if !d.skipped.is_empty() {
+        let _ = writeln!(s, "\nSkipped, not guessed:\n");
+        for k in &d.skipped {
+            let _ = writeln!(s, "- `{}`: {}", k.effect, k.reason);
+        }
+    }
+    let _ = writeln!(s, "\n## How far\n");
+    let b = d.best();
+    if b.effect == "none" {
+        let _ = writeln!(s, "No effect is added; the gap stays at {:.2} µm.", b.gap_before_um);
+    } else {
+        let _ = writeln!(
+            s,
+            "Adding `{}` at {} brings the held-out residual from {:.2} µm to {:.2} µm: the gap over the noise floor shrinks from {:.2} µm to {:.2} µm ({:.1} %).",
+            b.effect, b.place, b.rms_before_um, b.rms_after_um, b.gap_before_um, b.gap_after_um, b.gap_shrink_pct
+        );
+    }
+    s
+}
+
+/// One SVG per factor: the residuals against it.
+pub fn figures(d: &Diagnosis) -> Result<Vec<(String, Vec<u8>)>> {
+    let mut out = Vec::new();
+    for f in &d.factor_defs {
+        let comp: Vec<Vec<f64>> = (0..3)
+            .map(|c| d.residuals.iter().map(|r| r.physical[c]).collect())
+            .collect();
+        let categorical = matches!(f.name, "station" | "reflector" | "face");
+        let svg = plots::residuals_by_factor(
+            &format!("{}: residuals by {}", d.campaign, f.name),
+            f.name,
+            categorical.then_some(&f.labels[..]),
+            &f.x,
+            [
+                ("az residual (µrad)", &comp[0]),
+                ("el residual (µrad)", &comp[1]),
+                ("d residual (µm)", &comp[2]),
+            ],
+        )?;
+        out.push((format!("residuals-{}.svg", f.name), svg.into_bytes()));
+    }
+    Ok(out)
+}

@@ -1,0 +1,150 @@
+//! `diagnose`: where a campaign's residual lies, which unmodelled effect
+//! causes it and how far the gap shrinks once it is modelled (see
+//! [`crate::diagnose`]). The same as `ltcal diagnose <campaign-dir>`.
+//!
+//! ```toml
+//! [stages.diagnosis]
+//! kind = "diagnose"
+//! inputs = { campaign = "corner" }   # a whole campaign (import or simulate)
+//! shapes = {}                        # the base model (the paper's 18 constants by default)
+//! fixed = []
+//! folds = 5                          # cross-validation
+//! mc_draws = 100                     # Monte Carlo draws of the noise floor
+//! alpha = 0.01                       # family-wise significance
+//! effects = []                       # effect ids to try (empty: all of effects.md)
+//! seed = 0
+//! ```
+//!
+//! Outputs: `diagnosis` (the contract of `diagnosis.csv`, see
+//! [`crate::diagnose::output`]), `where` (`factor`, `component`, `groups`,
+//! `eta2`, `f`, `p`, `significant`, `worst_group`, `worst_mean_sigma`),
+//! `residuals` (per reading, with the factor values), `summary` (one row:
+//! `campaign`, `chi2`, `dof`, `chi2_p`, `noise_stated`, `noise_floor_um`,
+//! `tried`, `verdict`), `skipped` (`effect`, `reason`); files
+//! `diagnosis.csv`, `report.md` and `residuals-<factor>.svg`.
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
+use crate::campaign::{self, Campaign};
+use crate::diagnose::{self, Diagnosis, Settings, output};
+use crate::effects;
+use crate::error_model::{ParamId, Shape};
+use anyhow::{Result, anyhow};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiagnoseStage {
+    #[serde(default)]
+    pub shapes: BTreeMap<ParamId, Shape>,
+    #[serde(default)]
+    pub fixed: Vec<ParamId>,
+    #[serde(default = "default_folds")]
+    pub folds: usize,
+    #[serde(default = "default_draws")]
+    pub mc_draws: usize,
+    #[serde(default = "default_alpha")]
+    pub alpha: f64,
+    #[serde(default)]
+    pub effects: Vec<String>,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_folds() -> usize {
+    5
+}
+fn default_draws() -> usize {
+    100
+}
+fn default_alpha() -> f64 {
+    0.01
+}
+
+impl Default for DiagnoseStage {
+    fn default() -> Self {
+        DiagnoseStage {
+            shapes: BTreeMap::new(),
+            fixed: Vec::new(),
+            folds: default_folds(),
+            mc_draws: default_draws(),
+            alpha: default_alpha(),
+            effects: Vec::new(),
+            seed: 0,
+        }
+    }
+}
+
+impl DiagnoseStage {
+    pub fn settings(&self) -> Result<Settings> {
+        Ok(Settings {
+            model: fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?,
+            fixed: self.fixed.clone(),
+            folds: self.folds,
+            mc_draws: self.mc_draws,
+            alpha: self.alpha,
+            effects: self.effects.clone(),
+            seed: self.seed,
+        })
+    }
+
+    pub fn diagnose(&self, c: &Campaign) -> Result<Diagnosis> {
+        diagnose::diagnose(c, &self.settings()?)
+    }
+}
+
+/// Every output of a diagnosis, as a stage (or `ltcal diagnose`) writes it.
+pub fn outputs(d: &Diagnosis) -> Result<StageOutput> {
+    let table = output::diagnosis_table(d)?;
+    let mut out = StageOutput::default()
+        .file("diagnosis.csv".into(), output::csv(&table)?)
+        .file("report.md".into(), output::report(d).into_bytes())
+        .table("diagnosis", table)
+        .table("where", output::where_table(d)?)
+        .table("residuals", output::residuals_table(d)?)
+        .table("summary", output::summary_table(d)?)
+        .table("skipped", output::skipped_table(d)?);
+    for (name, svg) in output::figures(d)? {
+        out = out.file(name, svg);
+    }
+    Ok(out)
+}
+
+impl StageKind for DiagnoseStage {
+    const KIND: &'static str = "diagnose";
+    const SUMMARY: &'static str = "where a campaign's residual lies, which unmodelled effect causes it, how far the gap shrinks";
+    const INPUTS: &'static [Slot] = &[Slot::group(
+        "campaign",
+        true,
+        "the campaign to diagnose (`import_campaign` or `simulate_campaign`)",
+        campaign::TABLES,
+    )];
+    const OUTPUTS: &'static [&'static str] = &["diagnosis", "where", "residuals", "summary", "skipped"];
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out: Vec<Invalid> = fitting::model(&self.shapes).err().into_iter().collect();
+        if !(2..=20).contains(&self.folds) {
+            out.push(Invalid::new("folds", format!("`folds` must be 2 … 20, got {}", self.folds)));
+        }
+        if self.mc_draws > 100_000 {
+            out.push(Invalid::new("mc_draws", "`mc_draws` must be at most 100000"));
+        }
+        if !(self.alpha > 0.0 && self.alpha < 0.5) {
+            out.push(Invalid::new("alpha", format!("`alpha` must lie in (0, 0.5), got {}", self.alpha)));
+        }
+        for (i, e) in self.effects.iter().enumerate() {
+            if !effects::IDS.contains(&e.as_str()) || e == "none" || e == "noise" {
+                out.push(Invalid::new(
+                    format!("effects.{i}"),
+                    format!("`{e}` is not a candidate effect; one of {}", effects::IDS[..7].join(", ")),
+                ));
+            }
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+        let c = Campaign::from_inputs(inputs, "campaign")?;
+        outputs(&self.diagnose(&c)?)
+    }
+}
