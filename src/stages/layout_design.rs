@@ -11,6 +11,7 @@
 //! layouts = [
 //!   { name = "paper", layout = { kind = "corner" }, faces = "front" },
 //!   { name = "2 stations", layout = { kind = "corner", stations = 2 } },
+//!   { name = "no gauge", layout = { kind = "corner" }, gauge = false },
 //! ]
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }   # the weights (default)
 //! fixed = []                         # parameters held fixed (none by default)
@@ -18,8 +19,8 @@
 //! ```
 //!
 //! Each layout is the `simulate_campaign` layout spec (`crate::layout::Spec`
-//! with `faces`, `aim` and `max_angle_deg`), simulated noise-free with a
-//! perfect tracker. The analysis is [`crate::calibrate::bundle::analyse`]:
+//! with `faces`, `aim` and `max_angle_deg`, and `gauge = false` to leave the
+//! gauge out), simulated noise-free with a perfect tracker. The analysis is [`crate::calibrate::bundle::analyse`]:
 //! the Jacobian of the bundle adjustment's weighted residuals (readings in
 //! units of σ, gauge lengths) with respect to the 18 error parameters (in
 //! µm and µrad), with everything the free station poses and reflector
@@ -30,11 +31,12 @@
 //! is weighted by the same `noise`, so that the rows compare.
 //!
 //! **Scale.** Singular values grow with the square root of the number of
-//! readings: the same layout measured twice has √2 larger σ's. σ_min
-//! therefore rewards more readings as such; the observability index O1 =
-//! (σ₁⋯σ_L)^(1/L)/√m (m = 3 × readings, the reading equations) divides that
-//! out and rewards geometry. The table reports both, and O2 … O5
-//! ([`crate::identifiability::Observability`]).
+//! readings: the same layout measured twice has √2 larger σ's (exactly so
+//! for the readings' rows; the gauge's few, heavily weighted rows do not
+//! repeat). σ_min therefore rewards more readings as such; the
+//! observability index O1 = (σ₁⋯σ_L)^(1/L)/√m (m = 3 × readings, the
+//! reading equations) divides that out and rewards geometry. The table
+//! reports both, and O2 … O5 ([`crate::identifiability::Observability`]).
 //!
 //! Outputs: `layouts` (one row per layout: `name`, `n_stations`,
 //! `n_reflectors`, `n_readings`, `rank`, `sigma_min`, `condition_number`,
@@ -71,6 +73,10 @@ pub struct LayoutCase {
     pub aim: AimRule,
     #[serde(default = "default_max_angle")]
     pub max_angle_deg: f64,
+    /// Whether the campaign has the layout's gauge of calibrated lengths
+    /// (Eq. 15); `false`: no scale reference at all.
+    #[serde(default = "yes")]
+    pub gauge: bool,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -88,6 +94,9 @@ pub struct LayoutDesignStage {
     pub seed: u64,
 }
 
+fn yes() -> bool {
+    true
+}
 fn default_max_angle() -> f64 {
     DEFAULT_MAX_ANGLE_DEG
 }
@@ -140,7 +149,11 @@ impl LayoutCase {
             seed,
         })
         .map_err(|e| anyhow!(e))?;
-        Ok(sim.campaign)
+        let mut c = sim.campaign;
+        if !self.gauge {
+            c.gauge.clear();
+        }
+        Ok(c)
     }
 }
 
