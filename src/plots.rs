@@ -389,10 +389,10 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
                 .max(1e-6)
                 * 1.1;
             let panels = [
-                (&cells[2 * k], "θ (deg)", &c.theta_deg, &c.by_theta, "by φ"),
-                (&cells[2 * k + 1], "φ (deg)", &c.phi_deg, &c.by_phi, "by θ"),
+                (&cells[2 * k], "θ", &c.theta_deg, &c.by_theta, "φ"),
+                (&cells[2 * k + 1], "φ", &c.phi_deg, &c.by_phi, "θ"),
             ];
-            for (area, x_desc, xs, lines, by) in panels {
+            for (area, x, xs, lines, other) in panels {
                 let (x0, x1) = (
                     xs.first().copied().unwrap_or(0.0),
                     xs.last().copied().unwrap_or(1.0),
@@ -400,11 +400,7 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
                 let mut chart = ChartBuilder::on(area)
                     .margin(8)
                     .caption(
-                        format!(
-                            "{}, against {} ({by})",
-                            c.label,
-                            &x_desc[..x_desc.find(' ').unwrap_or(0)]
-                        ),
+                        format!("{}, against {x} (one line per {other})", c.label),
                         ("sans-serif", 14),
                     )
                     .x_label_area_size(32)
@@ -413,7 +409,7 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
                     .map_err(err)?;
                 chart
                     .configure_mesh()
-                    .x_desc(x_desc)
+                    .x_desc(format!("{x} (deg)"))
                     .y_desc("error (µm)")
                     .x_label_formatter(&|v| format!("{v:.0}"))
                     .label_style(("sans-serif", 11))

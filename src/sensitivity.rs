@@ -218,8 +218,9 @@ pub fn explain_difference(
 pub struct Extremes {
     pub max_um: f64,
     pub min_um: f64,
-    /// The θ and φ (degrees, the paper's θ = az − 90°) of every grid point
-    /// within 1e-6 of the largest error of the maximum; likewise the minimum.
+    /// The (θ, φ) in degrees (the paper's θ = az − 90°) of every grid point
+    /// whose error ties with the maximum (within [`TIE_REL`] of the largest
+    /// error); likewise for the minimum.
     pub max_at: Vec<(f64, f64)>,
     pub min_at: Vec<(f64, f64)>,
 }
@@ -280,7 +281,7 @@ pub fn extremes(grid: &[Vec<f64>], theta_deg: &[f64], phi_deg: &[f64]) -> Extrem
 }
 
 impl Extremes {
-    /// E.g. "max 15.0000 µm at θ = 0°, 180° (any φ); min 0.7821 µm at θ = −90°, 90°, φ = 0°".
+    /// E.g. "max 15.0000 µm at θ = −180°, 0° (any φ); min 0.0000 µm at θ = −90°, 90°, φ = 0°".
     pub fn describe(&self, theta_deg: &[f64], phi_deg: &[f64]) -> String {
         let part = |name: &str, um: f64, at: &[(f64, f64)]| {
             format!("{name} {um:.4} µm at {}", place(at, theta_deg, phi_deg))

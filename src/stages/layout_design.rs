@@ -200,16 +200,18 @@ impl StageKind for LayoutDesignStage {
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
         for (i, l) in self.layouts.iter().enumerate() {
-            let at = format!("layouts[{i}]");
+            // Fields by their dotted path (how the pipeline file locates
+            // them), messages as a reader writes it.
+            let (field, at) = (format!("layouts.{i}"), format!("layouts[{i}]"));
             if l.name.trim().is_empty() {
                 out.push(Invalid::new(
-                    format!("{at}.name"),
+                    format!("{field}.name"),
                     format!("`{at}.name` must not be empty"),
                 ));
             }
             if self.layouts[..i].iter().any(|o| o.name == l.name) {
                 out.push(Invalid::new(
-                    format!("{at}.name"),
+                    format!("{field}.name"),
                     format!(
                         "`{at}.name`: another layout is already called \"{}\"",
                         l.name
@@ -218,13 +220,13 @@ impl StageKind for LayoutDesignStage {
             }
             for (f, m) in l.layout.check() {
                 out.push(Invalid::new(
-                    format!("{at}.layout.{f}"),
+                    format!("{field}.layout.{f}"),
                     format!("`{at}.layout`: {m}"),
                 ));
             }
             if !(l.max_angle_deg > 0.0 && l.max_angle_deg <= 90.0) {
                 out.push(Invalid::new(
-                    format!("{at}.max_angle_deg"),
+                    format!("{field}.max_angle_deg"),
                     format!(
                         "`{at}.max_angle_deg` must lie in (0, 90], got {}",
                         l.max_angle_deg

@@ -215,9 +215,9 @@ fn grid(from: f64, to: f64) -> Vec<f64> {
     v
 }
 
+/// An angle in [−180°, 180°), like the direction grid's θ.
 fn wrap_deg(a: f64) -> f64 {
-    let w = (a + 180.0).rem_euclid(360.0) - 180.0;
-    if w < -180.0 + 1e-9 { 180.0 } else { w }
+    (a + 180.0).rem_euclid(360.0) - 180.0
 }
 
 fn distinct(v: impl Iterator<Item = f64>) -> Vec<f64> {
