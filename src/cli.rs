@@ -295,14 +295,21 @@ fn diagnose_command(
         let path = out.join(format!("{name}.parquet"));
         pipeline::cache::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
         if name == "where" {
-            pipeline::cache::write_atomic(&out.join("where.csv"), &crate::diagnose::output::csv(df)?)?;
+            pipeline::cache::write_atomic(
+                &out.join("where.csv"),
+                &crate::diagnose::output::csv(df)?,
+            )?;
         }
     }
     for (name, bytes) in &output.files {
         pipeline::cache::write_atomic(&out.join(name), bytes)?;
     }
     println!("{}", crate::diagnose::output::verdict(&d));
-    eprintln!("diagnosis of {} written to {}", campaign.display(), out.display());
+    eprintln!(
+        "diagnosis of {} written to {}",
+        campaign.display(),
+        out.display()
+    );
     Ok(ExitCode::SUCCESS)
 }
 

@@ -805,6 +805,78 @@ pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Re
     Ok(svg)
 }
 
+/// A confusion matrix: counts of true classes (rows) against named ones
+/// (columns), the diagonal shaded green and the rest red by count.
+pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -> Result<String> {
+    let n = labels.len();
+    let max = counts.iter().flatten().copied().max().unwrap_or(0).max(1) as f64;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (980, 760)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(20)
+            .caption(title, ("sans-serif", 18))
+            .x_label_area_size(90)
+            .y_label_area_size(150)
+            .build_cartesian_2d(0.0..n as f64, 0.0..n as f64)
+            .map_err(err)?;
+        let names = labels.to_vec();
+        let names_y = labels.to_vec();
+        chart
+            .configure_mesh()
+            .disable_mesh()
+            .x_labels(n)
+            .y_labels(n)
+            .x_desc("named by the diagnosis")
+            .y_desc("true effect")
+            .x_label_formatter(&move |v| names.get(v.floor() as usize).cloned().unwrap_or_default())
+            .y_label_formatter(&move |v| {
+                let i = (n as f64 - v).floor() as usize;
+                names_y
+                    .get(i.saturating_sub(1))
+                    .cloned()
+                    .unwrap_or_default()
+            })
+            .label_style(("sans-serif", 12))
+            .draw()
+            .map_err(err)?;
+        for (i, row) in counts.iter().enumerate() {
+            for (j, &c) in row.iter().enumerate() {
+                let y = (n - 1 - i) as f64;
+                let x = j as f64;
+                let t = c as f64 / max;
+                let colour = if c == 0 {
+                    RGBColor(245, 245, 245)
+                } else if i == j {
+                    RGBColor(
+                        (230.0 - 170.0 * t) as u8,
+                        (245.0 - 85.0 * t) as u8,
+                        (230.0 - 170.0 * t) as u8,
+                    )
+                } else {
+                    RGBColor(250, (225.0 - 150.0 * t) as u8, (225.0 - 150.0 * t) as u8)
+                };
+                chart
+                    .draw_series(std::iter::once(Rectangle::new(
+                        [(x + 0.03, y + 0.03), (x + 0.97, y + 0.97)],
+                        colour.filled(),
+                    )))
+                    .map_err(err)?;
+                chart
+                    .draw_series(std::iter::once(Text::new(
+                        c.to_string(),
+                        (x + 0.42, y + 0.42),
+                        ("sans-serif", 16).into_font(),
+                    )))
+                    .map_err(err)?;
+            }
+        }
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -37,6 +37,10 @@ impl TableBuilder {
         self.columns.push(Column::new(name.into(), v));
         self
     }
+    pub fn opt_bool(mut self, name: &str, values: Vec<Option<bool>>) -> Self {
+        self.columns.push(Column::new(name.into(), values));
+        self
+    }
     pub fn bool(mut self, name: &str, values: Vec<bool>) -> Self {
         self.columns.push(Column::new(name.into(), values));
         self

@@ -209,6 +209,14 @@ impl LinearModel {
     }
 }
 
+/// `‖(I − J·J⁺)·x‖²`: the part of `x` no combination of `j`'s columns
+/// reproduces.
+pub fn unabsorbed_norm2(j: &DMatrix<f64>, x: &DVector<f64>) -> f64 {
+    let b = Basis::new(j);
+    let xm = DMatrix::from_column_slice(x.len(), 1, x.as_slice());
+    b.residual(&xm).norm_squared()
+}
+
 /// The largest squared column norm of a signature before projection.
 fn column_scale(c: &DMatrix<f64>) -> f64 {
     c.column_iter()

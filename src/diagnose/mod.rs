@@ -11,8 +11,9 @@
 //!    per-reflector variants), the χ² it explains, its F test
 //!    (Bonferroni-corrected over every alternative tried), the Bayesian
 //!    information criterion, and the share of *held-out* residual it
-//!    predicts (k-fold cross-validation). A candidate is significant when
-//!    all three agree. With none significant, the answer is `none` — if the
+//!    predicts (k-fold cross-validation, the `score`). A candidate is
+//!    significant when all three agree; significant candidates are ranked
+//!    by the information criterion. With none significant, the answer is `none` — if the
 //!    residual is consistent with the stated noise (χ² test); otherwise
 //!    `none` with "unexplained structure" and where it lies.
 //! 4. **How far** — the gap is the held-out residual (µm) minus the one
@@ -20,6 +21,7 @@
 //!    stated noise through the same linearised adjustment), before and
 //!    after adding the effect.
 
+pub mod blind;
 pub mod candidates;
 pub mod factors;
 pub mod linear;
@@ -110,6 +112,8 @@ pub struct Diagnosis {
     /// The held-out RMS noise alone leaves (µm).
     pub noise_floor_um: f64,
     pub calibration: Calibration,
+    /// Each reading's σ in az, el (rad) and d (mm), in reading order.
+    pub sigma: Vec<Vector3<f64>>,
     /// Candidates tried, alternatives included (the Bonferroni factor).
     pub tried: usize,
 }
@@ -229,17 +233,19 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         })
         .collect();
 
-    // Cross-validation folds: a seeded shuffle of the readings.
+    // Cross-validation folds, stratified by reflector: each reflector's
+    // readings go round the folds from a random start, so no fold holds
+    // out every reading of a reflector (which no model could predict).
     let folds = s.folds.clamp(2, n_read.max(2));
-    let mut order: Vec<usize> = (0..n_read).collect();
     let mut rng = random::stream(s.seed, "diagnose-folds");
-    for i in (1..n_read).rev() {
-        let j = (random::uniform(&mut rng) * (i + 1) as f64) as usize;
-        order.swap(i, j.min(i));
-    }
     let mut fold_of = vec![0; n_read];
-    for (k, &i) in order.iter().enumerate() {
-        fold_of[i] = k % folds;
+    let mut next: std::collections::BTreeMap<usize, usize> = Default::default();
+    for (i, o) in net.obs.iter().enumerate() {
+        let k = next
+            .entry(o.target)
+            .or_insert_with(|| (random::uniform(&mut rng) * folds as f64) as usize % folds);
+        fold_of[i] = *k;
+        *k = (*k + 1) % folds;
     }
     let to_mm: Vec<Matrix3<f64>> = net
         .obs
@@ -394,10 +400,15 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         (_, true) => 0,
         _ => 2,
     };
+    // Within a class the information criterion orders: it weighs what a
+    // candidate explains against its parameters, so the one station that
+    // drifts beats "every station", and a reflector knocked between
+    // stations is not out-scored by cross-validation, which cannot predict
+    // a held-out reading from before the knock.
     rows.sort_by(|a, b| {
         class(a)
             .cmp(&class(b))
-            .then(b.score.total_cmp(&a.score))
+            .then(b.delta_bic.total_cmp(&a.delta_bic))
             .then(a.effect.cmp(&b.effect))
             .then(a.place.cmp(&b.place))
     });
@@ -417,6 +428,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         noise_stated: net.noise_stated,
         noise_floor_um: floor,
         calibration: cal,
+        sigma: net.obs.iter().map(|o| o.sigma).collect(),
         tried,
     })
 }

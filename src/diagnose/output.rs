@@ -33,10 +33,19 @@ pub fn diagnosis_table(d: &Diagnosis) -> Result<DataFrame> {
     let col = |f: fn(&super::Row) -> f64| r.iter().map(f).collect::<Vec<f64>>();
     TableBuilder::new()
         .i64("rank", r.iter().map(|x| x.rank as i64).collect())
-        .str("effect", &r.iter().map(|x| x.effect.as_str()).collect::<Vec<_>>())
-        .str("where", &r.iter().map(|x| x.place.as_str()).collect::<Vec<_>>())
+        .str(
+            "effect",
+            &r.iter().map(|x| x.effect.as_str()).collect::<Vec<_>>(),
+        )
+        .str(
+            "where",
+            &r.iter().map(|x| x.place.as_str()).collect::<Vec<_>>(),
+        )
         .f64("magnitude", col(|x| x.magnitude))
-        .str("unit", &r.iter().map(|x| x.unit.as_str()).collect::<Vec<_>>())
+        .str(
+            "unit",
+            &r.iter().map(|x| x.unit.as_str()).collect::<Vec<_>>(),
+        )
         .f64("score", col(|x| x.score))
         .bool("significant", r.iter().map(|x| x.significant).collect())
         .f64("rms_before_um", col(|x| x.rms_before_um))
@@ -48,7 +57,10 @@ pub fn diagnosis_table(d: &Diagnosis) -> Result<DataFrame> {
         .f64("delta_chi2", col(|x| x.delta_chi2))
         .f64("p_corrected", col(|x| x.p_corrected))
         .f64("delta_bic", col(|x| x.delta_bic))
-        .str("detail", &r.iter().map(|x| x.detail.as_str()).collect::<Vec<_>>())
+        .str(
+            "detail",
+            &r.iter().map(|x| x.detail.as_str()).collect::<Vec<_>>(),
+        )
         .build()
 }
 
@@ -56,23 +68,39 @@ pub fn where_table(d: &Diagnosis) -> Result<DataFrame> {
     let f = &d.factors;
     TableBuilder::new()
         .str("factor", &f.iter().map(|t| t.factor).collect::<Vec<_>>())
-        .str("component", &f.iter().map(|t| t.component).collect::<Vec<_>>())
+        .str(
+            "component",
+            &f.iter().map(|t| t.component).collect::<Vec<_>>(),
+        )
         .i64("groups", f.iter().map(|t| t.groups as i64).collect())
         .f64("eta2", f.iter().map(|t| t.eta2).collect())
         .f64("f", f.iter().map(|t| t.f).collect())
         .f64("p", f.iter().map(|t| t.p).collect())
         .bool("significant", f.iter().map(|t| t.significant).collect())
-        .str("worst_group", &f.iter().map(|t| t.worst_group.as_str()).collect::<Vec<_>>())
-        .f64("worst_mean_sigma", f.iter().map(|t| t.worst_mean_sigma).collect())
+        .str(
+            "worst_group",
+            &f.iter().map(|t| t.worst_group.as_str()).collect::<Vec<_>>(),
+        )
+        .f64(
+            "worst_mean_sigma",
+            f.iter().map(|t| t.worst_mean_sigma).collect(),
+        )
         .build()
 }
 
 pub fn residuals_table(d: &Diagnosis) -> Result<DataFrame> {
     let r = &d.residuals;
-    let opt = |f: fn(&super::factors::ResidualRow) -> Option<f64>| r.iter().map(f).collect::<Vec<_>>();
+    let opt =
+        |f: fn(&super::factors::ResidualRow) -> Option<f64>| r.iter().map(f).collect::<Vec<_>>();
     TableBuilder::new()
-        .str("station", &r.iter().map(|x| x.station.as_str()).collect::<Vec<_>>())
-        .str("target", &r.iter().map(|x| x.target.as_str()).collect::<Vec<_>>())
+        .str(
+            "station",
+            &r.iter().map(|x| x.station.as_str()).collect::<Vec<_>>(),
+        )
+        .str(
+            "target",
+            &r.iter().map(|x| x.target.as_str()).collect::<Vec<_>>(),
+        )
         .i64("face", r.iter().map(|x| x.face).collect())
         .f64("az_urad", r.iter().map(|x| x.physical[0]).collect())
         .f64("el_urad", r.iter().map(|x| x.physical[1]).collect())
@@ -104,8 +132,17 @@ pub fn summary_table(d: &Diagnosis) -> Result<DataFrame> {
 
 pub fn skipped_table(d: &Diagnosis) -> Result<DataFrame> {
     TableBuilder::new()
-        .str("effect", &d.skipped.iter().map(|s| s.effect).collect::<Vec<_>>())
-        .str("reason", &d.skipped.iter().map(|s| s.reason.as_str()).collect::<Vec<_>>())
+        .str(
+            "effect",
+            &d.skipped.iter().map(|s| s.effect).collect::<Vec<_>>(),
+        )
+        .str(
+            "reason",
+            &d.skipped
+                .iter()
+                .map(|s| s.reason.as_str())
+                .collect::<Vec<_>>(),
+        )
         .build()
 }
 
@@ -116,14 +153,21 @@ pub fn verdict(d: &Diagnosis) -> String {
         if b.significant {
             "none: no candidate effect is significant and the residual is consistent with the stated noise".into()
         } else {
-            format!("none: no candidate effect is significant, but the residual is not consistent with the stated noise ({})", b.place)
+            format!(
+                "none: no candidate effect is significant, but the residual is not consistent with the stated noise ({})",
+                b.place
+            )
         }
     } else {
         format!(
             "{} at {}{}: {:.3} {}, {:.1} % of the held-out residual explained",
             b.effect,
             b.place,
-            if b.detail.is_empty() { String::new() } else { format!(" ({})", b.detail) },
+            if b.detail.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", b.detail)
+            },
             b.magnitude,
             b.unit,
             b.score
@@ -134,7 +178,11 @@ pub fn verdict(d: &Diagnosis) -> String {
 /// A table as CSV text (floats written to round-trip).
 pub fn csv(df: &DataFrame) -> Result<Vec<u8>> {
     let mut w = csv::Writer::from_writer(Vec::new());
-    let names: Vec<String> = df.get_column_names().iter().map(|s| s.to_string()).collect();
+    let names: Vec<String> = df
+        .get_column_names()
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     w.write_record(&names)?;
     for i in 0..df.height() {
         let row: Vec<String> = df
@@ -164,8 +212,16 @@ pub fn report(d: &Diagnosis) -> String {
         d.dof,
         d.chi2 / d.dof as f64,
         d.chi2_p,
-        if d.chi2_p >= 0.01 { "consistent" } else { "not consistent" },
-        if d.noise_stated { "stated" } else { "assumed (the campaign states none)" }
+        if d.chi2_p >= 0.01 {
+            "consistent"
+        } else {
+            "not consistent"
+        },
+        if d.noise_stated {
+            "stated"
+        } else {
+            "assumed (the campaign states none)"
+        }
     );
     let _ = writeln!(
         s,
@@ -177,9 +233,15 @@ pub fn report(d: &Diagnosis) -> String {
     let _ = writeln!(s, "## Where\n");
     let sig: Vec<_> = d.factors.iter().filter(|t| t.significant).collect();
     if sig.is_empty() {
-        let _ = writeln!(s, "No factor explains a significant share of the residual variance.\n");
+        let _ = writeln!(
+            s,
+            "No factor explains a significant share of the residual variance.\n"
+        );
     } else {
-        let _ = writeln!(s, "| factor | component | share of variance (η²) | p | worst group | its mean (σ) |\n|---|---|---|---|---|---|");
+        let _ = writeln!(
+            s,
+            "| factor | component | share of variance (η²) | p | worst group | its mean (σ) |\n|---|---|---|---|---|---|"
+        );
         let mut sig = sig;
         sig.sort_by(|a, b| b.eta2.total_cmp(&a.eta2));
         for t in sig.iter().take(10) {
@@ -197,7 +259,10 @@ pub fn report(d: &Diagnosis) -> String {
         "{} candidate explanations were tried (alternatives included; the significance threshold is Bonferroni-corrected for them).\n",
         d.tried
     );
-    let _ = writeln!(s, "| rank | effect | where | magnitude | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        s,
+        "| rank | effect | where | magnitude | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|"
+    );
     for r in d.rows.iter().take(10) {
         let _ = writeln!(
             s,
@@ -223,12 +288,22 @@ pub fn report(d: &Diagnosis) -> String {
     let _ = writeln!(s, "\n## How far\n");
     let b = d.best();
     if b.effect == "none" {
-        let _ = writeln!(s, "No effect is added; the gap stays at {:.2} µm.", b.gap_before_um);
+        let _ = writeln!(
+            s,
+            "No effect is added; the gap stays at {:.2} µm.",
+            b.gap_before_um
+        );
     } else {
         let _ = writeln!(
             s,
             "Adding `{}` at {} brings the held-out residual from {:.2} µm to {:.2} µm: the gap over the noise floor shrinks from {:.2} µm to {:.2} µm ({:.1} %).",
-            b.effect, b.place, b.rms_before_um, b.rms_after_um, b.gap_before_um, b.gap_after_um, b.gap_shrink_pct
+            b.effect,
+            b.place,
+            b.rms_before_um,
+            b.rms_after_um,
+            b.gap_before_um,
+            b.gap_after_um,
+            b.gap_shrink_pct
         );
     }
     s

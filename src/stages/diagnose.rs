@@ -119,24 +119,37 @@ impl StageKind for DiagnoseStage {
         "the campaign to diagnose (`import_campaign` or `simulate_campaign`)",
         campaign::TABLES,
     )];
-    const OUTPUTS: &'static [&'static str] = &["diagnosis", "where", "residuals", "summary", "skipped"];
+    const OUTPUTS: &'static [&'static str] =
+        &["diagnosis", "where", "residuals", "summary", "skipped"];
 
     fn validate(&self) -> Vec<Invalid> {
         let mut out: Vec<Invalid> = fitting::model(&self.shapes).err().into_iter().collect();
         if !(2..=20).contains(&self.folds) {
-            out.push(Invalid::new("folds", format!("`folds` must be 2 … 20, got {}", self.folds)));
+            out.push(Invalid::new(
+                "folds",
+                format!("`folds` must be 2 … 20, got {}", self.folds),
+            ));
         }
         if self.mc_draws > 100_000 {
-            out.push(Invalid::new("mc_draws", "`mc_draws` must be at most 100000"));
+            out.push(Invalid::new(
+                "mc_draws",
+                "`mc_draws` must be at most 100000",
+            ));
         }
         if !(self.alpha > 0.0 && self.alpha < 0.5) {
-            out.push(Invalid::new("alpha", format!("`alpha` must lie in (0, 0.5), got {}", self.alpha)));
+            out.push(Invalid::new(
+                "alpha",
+                format!("`alpha` must lie in (0, 0.5), got {}", self.alpha),
+            ));
         }
         for (i, e) in self.effects.iter().enumerate() {
             if !effects::IDS.contains(&e.as_str()) || e == "none" || e == "noise" {
                 out.push(Invalid::new(
                     format!("effects.{i}"),
-                    format!("`{e}` is not a candidate effect; one of {}", effects::IDS[..7].join(", ")),
+                    format!(
+                        "`{e}` is not a candidate effect; one of {}",
+                        effects::IDS[..7].join(", ")
+                    ),
                 ));
             }
         }

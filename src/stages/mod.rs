@@ -6,6 +6,7 @@
 //! config except through [`StageConfig`]. Adding a kind means adding a module
 //! and one line to [`stage_kinds!`].
 
+pub mod blind_check;
 pub mod calibrate;
 pub mod correct;
 pub mod diagnose;
@@ -235,6 +236,7 @@ stage_kinds! {
     Calibrate => calibrate::CalibrateStage,
     EvaluateCampaign => evaluate_campaign::EvaluateCampaignStage,
     Diagnose => diagnose::DiagnoseStage,
+    BlindCheck => blind_check::BlindCheckStage,
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,
     Sensitivity => sensitivity::SensitivityStage,

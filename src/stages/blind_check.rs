@@ -1,0 +1,324 @@
+//! `blind_check`: many campaigns simulated with an effect drawn at random
+//! (or none) at a random magnitude and place, diagnosed blind, scored
+//! against the truth (see [`crate::diagnose::blind`], which also defines
+//! which cases are detectable at all).
+//!
+//! ```toml
+//! [stages.blind]
+//! kind = "blind_check"
+//! cases = 200
+//! seed = 1
+//! layouts = ["corner", "hall", "cmm-table"]
+//! stations = [4, 6]                    # inclusive range
+//! noise_angle_urad = [0.5, 1.5]        # range of σ
+//! noise_range_um = [1.0, 3.0]
+//! none_fraction = 0.25
+//! effects = ["incidence", "incidence-table9", "range-scale", "air-refraction",
+//!            "encoder-harmonic", "station-drift", "target-shift"]
+//! tracker_sigma = 5.0                  # µm / µrad of the kinematic errors
+//! detect_chi2 = 25.0
+//! mc_draws = 20
+//! ```
+//!
+//! Outputs: `cases` (one row per campaign: `case`, `layout`, `stations`,
+//! `readings`, `sigma_angle_urad`, `sigma_range_um`, `true_effect`,
+//! `true_where`, `true_magnitude`, `signal_chi2`, `detectable`,
+//! `named_effect`, `named_where`, `named_magnitude`, `effect_correct`,
+//! `where_correct`, `magnitude_ratio`), `confusion` (`subset` = all or
+//! detectable, `true_effect`, `named_effect`, `count`), `summary`
+//! (`subset`, `cases`, `effect_accuracy_pct` over campaigns with an effect,
+//! `where_accuracy_pct` over those with a station or reflector,
+//! `none_accuracy_pct` over effect-free campaigns,
+//! `median_magnitude_error_pct`) and the figure `confusion.svg`.
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use crate::diagnose::blind::{self, Case, Plan, Score};
+use crate::effects;
+use crate::layout::Kind;
+use crate::plots;
+use crate::table::TableBuilder;
+use anyhow::Result;
+use polars::prelude::DataFrame;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BlindCheckStage {
+    #[serde(default = "default_cases")]
+    pub cases: usize,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default = "default_layouts")]
+    pub layouts: Vec<Kind>,
+    #[serde(default = "default_stations")]
+    pub stations: [usize; 2],
+    #[serde(default = "default_angle")]
+    pub noise_angle_urad: [f64; 2],
+    #[serde(default = "default_range")]
+    pub noise_range_um: [f64; 2],
+    #[serde(default = "default_none")]
+    pub none_fraction: f64,
+    #[serde(default = "default_effects")]
+    pub effects: Vec<String>,
+    #[serde(default = "default_tracker")]
+    pub tracker_sigma: f64,
+    #[serde(default = "default_detect")]
+    pub detect_chi2: f64,
+    #[serde(default = "default_draws")]
+    pub mc_draws: usize,
+}
+
+fn default_cases() -> usize {
+    200
+}
+fn default_layouts() -> Vec<Kind> {
+    vec![Kind::Corner, Kind::Hall, Kind::CmmTable]
+}
+fn default_stations() -> [usize; 2] {
+    [4, 6]
+}
+fn default_angle() -> [f64; 2] {
+    [0.5, 1.5]
+}
+fn default_range() -> [f64; 2] {
+    [1.0, 3.0]
+}
+fn default_none() -> f64 {
+    0.25
+}
+fn default_effects() -> Vec<String> {
+    effects::IDS[..7].iter().map(|s| s.to_string()).collect()
+}
+fn default_tracker() -> f64 {
+    5.0
+}
+fn default_detect() -> f64 {
+    25.0
+}
+fn default_draws() -> usize {
+    20
+}
+
+impl BlindCheckStage {
+    pub fn plan(&self) -> Plan {
+        Plan {
+            cases: self.cases,
+            seed: self.seed,
+            layouts: self.layouts.clone(),
+            stations: (self.stations[0], self.stations[1]),
+            noise_angle_urad: (self.noise_angle_urad[0], self.noise_angle_urad[1]),
+            noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
+            none_fraction: self.none_fraction,
+            effects: self.effects.clone(),
+            tracker_sigma: self.tracker_sigma,
+            detect_chi2: self.detect_chi2,
+            mc_draws: self.mc_draws,
+        }
+    }
+}
+
+impl StageKind for BlindCheckStage {
+    const KIND: &'static str = "blind_check";
+    const SUMMARY: &'static str =
+        "simulated campaigns with a hidden effect, diagnosed blind and scored (confusion matrix)";
+    const INPUTS: &'static [Slot] = &[];
+    const OUTPUTS: &'static [&'static str] = &["summary", "cases", "confusion"];
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out = Vec::new();
+        if !(1..=100_000).contains(&self.cases) {
+            out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
+        }
+        if self.layouts.is_empty() {
+            out.push(Invalid::new(
+                "layouts",
+                "`layouts` needs at least one layout",
+            ));
+        }
+        if !(2 <= self.stations[0]
+            && self.stations[0] <= self.stations[1]
+            && self.stations[1] <= 20)
+        {
+            out.push(Invalid::new(
+                "stations",
+                "`stations` must be [lo, hi] with 2 ≤ lo ≤ hi ≤ 20",
+            ));
+        }
+        for (f, r) in [
+            ("noise_angle_urad", self.noise_angle_urad),
+            ("noise_range_um", self.noise_range_um),
+        ] {
+            if !(r[0] > 0.0 && r[0] <= r[1] && r[1].is_finite()) {
+                out.push(Invalid::new(
+                    f,
+                    format!("`{f}` must be [lo, hi] with 0 < lo ≤ hi"),
+                ));
+            }
+        }
+        if !(0.0..=1.0).contains(&self.none_fraction) {
+            out.push(Invalid::new(
+                "none_fraction",
+                "`none_fraction` must lie in [0, 1]",
+            ));
+        }
+        for (i, e) in self.effects.iter().enumerate() {
+            if !effects::IDS[..7].contains(&e.as_str()) {
+                out.push(Invalid::new(
+                    format!("effects.{i}"),
+                    format!(
+                        "`{e}` is not an effect to hide; one of {}",
+                        effects::IDS[..7].join(", ")
+                    ),
+                ));
+            }
+        }
+        if !(self.tracker_sigma >= 0.0 && self.tracker_sigma.is_finite()) {
+            out.push(Invalid::new("tracker_sigma", "`tracker_sigma` must be ≥ 0"));
+        }
+        if self.detect_chi2.is_nan() || self.detect_chi2 <= 0.0 {
+            out.push(Invalid::new("detect_chi2", "`detect_chi2` must be > 0"));
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
+        let cases = blind::run(&self.plan())?;
+        let labels: Vec<String> = std::iter::once("none".to_string())
+            .chain(self.effects.iter().cloned())
+            .collect();
+        let detectable: Vec<&Case> = cases.iter().filter(|c| c.detectable).collect();
+        let matrix = |subset: &[&Case]| -> Vec<Vec<usize>> {
+            labels
+                .iter()
+                .map(|t| {
+                    labels
+                        .iter()
+                        .map(|n| {
+                            subset
+                                .iter()
+                                .filter(|c| &c.truth.effect == t && &c.named_effect == n)
+                                .count()
+                        })
+                        .collect()
+                })
+                .collect()
+        };
+        let all: Vec<&Case> = cases.iter().collect();
+        let svg = plots::confusion_matrix(
+            "Blind check: true effect (rows) against the diagnosis (columns), detectable cases",
+            &labels,
+            &matrix(&detectable),
+        )?;
+        Ok(StageOutput::default()
+            .table("summary", summary(&all, &detectable)?)
+            .table("cases", cases_table(&cases)?)
+            .table(
+                "confusion",
+                confusion_table(
+                    &labels,
+                    &[("all", matrix(&all)), ("detectable", matrix(&detectable))],
+                )?,
+            )
+            .file("confusion.svg".into(), svg.into_bytes()))
+    }
+}
+
+fn summary(all: &[&Case], detectable: &[&Case]) -> Result<DataFrame> {
+    let rows: Vec<(&str, Score)> = vec![
+        ("all", Score::of(all.iter().copied())),
+        ("detectable", Score::of(detectable.iter().copied())),
+    ];
+    TableBuilder::new()
+        .str("subset", &rows.iter().map(|r| r.0).collect::<Vec<_>>())
+        .i64("cases", rows.iter().map(|r| r.1.cases as i64).collect())
+        .f64(
+            "effect_accuracy_pct",
+            rows.iter().map(|r| 100.0 * r.1.effect_rate()).collect(),
+        )
+        .f64(
+            "where_accuracy_pct",
+            rows.iter().map(|r| 100.0 * r.1.place_rate()).collect(),
+        )
+        .f64(
+            "none_accuracy_pct",
+            rows.iter().map(|r| 100.0 * r.1.none_rate()).collect(),
+        )
+        .f64(
+            "median_magnitude_error_pct",
+            rows.iter()
+                .map(|r| 100.0 * r.1.median_magnitude_error)
+                .collect(),
+        )
+        .i64(
+            "with_effect",
+            rows.iter().map(|r| r.1.with_effect as i64).collect(),
+        )
+        .i64(
+            "with_place",
+            rows.iter().map(|r| r.1.with_place as i64).collect(),
+        )
+        .i64(
+            "effect_free",
+            rows.iter().map(|r| r.1.effect_free as i64).collect(),
+        )
+        .build()
+}
+
+fn cases_table(cases: &[Case]) -> Result<DataFrame> {
+    let s = |f: fn(&Case) -> String| cases.iter().map(f).collect::<Vec<String>>();
+    let x = |f: fn(&Case) -> f64| cases.iter().map(f).collect::<Vec<f64>>();
+    TableBuilder::new()
+        .i64("case", cases.iter().map(|c| c.case as i64).collect())
+        .str("layout", &s(|c| c.layout.clone()))
+        .i64(
+            "stations",
+            cases.iter().map(|c| c.stations as i64).collect(),
+        )
+        .i64(
+            "readings",
+            cases.iter().map(|c| c.readings as i64).collect(),
+        )
+        .f64("sigma_angle_urad", x(|c| c.sigma_angle_urad))
+        .f64("sigma_range_um", x(|c| c.sigma_range_um))
+        .str("true_effect", &s(|c| c.truth.effect.clone()))
+        .str("true_where", &s(|c| c.truth.place.clone()))
+        .f64("true_magnitude", x(|c| c.truth.magnitude))
+        .f64("signal_chi2", x(|c| c.signal_chi2))
+        .bool("detectable", cases.iter().map(|c| c.detectable).collect())
+        .str("named_effect", &s(|c| c.named_effect.clone()))
+        .str("named_where", &s(|c| c.named_place.clone()))
+        .f64("named_magnitude", x(|c| c.named_magnitude))
+        .bool(
+            "effect_correct",
+            cases.iter().map(|c| c.effect_correct).collect(),
+        )
+        .opt_bool(
+            "where_correct",
+            cases.iter().map(|c| c.place_correct).collect(),
+        )
+        .opt_f64(
+            "magnitude_ratio",
+            cases.iter().map(|c| c.magnitude_ratio).collect(),
+        )
+        .build()
+}
+
+fn confusion_table(labels: &[String], matrices: &[(&str, Vec<Vec<usize>>)]) -> Result<DataFrame> {
+    let mut rows: Vec<(&str, &str, &str, i64)> = Vec::new();
+    for (subset, m) in matrices {
+        for (i, t) in labels.iter().enumerate() {
+            for (j, n) in labels.iter().enumerate() {
+                rows.push((subset, t, n, m[i][j] as i64));
+            }
+        }
+    }
+    TableBuilder::new()
+        .str("subset", &rows.iter().map(|r| r.0).collect::<Vec<_>>())
+        .str("true_effect", &rows.iter().map(|r| r.1).collect::<Vec<_>>())
+        .str(
+            "named_effect",
+            &rows.iter().map(|r| r.2).collect::<Vec<_>>(),
+        )
+        .i64("count", rows.iter().map(|r| r.3).collect())
+        .build()
+}

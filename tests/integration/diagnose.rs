@@ -1,0 +1,139 @@
+//! The diagnosis: on the example campaigns of an independent generator
+//! (their truth.json read only here, to score), and blind on simulated ones.
+
+use ltcal::diagnose::blind::{self, Score};
+use ltcal::diagnose::{self, Settings};
+use ltcal::stages::StageKind;
+use ltcal::stages::blind_check::BlindCheckStage;
+use std::path::PathBuf;
+
+fn examples() -> Vec<PathBuf> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns");
+    let mut v: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.join("truth.json").exists())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The truth's comparable magnitude, in the diagnosis's unit.
+fn true_magnitude(truth: &serde_json::Value) -> Option<f64> {
+    let p = &truth["params"];
+    let norm = |v: &serde_json::Value| {
+        v.as_array().map(|a| {
+            a.iter()
+                .map(|x| x.as_f64().unwrap().powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+    };
+    match truth["effect"].as_str()? {
+        "incidence" => p["e_axial_um"].as_f64(),
+        "air-refraction" => Some(-0.93),
+        "encoder-harmonic" => p["amplitude_urad"].as_f64(),
+        "station-drift" => norm(&p["velocity_um_per_min"]),
+        "target-shift" => norm(&p["shift_um"]),
+        _ => None,
+    }
+}
+
+#[test]
+fn every_example_campaign_is_named_right() {
+    let files = examples();
+    assert_eq!(files.len(), 7);
+    for dir in files {
+        let truth: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap())
+                .unwrap();
+        let c = ltcal::campaign::read(&dir).unwrap();
+        let d = diagnose::diagnose(&c, &Settings::default()).unwrap();
+        let best = d.best();
+        let effect = truth["effect"].as_str().unwrap();
+        assert_eq!(best.effect, effect, "{}: {:?}", dir.display(), best);
+        match effect {
+            "none" => assert!(best.significant, "none must be the accepted verdict"),
+            "station-drift" | "target-shift" => {
+                assert_eq!(best.place, truth["where"].as_str().unwrap())
+            }
+            "encoder-harmonic" => assert_eq!(best.place, truth["params"]["axis"].as_str().unwrap()),
+            _ => {}
+        }
+        if let Some(m) = true_magnitude(&truth) {
+            assert!(
+                (best.magnitude / m - 1.0).abs() < 0.25,
+                "{effect}: {} vs {m}",
+                best.magnitude
+            );
+        }
+        if effect != "none" {
+            assert!(
+                best.significant && best.gap_shrink_pct > 20.0,
+                "{effect}: {best:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn effects_that_need_time_or_temperature_are_skipped_with_a_reason_when_absent() {
+    let dir = examples()
+        .into_iter()
+        .find(|p| p.ends_with("example-00-none"))
+        .unwrap();
+    let mut c = ltcal::campaign::read(&dir).unwrap();
+    for r in &mut c.readings {
+        r.time_s = None;
+        r.temperature_c = None;
+    }
+    let d = diagnose::diagnose(&c, &Settings::default()).unwrap();
+    let skipped: Vec<&str> = d.skipped.iter().map(|s| s.effect).collect();
+    assert_eq!(skipped, ["air-refraction", "station-drift"]);
+    assert!(
+        d.skipped
+            .iter()
+            .all(|s| s.reason.contains("readings.csv has no"))
+    );
+    assert!(
+        d.rows
+            .iter()
+            .all(|r| r.effect != "air-refraction" && r.effect != "station-drift")
+    );
+    assert_eq!(d.best().effect, "none");
+}
+
+/// The acceptance: on detectable cases the right effect in ≥ 90 %,
+/// the right station or reflector in ≥ 90 % of those that have one, and
+/// `none` in ≥ 95 % of effect-free campaigns.
+#[test]
+fn blind_check_meets_its_targets() {
+    let stage = BlindCheckStage {
+        cases: 160,
+        seed: 77,
+        ..toml::from_str("").unwrap()
+    };
+    assert!(stage.validate().is_empty());
+    let cases = blind::run(&stage.plan()).unwrap();
+    let det = Score::of(cases.iter().filter(|c| c.detectable));
+    let all = Score::of(cases.iter());
+    eprintln!("detectable: {det:?}\nall: {all:?}");
+    assert!(det.with_effect >= 60 && det.effect_free >= 25, "{det:?}");
+    assert!(
+        det.effect_rate() >= 0.90,
+        "effect named right in {:.1} %",
+        100.0 * det.effect_rate()
+    );
+    assert!(
+        det.place_rate() >= 0.90,
+        "place named right in {:.1} %",
+        100.0 * det.place_rate()
+    );
+    assert!(
+        det.none_rate() >= 0.95,
+        "none on {:.1} % of effect-free",
+        100.0 * det.none_rate()
+    );
+    assert!(det.median_magnitude_error < 0.15, "{det:?}");
+}
