@@ -143,6 +143,7 @@ impl LayoutCase {
             gauge_u_mm: GAUGE_U_MM,
             reference_u_mm: REFERENCE_U_MM,
             level_urad: LEVEL_URAD,
+            // Time is not recorded and no effect depends on it.
             interval_s: 20.0,
             record_time: false,
             record_temperature: false,
