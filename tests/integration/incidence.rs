@@ -150,7 +150,7 @@ fn the_fitted_effect_is_accepted_by_simulate_campaign() {
     let out = dir.path().join("incidence/incidence");
     let snippet = std::fs::read_to_string(out.join("incidence-effect.toml")).unwrap();
     let effect = table(dir.path(), "incidence", "incidence", "effect");
-    assert_eq!(strs(&effect, "toml"), [snippet.clone()]);
+    assert_eq!(strs(&effect, "toml"), std::slice::from_ref(&snippet));
     assert!(snippet.contains("[stages.simulated.effects.incidence]"));
     let svg = std::fs::read_to_string(out.join("table9-fits.svg")).unwrap();
     for needle in [
