@@ -877,6 +877,77 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
     Ok(svg)
 }
 
+/// One line of [`metric_lines`]: `(x, mean, sd, n)` per point.
+pub struct MetricLine {
+    pub name: String,
+    pub points: Vec<(f64, f64, f64, usize)>,
+}
+
+/// A metric against a swept parameter: one line per series, each point the
+/// mean over repeats (seeds) with a ±1 standard deviation bar.
+pub fn metric_lines(
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    lines: &[MetricLine],
+) -> Result<String> {
+    let all = lines.iter().flat_map(|l| l.points.iter());
+    let (x0, x1) = bounds(all.clone().map(|p| p.0));
+    let (y0, y1) = bounds(all.flat_map(|p| [p.1 - p.2, p.1 + p.2]));
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (1000, 600)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(20)
+            .caption(title, ("sans-serif", 22))
+            .x_label_area_size(45)
+            .y_label_area_size(70)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(format!("{y_label} (mean ± 1 sd over repeats)"))
+            .label_style(("sans-serif", 13))
+            .draw()
+            .map_err(err)?;
+        for (k, line) in lines.iter().enumerate() {
+            let colour = viridis(
+                if lines.len() > 1 {
+                    k as f64 / (lines.len() - 1) as f64
+                } else {
+                    0.3
+                } * 0.9,
+            );
+            chart
+                .draw_series(LineSeries::new(
+                    line.points.iter().map(|p| (p.0, p.1)),
+                    colour.stroke_width(2),
+                ))
+                .map_err(err)?
+                .label(line.name.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+            chart
+                .draw_series(line.points.iter().map(|p| {
+                    ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, colour.filled(), 6)
+                }))
+                .map_err(err)?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.9))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(err)?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

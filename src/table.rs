@@ -50,6 +50,75 @@ impl TableBuilder {
     }
 }
 
+/// A column of `n` copies of a JSON value (number, string or boolean).
+pub fn constant_column(name: &str, v: &serde_json::Value, n: usize) -> Result<Column> {
+    Ok(match v {
+        serde_json::Value::Number(x) if x.is_i64() => {
+            Column::new(name.into(), vec![x.as_i64().unwrap_or(0); n])
+        }
+        serde_json::Value::Number(x) => {
+            Column::new(name.into(), vec![x.as_f64().unwrap_or(f64::NAN); n])
+        }
+        serde_json::Value::String(s) => Column::new(name.into(), vec![s.as_str(); n]),
+        serde_json::Value::Bool(b) => Column::new(name.into(), vec![*b; n]),
+        other => Column::new(name.into(), vec![other.to_string(); n]),
+    })
+}
+
+/// Stacks tables whose columns may differ (a campaign table with one
+/// column per station, over sweep points with different station counts):
+/// the union of the columns in order of first appearance, nulls where a
+/// table lacks one. A column's type is that of its first appearance
+/// (numbers are widened to f64 when the tables disagree).
+pub fn concat_diagonal(frames: &[DataFrame]) -> Result<DataFrame> {
+    let mut names: Vec<String> = Vec::new();
+    let mut types: Vec<DataType> = Vec::new();
+    for df in frames {
+        for c in df.columns() {
+            let name = c.name().to_string();
+            match names.iter().position(|n| *n == name) {
+                None => {
+                    names.push(name);
+                    types.push(c.dtype().clone());
+                }
+                Some(i)
+                    if types[i] != *c.dtype()
+                        && c.dtype().is_primitive_numeric()
+                        && types[i].is_primitive_numeric() =>
+                {
+                    types[i] = DataType::Float64;
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    let mut out: Vec<Column> = Vec::with_capacity(names.len());
+    for (name, dtype) in names.iter().zip(&types) {
+        let mut acc: Option<Series> = None;
+        for df in frames {
+            let part = match df.column(name) {
+                Ok(c) => c
+                    .as_materialized_series()
+                    .cast(dtype)
+                    .map_err(|e| anyhow!("column `{name}`: {e}"))?,
+                Err(_) => Series::full_null(name.as_str().into(), df.height(), dtype),
+            };
+            match acc.as_mut() {
+                Some(a) => {
+                    a.append(&part)
+                        .map_err(|e| anyhow!("column `{name}`: {e}"))?;
+                }
+                None => acc = Some(part),
+            }
+        }
+        out.push(
+            acc.unwrap_or_else(|| Series::new_empty(name.as_str().into(), dtype))
+                .into(),
+        );
+    }
+    DataFrame::new_infer_height(out).map_err(|e| anyhow!("stacking tables: {e}"))
+}
+
 /// Typed access to a table that says which table and column was wrong.
 pub struct TableRef<'a> {
     pub name: &'a str,
@@ -166,12 +235,19 @@ impl<'a> TableRef<'a> {
 }
 
 /// Serialises a table to Parquet bytes. Statistics are switched off so that
-/// the bytes depend on the table alone.
+/// the bytes depend on the table alone. LZ4 rather than polars' default
+/// zstd: a sweep writes thousands of small tables, and zstd's set-up per
+/// column costs more than it saves. Columns are written one after the
+/// other, because polars' own thread pool, entered from a worker of ours
+/// (a sweep point), lets the waiting worker steal more points onto its
+/// stack — and our tables are small.
 pub fn to_parquet_bytes(df: &DataFrame) -> Result<Vec<u8>> {
     let mut buf = Vec::new();
     let mut df = df.clone();
     ParquetWriter::new(&mut buf)
         .with_statistics(StatisticsOptions::empty())
+        .with_compression(ParquetCompression::Lz4Raw)
+        .set_parallel(false)
         .finish(&mut df)
         .map_err(|e| anyhow!("writing Parquet: {e}"))?;
     Ok(buf)
@@ -179,6 +255,7 @@ pub fn to_parquet_bytes(df: &DataFrame) -> Result<Vec<u8>> {
 
 pub fn from_parquet_bytes(bytes: &[u8]) -> Result<DataFrame> {
     ParquetReader::new(std::io::Cursor::new(bytes))
+        .read_parallel(ParallelStrategy::None)
         .finish()
         .map_err(|e| anyhow!("reading Parquet: {e}"))
 }

@@ -341,16 +341,18 @@ impl Store {
         fs::create_dir_all(&entries).with_context(|| format!("creating {}", entries.display()))?;
         let tmp = entries.join(format!(".tmp-{}-{}", short(key), unique_suffix()));
         let result = (|| -> Result<()> {
-            fs::create_dir_all(tmp.join("files"))?;
+            fs::create_dir_all(&tmp)?;
+            if !entry.files.is_empty() {
+                fs::create_dir_all(tmp.join("files"))?;
+            }
             for (name, b) in &entry.tables {
-                write_synced(&tmp.join(format!("{name}.parquet")), b)?;
+                write_file(&tmp.join(format!("{name}.parquet")), b)?;
             }
             for (name, b) in &entry.files {
-                write_synced(&tmp.join("files").join(name), b)?;
+                write_file(&tmp.join("files").join(name), b)?;
             }
             let manifest = serde_json::to_vec_pretty(&entry.manifest)?;
-            write_synced(&tmp.join("manifest.json"), &manifest)?;
-            sync_dir(&tmp);
+            write_file(&tmp.join("manifest.json"), &manifest)?;
             Ok(())
         })();
         if let Err(e) = result {
@@ -372,7 +374,6 @@ impl Store {
         if !published && !matches!(self.lookup(key), Lookup::Hit(_)) {
             bail!("could not publish the cache entry {}", dest.display());
         }
-        sync_dir(&entries);
         Ok(())
     }
 
@@ -482,17 +483,15 @@ fn owner_gone(pid: Option<&str>) -> bool {
     }
 }
 
-fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
+/// Entry files are not synced to disk one by one: a killed process cannot
+/// tear an entry (it appears by one `rename`, after every file is
+/// written), and what a power cut might tear, the content hashes of the
+/// manifest catch on reuse. Syncing each of the thousands of files of a
+/// sweep would cost more than computing them.
+fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut f = fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
     f.write_all(bytes)?;
-    f.sync_all()?;
     Ok(())
-}
-
-fn sync_dir(dir: &Path) {
-    if let Ok(f) = fs::File::open(dir) {
-        let _ = f.sync_all();
-    }
 }
 
 #[cfg(test)]

@@ -25,6 +25,7 @@ pub mod resolve;
 pub mod run;
 pub mod snapshot;
 pub mod source;
+pub mod sweep;
 
 use resolve::{Override, Pipeline};
 use source::{Source, SourceError};

@@ -17,21 +17,26 @@ pub struct Graph {
 
 impl Graph {
     pub fn new(p: &Pipeline) -> Graph {
-        let n = p.stages.len();
+        Graph::of(&p.stages)
+    }
+
+    /// The graph of a list of stages (inputs from outside it are given).
+    pub fn of(stages: &[Stage]) -> Graph {
+        let index = |name: &str| stages.iter().position(|s| s.name == name);
+        let n = stages.len();
         let mut level = vec![usize::MAX; n];
         // The resolver rejected cycles, so repeated relaxation terminates.
         let mut changed = true;
         while changed {
             changed = false;
-            for (i, s) in p.stages.iter().enumerate() {
+            for (i, s) in stages.iter().enumerate() {
+                // Inputs from outside the stage list (a sweep's gathered
+                // tables) are there before any stage runs.
                 let deps: Option<usize> = s
                     .inputs
                     .values()
-                    .map(|r| p.index(&r.stage).map(|j| level[j]))
-                    .try_fold(0usize, |acc, l| match l {
-                        Some(l) if l != usize::MAX => Some(acc.max(l + 1)),
-                        _ => None,
-                    });
+                    .filter_map(|r| index(&r.stage).map(|j| level[j]))
+                    .try_fold(0usize, |acc, l| (l != usize::MAX).then(|| acc.max(l + 1)));
                 if let Some(l) = deps {
                     if level[i] != l {
                         level[i] = l;

@@ -74,9 +74,10 @@ pub struct RawPipeline {
     pub stages: Vec<RawStage>,
     /// With the span of its header, for errors about the table as a whole.
     pub snapshot: Option<(RawSnapshot, Range<usize>)>,
+    pub sweep: Option<(super::sweep::RawSweep, Range<usize>)>,
 }
 
-const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot"];
+const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot", "sweep"];
 
 /// A toml error turned into one that points into the file.
 pub(crate) fn toml_error(src: &Source, e: toml::de::Error, fallback: Range<usize>) -> SourceError {
@@ -133,6 +134,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
     let mut meta = Meta::default();
     let mut stages = Vec::new();
     let mut snapshot = None;
+    let mut sweep = None;
     for (key, value) in root.into_inner() {
         let k = key_str(&key).to_string();
         match k.as_str() {
@@ -146,6 +148,16 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
                     Ok(s) => snapshot = Some((s, span)),
                     Err(mut e) => {
                         e.message = format!("[snapshot]: {}", e.message);
+                        errors.push(e)
+                    }
+                }
+            }
+            "sweep" => {
+                let span = key.span();
+                match typed::<super::sweep::RawSweep>(src, value) {
+                    Ok(s) => sweep = Some((s, span)),
+                    Err(mut e) => {
+                        e.message = format!("[sweep]: {}", e.message);
                         errors.push(e)
                     }
                 }
@@ -194,6 +206,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
         meta,
         stages,
         snapshot,
+        sweep,
     })
 }
 

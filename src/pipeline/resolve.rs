@@ -7,7 +7,7 @@
 
 use super::raw::{RawPipeline, RawStage};
 use super::snapshot::{self, Snapshot};
-use super::{Problem, source::Source};
+use super::{Problem, source::Source, sweep};
 use crate::stages::StageConfig;
 use anyhow::{Result, anyhow, bail};
 use serde::Deserialize;
@@ -157,6 +157,36 @@ pub struct Pipeline {
     pub stages: Vec<Stage>,
     /// `[snapshot]`, when the file has one.
     pub snapshot: Option<Snapshot>,
+    /// `[sweep]`, expanded, when the file has one.
+    pub sweep: Option<Sweep>,
+}
+
+/// A sweep, expanded into its points.
+#[derive(Clone, Debug)]
+pub struct Sweep {
+    pub axes: Vec<sweep::Axis>,
+    pub points: Vec<SweepPoint>,
+    /// The tables gathered over the points.
+    pub gather: Vec<InputRef>,
+    /// The stages that run once, after the points, on the gathered tables
+    /// (those that read `sweep.…`, and their descendants).
+    pub after: Vec<String>,
+}
+
+/// One point of a sweep: its values and its stages resolved with them.
+#[derive(Clone, Debug)]
+pub struct SweepPoint {
+    pub index: usize,
+    pub values: Vec<serde_json::Value>,
+    /// Every stage that runs per point, resolved with the point's values.
+    pub stages: Vec<Stage>,
+}
+
+impl Sweep {
+    /// The table names the pseudo-stage `sweep` offers: `stage.table`.
+    pub fn table_names(&self) -> Vec<String> {
+        self.gather.iter().map(|g| g.to_string()).collect()
+    }
 }
 
 impl Pipeline {
@@ -207,14 +237,27 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
             src.path.display()
         ))]);
     }
+    let gather_names: Vec<String> = raw
+        .sweep
+        .iter()
+        .flat_map(|(sw, _)| sw.gather.iter().map(|g| g.get_ref().clone()))
+        .collect();
     let mut pipeline = Pipeline {
         name,
         description: raw.meta.description.clone(),
         source: src.clone(),
         stages,
         snapshot: None,
+        sweep: None,
     };
-    check_graph(raw, &mut pipeline)?;
+    check_graph(
+        raw,
+        &mut pipeline,
+        raw.sweep.is_some().then_some(&gather_names[..]),
+    )?;
+    if let Some((sw, _)) = &raw.sweep {
+        pipeline.sweep = Some(resolve_sweep(raw, sw, &pipeline, overrides)?);
+    }
     if let Some((snap, header)) = &raw.snapshot {
         pipeline.snapshot = Some(snapshot::resolve(
             src,
@@ -344,7 +387,11 @@ fn resolve_stage(
 }
 
 /// Checks slots, references and cycles; fills in default table names.
-fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> {
+fn check_graph(
+    raw: &RawPipeline,
+    p: &mut Pipeline,
+    gathered: Option<&[String]>,
+) -> Result<(), Vec<Problem>> {
     let src = &raw.source;
     let mut problems = Vec::new();
     let at = |stage: &str, slot: &str, key: bool| -> std::ops::Range<usize> {
@@ -378,6 +425,23 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
                         }
                     ),
                 )));
+                continue;
+            }
+            if let (sweep::PSEUDO_STAGE, Some(g)) = (r.stage.as_str(), gathered) {
+                if !g.contains(&r.table) {
+                    problems.push(Problem::At(src.error(
+                        at(&s.name, slot, false),
+                        format!(
+                            "`sweep.{}` is not gathered; [sweep] gather has: {}",
+                            r.table,
+                            if g.is_empty() {
+                                "nothing".into()
+                            } else {
+                                g.join(", ")
+                            }
+                        ),
+                    )));
+                }
                 continue;
             }
             let Some(producer) = p.stages.iter().find(|x| x.name == r.stage) else {
@@ -466,15 +530,7 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
         .iter()
         .map(|s| (s.name.clone(), s.config.outputs()[0]))
         .collect();
-    for s in &mut p.stages {
-        let slots = s.config.inputs();
-        for (slot, r) in s.inputs.iter_mut() {
-            let group = slots.iter().any(|x| x.name == slot && !x.group.is_empty());
-            if r.table.is_empty() && !group {
-                r.table = primary[&r.stage].to_string();
-            }
-        }
-    }
+    fill_tables(&mut p.stages, &primary);
     {
         if let Some(cycle) = find_cycle(p) {
             let (first, slot) = (&cycle[0].0, &cycle[0].1);
@@ -494,6 +550,125 @@ fn check_graph(raw: &RawPipeline, p: &mut Pipeline) -> Result<(), Vec<Problem>> 
     } else {
         Err(problems)
     }
+}
+
+/// Names the producer's first table where an input names a stage alone.
+fn fill_tables(stages: &mut [Stage], primary: &BTreeMap<String, &'static str>) {
+    for s in stages {
+        let slots = s.config.inputs();
+        for (slot, r) in s.inputs.iter_mut() {
+            let group = slots.iter().any(|x| x.name == slot && !x.group.is_empty());
+            if r.table.is_empty() && !group {
+                if let Some(t) = primary.get(&r.stage) {
+                    r.table = t.to_string();
+                }
+            }
+        }
+    }
+}
+
+/// Expands `[sweep]`: checks its paths and gathered tables against the
+/// stages, and resolves every point's stages with the point's values.
+fn resolve_sweep(
+    raw: &RawPipeline,
+    sw: &sweep::RawSweep,
+    p: &Pipeline,
+    overrides: &[Override],
+) -> Result<Sweep, Vec<Problem>> {
+    let src = &raw.source;
+    let mut problems = Vec::new();
+    // The stages after the sweep: readers of `sweep`, and their readers.
+    let mut after: Vec<String> = Vec::new();
+    loop {
+        let more: Vec<String> = p
+            .stages
+            .iter()
+            .filter(|s| !after.contains(&s.name))
+            .filter(|s| {
+                s.inputs
+                    .values()
+                    .any(|r| r.stage == sweep::PSEUDO_STAGE || after.contains(&r.stage))
+            })
+            .map(|s| s.name.clone())
+            .collect();
+        if more.is_empty() {
+            break;
+        }
+        after.extend(more);
+    }
+    let per_point =
+        |name: &str| p.stages.iter().any(|s| s.name == name) && !after.iter().any(|a| a == name);
+    for a in &sw.axes {
+        match split_path(a.path.get_ref()).as_deref() {
+            Some([st, name, _, ..]) if st == "stages" && per_point(name) => {}
+            Some([st, name, _, ..]) if st == "stages" && after.iter().any(|x| x == name) => {
+                problems.push(Problem::At(src.error(
+                    a.path.span(),
+                    format!("stage `{name}` runs after the sweep, on gathered tables: sweep the stages it gathers from"),
+                )))
+            }
+            _ => problems.push(Problem::At(src.error(
+                a.path.span(),
+                "an axis sweeps `stages.<stage>.<field>` of a stage of this pipeline",
+            ))),
+        }
+    }
+    let mut gather = Vec::new();
+    for g in &sw.gather {
+        let found = g.get_ref().split_once('.').and_then(|(st, t)| {
+            let stage = p.stages.iter().find(|s| s.name == st && per_point(st))?;
+            stage.config.outputs().contains(&t).then(|| InputRef {
+                stage: st.to_string(),
+                table: t.to_string(),
+            })
+        });
+        match found {
+            Some(r) => gather.push(r),
+            None => problems.push(Problem::At(src.error(
+                g.span(),
+                format!(
+                    "`{}` is not `stage.table` of a stage that runs per sweep point",
+                    g.get_ref()
+                ),
+            ))),
+        }
+    }
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    let (axes, values) = sweep::expand(src, sw)?;
+    let primary: BTreeMap<String, &'static str> = p
+        .stages
+        .iter()
+        .map(|s| (s.name.clone(), s.config.outputs()[0]))
+        .collect();
+    let mut points = Vec::with_capacity(values.len());
+    for v in values {
+        let mut all = overrides.to_vec();
+        all.extend(v.overrides(&axes));
+        let mut stages = Vec::new();
+        for rs in raw.stages.iter().filter(|rs| per_point(&rs.name)) {
+            match resolve_stage(src, rs, &all) {
+                Ok(s) => stages.push(s),
+                Err(mut e) => problems.append(&mut e),
+            }
+        }
+        if !problems.is_empty() {
+            return Err(problems);
+        }
+        fill_tables(&mut stages, &primary);
+        points.push(SweepPoint {
+            index: v.index,
+            values: v.values,
+            stages,
+        });
+    }
+    Ok(Sweep {
+        axes,
+        points,
+        gather,
+        after,
+    })
 }
 
 /// A cycle as `(stage, slot)` edges: each stage reads the next one's table

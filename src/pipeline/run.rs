@@ -15,7 +15,8 @@
 use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
-use super::resolve::Pipeline;
+use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
+use super::sweep;
 use crate::report;
 use crate::stages::{Context, StageInputs};
 use crate::table;
@@ -68,6 +69,8 @@ pub struct RunReport {
     /// removed before this run.
     pub cleaned: usize,
     pub stages: Vec<StageReport>,
+    /// For a pipeline with a `[sweep]`.
+    pub sweep: Option<SweepReport>,
 }
 
 impl RunReport {
@@ -101,15 +104,108 @@ pub fn pipeline_dir(root: &Path, p: &Pipeline) -> PathBuf {
     root.join(&p.name)
 }
 
-/// Runs the pipeline.
+/// What a sweep did: how many points ran at least one stage, how many
+/// were wholly cached, and which failed.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SweepReport {
+    pub points: usize,
+    pub ran: usize,
+    pub cached: usize,
+    pub failed: usize,
+    /// The gathered tables, `stage.table` → rows.
+    pub gathered: BTreeMap<String, usize>,
+}
+
+/// What [`execute_stages`] needs besides the stages.
+struct Runner<'a> {
+    pipeline: &'a str,
+    store: &'a Store,
+    dir: &'a Path,
+    keep_going: bool,
+    /// Copy tables and figures to `results/<pipeline>/<stage>/`.
+    publish: bool,
+    /// Print a line per stage.
+    progress: bool,
+    /// Run a level's stages in parallel. Off inside sweep points, which
+    /// are the parallel units: a point blocked on nested parallel work
+    /// would steal other points onto its stack.
+    parallel: bool,
+}
+
+/// Runs the pipeline (and, with a `[sweep]`, every point of it).
 pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let started = SystemTime::now();
     let dir = pipeline_dir(&opts.results_root, p);
     let store = Store::new(&dir);
     let cleaned = store.clean_incomplete() + cache::clean_temp_files(&dir);
-    let graph = Graph::new(p);
-    let produced: Mutex<BTreeMap<String, Arc<Produced>>> = Mutex::new(BTreeMap::new());
-    let mut reports: Vec<Option<StageReport>> = vec![None; p.stages.len()];
+    let runner = Runner {
+        pipeline: &p.name,
+        store: &store,
+        dir: &dir,
+        keep_going: opts.keep_going,
+        publish: true,
+        progress: opts.progress,
+        parallel: true,
+    };
+    let (stages, produced, sweep) = match &p.sweep {
+        None => {
+            let (reports, produced) = execute_stages(&runner, &p.stages, BTreeMap::new());
+            (reports, produced, None)
+        }
+        Some(sw) => {
+            let (point_reports, gathered, sweep) = run_points(&runner, sw)?;
+            let after: Vec<Stage> = p
+                .stages
+                .iter()
+                .filter(|s| sw.after.contains(&s.name))
+                .cloned()
+                .collect();
+            let external = BTreeMap::from([(sweep::PSEUDO_STAGE.to_string(), Arc::new(gathered))]);
+            let (mut reports, produced) = execute_stages(&runner, &after, external);
+            let mut all = point_reports;
+            all.append(&mut reports);
+            (all, produced, Some(sweep))
+        }
+    };
+    let report = RunReport {
+        pipeline: p.name.clone(),
+        results: dir.clone(),
+        started: timestamp(started),
+        finished: timestamp(SystemTime::now()),
+        cleaned,
+        stages,
+        sweep,
+    };
+    cache::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
+    let tables: report::Tables = produced
+        .into_iter()
+        .map(|(stage, prod)| {
+            let t = prod
+                .tables
+                .iter()
+                .map(|(name, (df, _))| (name.clone(), df.clone()))
+                .collect();
+            (stage, t)
+        })
+        .collect();
+    report::write(&dir, p, &report, &tables)?;
+    Ok(report)
+}
+
+/// A report per stage and what the stages produced, by stage name.
+type Executed = (Vec<StageReport>, BTreeMap<String, Arc<Produced>>);
+
+/// Runs stages level by level, a level's stages in parallel. `external`
+/// holds tables of producers that are not among `stages` (a sweep's
+/// gathered tables). Returns a report per stage and what they produced.
+fn execute_stages(
+    runner: &Runner,
+    stages: &[Stage],
+    external: BTreeMap<String, Arc<Produced>>,
+) -> Executed {
+    let graph = Graph::of(stages);
+    let produced: Mutex<BTreeMap<String, Arc<Produced>>> = Mutex::new(external);
+    let mut reports: Vec<Option<StageReport>> = vec![None; stages.len()];
     let mut stop = false;
     for level in &graph.levels {
         let ready: Vec<usize> = level
@@ -118,62 +214,60 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
             .filter(|&i| {
                 let done = produced.lock().expect("no panics hold this lock");
                 !stop
-                    && p.stages[i]
+                    && stages[i]
                         .inputs
                         .values()
                         .all(|r| done.contains_key(&r.stage))
             })
             .collect();
-        let results: Vec<(usize, StageReport, Option<Produced>)> = ready
-            .par_iter()
-            .map(|&i| {
-                let inputs = {
-                    let done = produced.lock().expect("no panics hold this lock");
-                    p.stages[i]
-                        .wired_tables()
-                        .into_iter()
-                        .map(|(slot, r)| {
-                            let prod = done[&r.stage].clone();
-                            (slot, r, prod)
-                        })
-                        .collect::<Vec<_>>()
-                };
-                let (report, out) = execute(p, i, inputs, &store, &dir);
-                if opts.progress {
-                    progress_line(&report);
-                }
-                (i, report, out)
-            })
-            .collect();
+        let run_one = |&i: &usize| {
+            let inputs = {
+                let done = produced.lock().expect("no panics hold this lock");
+                stages[i]
+                    .wired_tables()
+                    .into_iter()
+                    .map(|(slot, r)| {
+                        let prod = done[&r.stage].clone();
+                        (slot, r, prod)
+                    })
+                    .collect::<Vec<_>>()
+            };
+            let (report, out) = execute(runner, &stages[i], inputs);
+            if runner.progress {
+                progress_line(&report);
+            }
+            (i, report, out)
+        };
+        let results: Vec<(usize, StageReport, Option<Produced>)> = if runner.parallel {
+            ready.par_iter().map(run_one).collect()
+        } else {
+            ready.iter().map(run_one).collect()
+        };
         for (i, report, out) in results {
-            if report.status == "failed" && !opts.keep_going {
+            if report.status == "failed" && !runner.keep_going {
                 stop = true;
             }
             if let Some(out) = out {
                 produced
                     .lock()
                     .expect("no panics hold this lock")
-                    .insert(p.stages[i].name.clone(), Arc::new(out));
+                    .insert(stages[i].name.clone(), Arc::new(out));
             }
             reports[i] = Some(report);
         }
     }
-    let stages = reports
+    let produced = produced.into_inner().expect("no panics hold this lock");
+    let reports = reports
         .into_iter()
         .enumerate()
         .map(|(i, r)| {
             r.unwrap_or_else(|| {
-                let s = &p.stages[i];
+                let s = &stages[i];
                 let failed_inputs: Vec<&str> = s
                     .inputs
                     .values()
                     .map(|r| r.stage.as_str())
-                    .filter(|n| {
-                        !produced
-                            .lock()
-                            .expect("no panics hold this lock")
-                            .contains_key(*n)
-                    })
+                    .filter(|n| !produced.contains_key(*n))
                     .collect();
                 StageReport {
                     stage: s.name.clone(),
@@ -193,30 +287,157 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
             })
         })
         .collect();
-    let report = RunReport {
-        pipeline: p.name.clone(),
-        results: dir.clone(),
-        started: timestamp(started),
-        finished: timestamp(SystemTime::now()),
-        cleaned,
-        stages,
+    (reports, produced)
+}
+
+/// Runs every point of a sweep (points in parallel, each point's stages
+/// cached like any), gathers the chosen tables with the swept values as
+/// columns, and publishes them under `results/<pipeline>/sweep/`. Returns
+/// one report per per-point stage (`ran` if any point ran it), the
+/// gathered tables as the producer `sweep`, and the sweep's counts.
+fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced, SweepReport)> {
+    let point_runner = Runner {
+        publish: false,
+        progress: false,
+        parallel: false,
+        ..*runner
     };
-    cache::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
-    let tables: report::Tables = produced
-        .into_inner()
-        .expect("no panics hold this lock")
-        .into_iter()
-        .map(|(stage, prod)| {
-            let t = prod
-                .tables
-                .iter()
-                .map(|(name, (df, _))| (name.clone(), df.clone()))
-                .collect();
-            (stage, t)
+    let bar = if runner.progress {
+        let b = indicatif::ProgressBar::new(sw.points.len() as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{prefix} [{bar:40}] {pos}/{len} points  {elapsed_precise} elapsed, ETA {eta_precise}",
+            )
+            .expect("a valid template")
+            .progress_chars("=> "),
+        );
+        b.set_prefix("sweep");
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let outcomes: Vec<Executed> = sw
+        .points
+        .par_iter()
+        .map(|pt| {
+            let out = execute_stages(&point_runner, &pt.stages, BTreeMap::new());
+            bar.inc(1);
+            out
         })
         .collect();
-    report::write(&dir, p, &report, &tables)?;
-    Ok(report)
+    bar.finish_and_clear();
+    let mut counts = SweepReport {
+        points: sw.points.len(),
+        ..SweepReport::default()
+    };
+    let mut reports: Vec<StageReport> = Vec::new();
+    for (pt, (rs, _)) in sw.points.iter().zip(&outcomes) {
+        let failed: Vec<&StageReport> = rs.iter().filter(|r| r.status == "failed").collect();
+        if !failed.is_empty() {
+            counts.failed += 1;
+            for f in failed {
+                let mut f = f.clone();
+                f.reason = format!(
+                    "sweep point {} ({}): {}",
+                    pt.index,
+                    point_label(sw, pt),
+                    f.reason
+                );
+                reports.push(f);
+            }
+        } else if rs.iter().any(|r| r.status == "ran") {
+            counts.ran += 1;
+        } else {
+            counts.cached += 1;
+        }
+    }
+    // One line per per-point stage: ran if any point ran it.
+    if let Some((first, _)) = outcomes.first() {
+        for (k, r0) in first.iter().enumerate() {
+            let ran = outcomes
+                .iter()
+                .filter(|(rs, _)| rs.get(k).is_some_and(|r| r.status == "ran"))
+                .count();
+            let mut r = r0.clone();
+            r.status = if ran > 0 { "ran" } else { "cached" }.into();
+            r.reason = format!("{ran} of {} sweep points ran it", sw.points.len());
+            r.key = None;
+            r.seconds = outcomes
+                .iter()
+                .filter_map(|(rs, _)| rs.get(k).map(|r| r.seconds))
+                .sum();
+            if reports.iter().all(|x| x.stage != r.stage) {
+                reports.push(r);
+            }
+        }
+    }
+    if counts.failed > 0 && !runner.keep_going {
+        // The gathered tables would be incomplete: stop here.
+        return Ok((
+            reports,
+            Produced {
+                tables: BTreeMap::new(),
+            },
+            counts,
+        ));
+    }
+    let mut tables = BTreeMap::new();
+    for g in &sw.gather {
+        let mut frames = Vec::new();
+        for (pt, (_, produced)) in sw.points.iter().zip(&outcomes) {
+            let Some((df, _)) = produced.get(&g.stage).and_then(|p| p.tables.get(&g.table)) else {
+                continue;
+            };
+            frames.push(with_point_columns(sw, pt, df)?);
+        }
+        let df = table::concat_diagonal(&frames)?;
+        let bytes = table::to_parquet_bytes(&df)?;
+        let name = g.to_string();
+        counts.gathered.insert(name.clone(), df.height());
+        if runner.publish {
+            let path = runner
+                .dir
+                .join(sweep::PSEUDO_STAGE)
+                .join(format!("{name}.parquet"));
+            if !std::fs::read(&path).is_ok_and(|old| old == bytes) {
+                cache::write_atomic(&path, &bytes)?;
+            }
+        }
+        tables.insert(name, (Arc::new(df), cache::hash_bytes(&bytes)));
+    }
+    Ok((reports, Produced { tables }, counts))
+}
+
+/// `name=value, …` of a point, for messages.
+fn point_label(sw: &Sweep, pt: &SweepPoint) -> String {
+    sw.axes
+        .iter()
+        .zip(&pt.values)
+        .map(|(a, v)| format!("{}={v}", a.name))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// A point's table with `point` and one column per axis in front.
+fn with_point_columns(sw: &Sweep, pt: &SweepPoint, df: &DataFrame) -> Result<DataFrame> {
+    let n = df.height();
+    let mut cols = vec![polars::prelude::Column::new(
+        "point".into(),
+        vec![pt.index as i64; n],
+    )];
+    for (a, v) in sw.axes.iter().zip(&pt.values) {
+        cols.push(table::constant_column(&a.name, v, n)?);
+    }
+    for c in df.columns() {
+        if sw.axes.iter().any(|a| a.name == c.name().as_str()) || c.name().as_str() == "point" {
+            return Err(anyhow!(
+                "the gathered table already has a column `{}`: name the axis differently",
+                c.name()
+            ));
+        }
+        cols.push(c.clone());
+    }
+    DataFrame::new_infer_height(cols).map_err(|e| anyhow!("gathering a sweep table: {e}"))
 }
 
 fn progress_line(r: &StageReport) {
@@ -231,14 +452,8 @@ fn progress_line(r: &StageReport) {
 type Wired = Vec<(String, super::resolve::InputRef, Arc<Produced>)>;
 
 /// Runs or reuses one stage.
-fn execute(
-    p: &Pipeline,
-    i: usize,
-    inputs: Wired,
-    store: &Store,
-    dir: &Path,
-) -> (StageReport, Option<Produced>) {
-    let s = &p.stages[i];
+fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Produced>) {
+    let store = runner.store;
     let mut report = StageReport {
         stage: s.name.clone(),
         kind: s.config.kind().to_string(),
@@ -266,7 +481,7 @@ fn execute(
             Ok(prod) => {
                 report.status = "cached".into();
                 fill(&mut report, &entry.manifest);
-                if let Err(e) = publish(dir, &s.name, &entry) {
+                if let Err(e) = publish(runner, &s.name, &entry) {
                     report.status = "failed".into();
                     report.reason = format!("{e:#}");
                     return (report, None);
@@ -285,7 +500,7 @@ fn execute(
     report.reason = why;
     let started = SystemTime::now();
     let ctx = Context {
-        pipeline: &p.name,
+        pipeline: runner.pipeline,
         stage: &s.name,
     };
     let output = match panics::catch(|| s.config.run(&ctx, &stage_inputs)) {
@@ -343,8 +558,12 @@ fn execute(
             files,
         };
         store.put(&entry)?;
-        store.set_last(&s.name, &kf)?;
-        publish(dir, &s.name, &entry)?;
+        // What `explain` compares with: the last run of a stage of this
+        // name. Sweep points share their stages' names; they keep none.
+        if runner.publish {
+            store.set_last(&s.name, &kf)?;
+        }
+        publish(runner, &s.name, &entry)?;
         Ok(entry)
     })();
     match stored {
@@ -391,8 +610,11 @@ fn decode(entry: &Entry) -> Result<Produced> {
 
 /// Copies an entry's tables and files to `results/<pipeline>/<stage>/`,
 /// atomically, skipping files that are already identical.
-fn publish(dir: &Path, stage: &str, entry: &Entry) -> Result<()> {
-    let out = dir.join(stage);
+fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<()> {
+    if !runner.publish {
+        return Ok(());
+    }
+    let out = runner.dir.join(stage);
     let items = entry
         .tables
         .iter()

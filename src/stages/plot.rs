@@ -20,6 +20,7 @@ use crate::plots::{self, PointError};
 use crate::table::TableBuilder;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -29,6 +30,9 @@ pub enum PlotKind {
     /// Figures 10, 15–18: one criterion of an `evaluate_campaign` stage's
     /// `terms` table, before and after.
     Criterion,
+    /// A metric against a swept parameter, one line per value of a series
+    /// column, mean ± 1 standard deviation over everything else (seeds).
+    Metric,
 }
 
 impl PlotKind {
@@ -36,6 +40,7 @@ impl PlotKind {
         match self {
             PlotKind::MeshErrors => "mesh-errors",
             PlotKind::Criterion => "criterion",
+            PlotKind::Metric => "metric",
         }
     }
 }
@@ -52,6 +57,80 @@ pub struct PlotStage {
     /// `reference_distances` or `reference_coordinates`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub criterion: Option<String>,
+    /// For `plot = "metric"`: the columns of the x axis, the y axis and
+    /// (optional) the series, and rows to keep (`{ column = value }`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub series: Option<String>,
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub filter: BTreeMap<String, toml::Value>,
+}
+
+impl PlotStage {
+    /// `plot = "metric"`: mean ± sd of `y` per (`series`, `x`).
+    fn metric(&self, t: &crate::table::TableRef) -> Result<String> {
+        let (xc, yc) = (
+            self.x.as_deref().unwrap_or_default(),
+            self.y.as_deref().unwrap_or_default(),
+        );
+        let mut keep: Vec<bool> = vec![true; t.height()];
+        for (col, want) in &self.filter {
+            let want = want.to_string().trim_matches('"').to_string();
+            let have: Vec<String> = match t.str(col) {
+                Ok(v) => v,
+                Err(_) => t.f64(col)?.iter().map(|v| v.to_string()).collect(),
+            };
+            for (k, h) in keep.iter_mut().zip(&have) {
+                *k &= *h == want
+                    || h.parse::<f64>()
+                        .ok()
+                        .zip(want.parse::<f64>().ok())
+                        .is_some_and(|(a, b)| a == b);
+            }
+        }
+        let x = t.f64(xc)?;
+        let y = t.f64(yc)?;
+        let series: Vec<String> = match self.series.as_deref() {
+            Some(c) => match t.str(c) {
+                Ok(v) => v,
+                Err(_) => t.f64(c)?.iter().map(|v| format!("{c} = {v}")).collect(),
+            },
+            None => vec![yc.to_string(); t.height()],
+        };
+        let mut groups: BTreeMap<String, BTreeMap<i64, Vec<f64>>> = BTreeMap::new();
+        for i in (0..t.height()).filter(|&i| keep[i] && x[i].is_finite() && y[i].is_finite()) {
+            // Group x values equal to 1e-9 (swept values are exact).
+            groups
+                .entry(series[i].clone())
+                .or_default()
+                .entry((x[i] * 1e9).round() as i64)
+                .or_default()
+                .push(y[i]);
+        }
+        let lines: Vec<plots::MetricLine> = groups
+            .into_iter()
+            .map(|(name, pts)| plots::MetricLine {
+                name,
+                points: pts
+                    .into_iter()
+                    .map(|(xk, ys)| {
+                        let n = ys.len() as f64;
+                        let mean = ys.iter().sum::<f64>() / n;
+                        let sd = if ys.len() > 1 {
+                            (ys.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+                        } else {
+                            0.0
+                        };
+                        (xk as f64 / 1e9, mean, sd, ys.len())
+                    })
+                    .collect(),
+            })
+            .collect();
+        plots::metric_lines(&self.title, xc, yc, &lines)
+    }
 }
 
 impl StageKind for PlotStage {
@@ -96,11 +175,36 @@ impl StageKind for PlotStage {
                     format!("unknown criterion `{c}`; one of {}", CRITERIA.join(", ")),
                 ))
             }
-            (PlotKind::MeshErrors, Some(_)) => out.push(Invalid::new(
+            (PlotKind::MeshErrors | PlotKind::Metric, Some(_)) => out.push(Invalid::new(
                 "criterion",
                 "`criterion` applies to plot = \"criterion\" only",
             )),
             _ => {}
+        }
+        let metric_fields = [
+            ("x", self.x.is_some()),
+            ("y", self.y.is_some()),
+            ("series", self.series.is_some()),
+            ("filter", !self.filter.is_empty()),
+        ];
+        if self.plot == PlotKind::Metric {
+            for f in ["x", "y"] {
+                if !metric_fields.iter().any(|(n, set)| *n == f && *set) {
+                    out.push(Invalid::new(
+                        "plot",
+                        format!("plot = \"metric\" needs `{f}`: a column of the input table"),
+                    ));
+                }
+            }
+        } else {
+            for (f, set) in metric_fields {
+                if set {
+                    out.push(Invalid::new(
+                        f,
+                        format!("`{f}` applies to plot = \"metric\" only"),
+                    ));
+                }
+            }
         }
         out
     }
@@ -137,6 +241,7 @@ impl StageKind for PlotStage {
                 };
                 plots::criterion_errors(&self.title, label, &before, &after)?
             }
+            PlotKind::Metric => self.metric(&t)?,
         };
         let figure = TableBuilder::new()
             .str("file", &[&self.file])
