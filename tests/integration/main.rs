@@ -13,5 +13,6 @@ mod report;
 mod runner;
 mod sensitivity;
 mod snapshots;
+mod sweep;
 mod synthetic;
 mod util;

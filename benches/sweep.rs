@@ -1,0 +1,80 @@
+//! `sweep_points`: a 40-point sweep of the corner campaign (simulate,
+//! bundle adjustment, evaluate; every point computed, nothing cached) on a
+//! pool of 1 thread and of 2 threads. Points are the parallel unit: the
+//! ratio of the two medians is the sweep's scaling.
+//!
+//!     cargo bench --bench sweep
+
+use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
+use ltcal::pipeline::{self, run};
+use std::path::{Path, PathBuf};
+
+const PIPELINE: &str = r#"
+[pipeline]
+name = "bench-sweep"
+
+[stages.truth]
+kind = "inject"
+
+[stages.corner]
+kind = "simulate_campaign"
+inputs = { errors = "truth" }
+layout = { kind = "corner" }
+noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }
+
+[stages.calibration]
+kind = "calibrate"
+inputs = { campaign = "corner" }
+objective = "bundle"
+
+[stages.evaluation]
+kind = "evaluate_campaign"
+inputs = { campaign = "corner", params = "calibration" }
+
+[[sweep.axis]]
+path = "stages.corner.noise.sigma_angle_urad"
+values = [0.5, 1.0, 2.0, 4.0]
+
+[[sweep.axis]]
+path = "stages.corner.seed"
+random = { count = 10, seed = 1, low = 0, high = 1000000, integer = true }
+
+[sweep]
+gather = ["evaluation.criteria"]
+"#;
+
+fn run_once(file: &Path, results: PathBuf) {
+    let p = pipeline::load(file, &[]).unwrap();
+    let r = run::run(
+        &p,
+        &run::RunOptions {
+            results_root: results,
+            keep_going: false,
+            progress: false,
+        },
+    )
+    .unwrap();
+    assert_eq!(r.sweep.unwrap().ran, 40);
+}
+
+fn sweep_points(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("bench-sweep.toml");
+    std::fs::write(&file, PIPELINE).unwrap();
+    let mut g = c.benchmark_group("sweep_points");
+    g.sample_size(10);
+    for threads in [1, 2] {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        g.bench_function(format!("{threads}_threads"), |b| {
+            b.iter_batched(
+                || tempfile::tempdir().unwrap(),
+                |results| pool.install(|| run_once(&file, results.path().to_path_buf())),
+                BatchSize::PerIteration,
+            )
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, sweep_points);
+criterion_main!(benches);

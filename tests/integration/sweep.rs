@@ -1,0 +1,158 @@
+//! Batch sweeps: cached points, resumption after a kill, independence from
+//! the number of threads, and errors that point into the file.
+
+use crate::util::*;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// A sweep of `noise` zipped noise levels × `seeds` seeds over the corner
+/// campaign: simulate, calibrate (bundle), evaluate.
+fn sweep_file(dir: &Path, name: &str, noise: usize, seeds: usize) -> PathBuf {
+    let text = format!(
+        r#"
+[pipeline]
+name = "{name}"
+
+[stages.truth]
+kind = "inject"
+
+[stages.corner]
+kind = "simulate_campaign"
+inputs = {{ errors = "truth" }}
+layout = {{ kind = "corner", stations = 4 }}
+noise = {{ sigma_angle_urad = 1.0, sigma_range_um = 2.0 }}
+
+[stages.calibration]
+kind = "calibrate"
+inputs = {{ campaign = "corner" }}
+objective = "bundle"
+
+[stages.evaluation]
+kind = "evaluate_campaign"
+inputs = {{ campaign = "corner", params = "calibration" }}
+
+[[sweep.axis]]
+path = "stages.corner.noise.sigma_angle_urad"
+group = "noise"
+range = {{ from = 0.25, to = {a}, step = 0.25 }}
+
+[[sweep.axis]]
+path = "stages.corner.noise.sigma_range_um"
+group = "noise"
+range = {{ from = 0.5, to = {r}, step = 0.5 }}
+
+[[sweep.axis]]
+path = "stages.corner.seed"
+random = {{ count = {seeds}, seed = 5, low = 0, high = 1000000, integer = true }}
+
+[sweep]
+gather = ["evaluation.criteria"]
+
+[stages.figure]
+kind = "plot"
+plot = "metric"
+inputs = {{ table = "sweep.evaluation.criteria" }}
+x = "sigma_angle_urad"
+y = "improvement_pct"
+filter = {{ criterion = "coordinates", station = "all", statistic = "average" }}
+"#,
+        a = 0.25 * noise as f64,
+        r = 0.5 * noise as f64,
+    );
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn gathered(results: &Path, name: &str) -> Vec<u8> {
+    std::fs::read(results.join(name).join("sweep").join("evaluation.criteria.parquet")).unwrap()
+}
+
+#[test]
+fn a_sweep_of_200_points_gathers_and_an_immediate_rerun_recomputes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "s200", 20, 10);
+    let first = run_pipeline(&file, dir.path(), &[]);
+    let sw = first.sweep.clone().unwrap();
+    assert_eq!((sw.points, sw.ran, sw.cached, sw.failed), (200, 200, 0, 0));
+    let g = table(dir.path(), "s200", "sweep", "evaluation.criteria");
+    // Per point: coordinates and distances × (4 stations + all) × (average,
+    // maximum) = 20 rows.
+    assert_eq!(g.height(), 200 * 20);
+    for c in ["point", "sigma_angle_urad", "sigma_range_um", "seed", "criterion", "improvement_pct"] {
+        assert!(g.column(c).is_ok(), "gathered table lacks `{c}`");
+    }
+    assert!(first.stages.iter().any(|s| s.stage == "figure" && s.status == "ran"));
+    let second = run_pipeline(&file, dir.path(), &[]);
+    let sw = second.sweep.clone().unwrap();
+    assert_eq!((sw.ran, sw.cached), (0, 200));
+    assert!(second.with_status("ran").is_empty(), "{:?}", second.with_status("ran"));
+}
+
+#[test]
+fn sweep_results_do_not_depend_on_the_number_of_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "threads", 6, 4);
+    let mut outputs = Vec::new();
+    for threads in [1, 2] {
+        let results = dir.path().join(format!("j{threads}"));
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| run_pipeline(&file, &results, &[]));
+        outputs.push(gathered(&results, "threads"));
+    }
+    assert_eq!(outputs[0], outputs[1], "the gathered tables differ between 1 and 2 threads");
+}
+
+#[test]
+fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "killed", 20, 10);
+    let killed = dir.path().join("killed-results");
+    let cache = killed.join("killed").join(".ltcal").join("cache");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(["run", file.to_str().unwrap(), "--results", killed.to_str().unwrap(), "-q"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    // Kill once about a third of the points' entries exist.
+    let t0 = Instant::now();
+    loop {
+        let n = std::fs::read_dir(&cache).map(|d| d.count()).unwrap_or(0);
+        if n >= 200 || t0.elapsed() > Duration::from_secs(60) {
+            break;
+        }
+        if child.try_wait().unwrap().is_some() {
+            panic!("the sweep finished before it could be killed: make it longer");
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let resumed = run_pipeline(&file, &killed, &[]);
+    let sw = resumed.sweep.unwrap();
+    assert_eq!(sw.ran + sw.cached, 200);
+    assert!(sw.cached >= 30 && sw.ran >= 30, "cached {} ran {}: the kill should fall mid-sweep", sw.cached, sw.ran);
+    // And the result is the one of an uninterrupted run.
+    let clean = dir.path().join("clean-results");
+    run_pipeline(&file, &clean, &[]);
+    assert_eq!(gathered(&killed, "killed"), gathered(&clean, "killed"));
+}
+
+#[test]
+fn sweep_mistakes_point_into_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "bad", 4, 2);
+    let text = std::fs::read_to_string(&file).unwrap().replace("stages.corner.seed", "stages.cornr.seed");
+    std::fs::write(&file, &text).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(["run", file.to_str().unwrap(), "--results", dir.path().join("r").to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = text.lines().position(|l| l.contains("cornr")).unwrap() + 1;
+    assert_eq!(out.status.code(), Some(2));
+    assert!(err.contains(&format!("bad.toml:{line}:8")), "{err}");
+    assert!(err.contains("an axis sweeps `stages.<stage>.<field>`"), "{err}");
+}
