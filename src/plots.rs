@@ -948,6 +948,87 @@ pub fn metric_lines(
     Ok(svg)
 }
 
+/// Grouped bars: one group per category, one bar per series, with a
+/// dashed reference level per series.
+pub fn grouped_bars(
+    title: &str,
+    y_label: &str,
+    categories: &[String],
+    series: &[(String, Vec<f64>)],
+    references: &[f64],
+) -> Result<String> {
+    let n_s = series.len().max(1);
+    let (lo, hi) = series
+        .iter()
+        .flat_map(|s| s.1.iter().copied())
+        .chain(references.iter().copied())
+        .filter(|v| v.is_finite())
+        .fold((0.0f64, 0.0f64), |(a, b), v| (a.min(v), b.max(v)));
+    let hi = hi.max(1.0) * 1.08;
+    let lo = if lo < 0.0 { lo * 1.08 } else { 0.0 };
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (1200, 620)).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(20)
+            .caption(title, ("sans-serif", 20))
+            .x_label_area_size(60)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..categories.len() as f64, lo..hi)
+            .map_err(err)?;
+        let cats = categories.to_vec();
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_labels(categories.len())
+            .x_label_formatter(&move |v| cats.get(v.floor() as usize).cloned().unwrap_or_default())
+            .y_desc(y_label)
+            .label_style(("sans-serif", 12))
+            .draw()
+            .map_err(err)?;
+        let width = 0.8 / n_s as f64;
+        for (k, (name, values)) in series.iter().enumerate() {
+            let colour = viridis(k as f64 / (n_s.max(2) - 1) as f64 * 0.85);
+            chart
+                .draw_series(
+                    values
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| v.is_finite())
+                        .map(|(i, &v)| {
+                            let x = i as f64 + 0.1 + k as f64 * width;
+                            Rectangle::new([(x, 0.0), (x + width * 0.9, v)], colour.filled())
+                        }),
+                )
+                .map_err(err)?
+                .label(name.clone())
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 5), (x + 12, y + 5)], colour.filled())
+                });
+            if let Some(&r) = references.get(k) {
+                chart
+                    .draw_series(DashedLineSeries::new(
+                        [(0.0, r), (categories.len() as f64, r)],
+                        6,
+                        4,
+                        colour.stroke_width(2),
+                    ))
+                    .map_err(err)?;
+            }
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.9))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(err)?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

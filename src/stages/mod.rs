@@ -21,6 +21,7 @@ pub mod inject;
 pub mod layout_design;
 pub mod measure;
 pub mod mesh;
+pub mod paper_gap;
 pub mod plot;
 pub mod sensitivity;
 pub mod simulate_campaign;
@@ -237,6 +238,7 @@ stage_kinds! {
     EvaluateCampaign => evaluate_campaign::EvaluateCampaignStage,
     Diagnose => diagnose::DiagnoseStage,
     BlindCheck => blind_check::BlindCheckStage,
+    PaperGap => paper_gap::PaperGapStage,
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,
     Sensitivity => sensitivity::SensitivityStage,
