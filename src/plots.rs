@@ -5,6 +5,7 @@
 use anyhow::{Result, anyhow};
 use plotters::coord::Shift;
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 /// The viridis colour map, sampled at nine points and interpolated.
 pub fn viridis(t: f64) -> RGBColor {
@@ -805,6 +806,19 @@ pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Re
     Ok(svg)
 }
 
+/// A 12-point label on a drawing area at pixel `at`, anchored as given.
+fn label_at(
+    area: &DrawingArea<SVGBackend, Shift>,
+    text: &str,
+    at: (i32, i32),
+    h: HPos,
+) -> Result<()> {
+    let style = ("sans-serif", 12)
+        .into_text_style(area)
+        .pos(Pos::new(h, VPos::Top));
+    area.draw_text(text, &style, at).map_err(err)
+}
+
 /// A confusion matrix: counts of true classes (rows) against named ones
 /// (columns), the diagonal shaded green and the rest red by count.
 pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -> Result<String> {
@@ -819,32 +833,22 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
             .caption(title, ("sans-serif", 18))
             .x_label_area_size(90)
             .y_label_area_size(150)
-            .build_cartesian_2d(0.0..n as f64, 0.0..n as f64)
+            .build_cartesian_2d(-0.5..n as f64 - 0.5, -0.5..n as f64 - 0.5)
             .map_err(err)?;
-        let names = labels.to_vec();
-        let names_y = labels.to_vec();
         chart
             .configure_mesh()
             .disable_mesh()
-            .x_labels(n)
-            .y_labels(n)
+            .x_labels(0)
+            .y_labels(0)
             .x_desc("named by the diagnosis")
             .y_desc("true effect")
-            .x_label_formatter(&move |v| names.get(v.floor() as usize).cloned().unwrap_or_default())
-            .y_label_formatter(&move |v| {
-                let i = (n as f64 - v).floor() as usize;
-                names_y
-                    .get(i.saturating_sub(1))
-                    .cloned()
-                    .unwrap_or_default()
-            })
             .label_style(("sans-serif", 12))
             .draw()
             .map_err(err)?;
         for (i, row) in counts.iter().enumerate() {
             for (j, &c) in row.iter().enumerate() {
-                let y = (n - 1 - i) as f64;
-                let x = j as f64;
+                let y = (n - 1 - i) as f64 - 0.5;
+                let x = j as f64 - 0.5;
                 let t = c as f64 / max;
                 let colour = if c == 0 {
                     RGBColor(245, 245, 245)
@@ -871,6 +875,13 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
                     )))
                     .map_err(err)?;
             }
+        }
+        // The class names under and beside the cells' centres.
+        for (i, name) in labels.iter().enumerate() {
+            let (px, py) = chart.backend_coord(&(i as f64, -0.5));
+            label_at(&root, name, (px, py + 8), HPos::Center)?;
+            let (px, py) = chart.backend_coord(&(-0.5, (n - 1 - i) as f64));
+            label_at(&root, name, (px - 8, py - 6), HPos::Right)?;
         }
         root.present().map_err(err)?;
     }
@@ -964,7 +975,8 @@ pub fn grouped_bars(
         .chain(references.iter().copied())
         .filter(|v| v.is_finite())
         .fold((0.0f64, 0.0f64), |(a, b), v| (a.min(v), b.max(v)));
-    let hi = hi.max(1.0) * 1.08;
+    // Head room for the legend above the tallest bar.
+    let hi = hi.max(1.0) * 1.35;
     let lo = if lo < 0.0 { lo * 1.08 } else { 0.0 };
     let mut svg = String::new();
     {
@@ -975,14 +987,12 @@ pub fn grouped_bars(
             .caption(title, ("sans-serif", 20))
             .x_label_area_size(60)
             .y_label_area_size(70)
-            .build_cartesian_2d(0.0..categories.len() as f64, lo..hi)
+            .build_cartesian_2d(-0.5..categories.len() as f64 - 0.5, lo..hi)
             .map_err(err)?;
-        let cats = categories.to_vec();
         chart
             .configure_mesh()
             .disable_x_mesh()
-            .x_labels(categories.len())
-            .x_label_formatter(&move |v| cats.get(v.floor() as usize).cloned().unwrap_or_default())
+            .x_labels(0)
             .y_desc(y_label)
             .label_style(("sans-serif", 12))
             .draw()
@@ -997,7 +1007,7 @@ pub fn grouped_bars(
                         .enumerate()
                         .filter(|(_, v)| v.is_finite())
                         .map(|(i, &v)| {
-                            let x = i as f64 + 0.1 + k as f64 * width;
+                            let x = i as f64 - 0.4 + k as f64 * width;
                             Rectangle::new([(x, 0.0), (x + width * 0.9, v)], colour.filled())
                         }),
                 )
@@ -1009,7 +1019,7 @@ pub fn grouped_bars(
             if let Some(&r) = references.get(k) {
                 chart
                     .draw_series(DashedLineSeries::new(
-                        [(0.0, r), (categories.len() as f64, r)],
+                        [(-0.5, r), (categories.len() as f64 - 0.5, r)],
                         6,
                         4,
                         colour.stroke_width(2),
@@ -1019,11 +1029,28 @@ pub fn grouped_bars(
         }
         chart
             .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
             .background_style(WHITE.mix(0.9))
             .border_style(BLACK)
             .label_font(("sans-serif", 13))
             .draw()
             .map_err(err)?;
+        // Category names under each group, long ones over two lines.
+        for (i, name) in categories.iter().enumerate() {
+            let (px, py) = chart.backend_coord(&(i as f64, lo));
+            let lines: Vec<&str> = match name.split_once(" + ") {
+                Some((a, b)) if name.len() > 18 => vec![a, b],
+                _ => vec![name.as_str()],
+            };
+            for (k, line) in lines.iter().enumerate() {
+                let text = if k > 0 {
+                    format!("+ {line}")
+                } else {
+                    line.to_string()
+                };
+                label_at(&root, &text, (px, py + 8 + 15 * k as i32), HPos::Center)?;
+            }
+        }
         root.present().map_err(err)?;
     }
     Ok(svg)

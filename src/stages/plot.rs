@@ -110,6 +110,15 @@ impl PlotStage {
                 .or_default()
                 .push(y[i]);
         }
+        // Series named by numbers go in numeric order.
+        let mut groups: Vec<(String, BTreeMap<i64, Vec<f64>>)> = groups.into_iter().collect();
+        groups.sort_by(|a, b| {
+            let num = |s: &str| s.rsplit(' ').next().and_then(|x| x.parse::<f64>().ok());
+            match (num(&a.0), num(&b.0)) {
+                (Some(x), Some(y)) => x.total_cmp(&y),
+                _ => a.0.cmp(&b.0),
+            }
+        });
         let lines: Vec<plots::MetricLine> = groups
             .into_iter()
             .map(|(name, pts)| plots::MetricLine {
