@@ -64,7 +64,10 @@ fn sweep_points(c: &mut Criterion) {
     let mut g = c.benchmark_group("sweep_points");
     g.sample_size(10);
     for threads in [1, 2] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         g.bench_function(format!("{threads}_threads"), |b| {
             b.iter_batched(
                 || tempfile::tempdir().unwrap(),

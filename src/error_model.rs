@@ -415,6 +415,16 @@ impl ErrorParams {
         &mut self.values
     }
 
+    /// These values with `delta[k]` added to coefficient `indices[k]`: how
+    /// a fit in the coordinates of some coefficients moves the whole set.
+    pub fn plus(&self, indices: &[usize], delta: &nalgebra::DVector<f64>) -> ErrorParams {
+        let mut p = self.clone();
+        for (k, &i) in indices.iter().enumerate() {
+            p.values[i] += delta[k];
+        }
+        p
+    }
+
     pub fn get(&self, c: &Coef) -> Option<f64> {
         self.coefs
             .iter()

@@ -129,12 +129,7 @@ struct Eq11<'a> {
 
 impl Eq11<'_> {
     fn params(&self, z: &DVector<f64>) -> ErrorParams {
-        let mut p = self.start.clone();
-        let dx = self.basis * z;
-        for (k, &i) in self.free_index.iter().enumerate() {
-            p.values_mut()[i] += dx[k];
-        }
-        p
+        self.start.plus(self.free_index, &(self.basis * z))
     }
 }
 

@@ -255,12 +255,8 @@ struct Bundle<'a> {
 
 impl<'a> Bundle<'a> {
     fn params(&self, x: &DVector<f64>) -> ErrorParams {
-        let mut p = self.start.clone();
-        let dx = self.basis * x.rows(0, self.layout.n_z);
-        for (k, &i) in self.free_index.iter().enumerate() {
-            p.values_mut()[i] += dx[k];
-        }
-        p
+        self.start
+            .plus(self.free_index, &(self.basis * x.rows(0, self.layout.n_z)))
     }
 
     fn pose(&self, x: &DVector<f64>, s: usize) -> (Rotation3<f64>, Vector3<f64>, Vector3<f64>) {

@@ -236,12 +236,7 @@ struct Weighted<'a> {
 
 impl Weighted<'_> {
     fn params(&self, z: &DVector<f64>) -> ErrorParams {
-        let mut p = self.start.clone();
-        let dx = self.basis * z;
-        for (k, &i) in self.free_index.iter().enumerate() {
-            p.values_mut()[i] += dx[k];
-        }
-        p
+        self.start.plus(self.free_index, &(self.basis * z))
     }
 }
 
@@ -334,16 +329,8 @@ pub fn calibrate(
                 break;
             }
             // IRLS: weight each term by 1/|r| so that Σ w·r² ≈ Σ |r|.
-            let problem = Weighted {
-                net,
-                views: &views,
-                terms: &terms,
-                start,
-                free_index: &free_index,
-                basis: &basis,
-                sqrt_w: &sqrt_w,
-            };
-            let r = evaluate(net, &views, &terms, &problem.params(&z), &free_index, false).r;
+            let params = start.plus(&free_index, &(&basis * &z));
+            let r = evaluate(net, &views, &terms, &params, &free_index, false).r;
             let l1 = r.iter().map(|x| x.abs()).sum::<f64>();
             let eps = (1e-6 * l1 / r.len() as f64).max(1e-9);
             sqrt_w = r.map(|x| 1.0 / x.abs().max(eps).sqrt());
@@ -354,16 +341,7 @@ pub fn calibrate(
             last_l1 = l1;
         }
     }
-    let problem = Weighted {
-        net,
-        views: &views,
-        terms: &terms,
-        start,
-        free_index: &free_index,
-        basis: &basis,
-        sqrt_w: &sqrt_w,
-    };
-    let params = problem.params(&z);
+    let params = start.plus(&free_index, &(&basis * &z));
     let e1 = evaluate(net, &views, &terms, &params, &free_index, true);
     let m = terms.len() as f64;
     let rms = |r: &DVector<f64>| (r.norm_squared() / m).sqrt();

@@ -41,8 +41,6 @@ pub struct Candidate {
     pub place: String,
     /// Signature columns, one per parameter (rows: the model's rows).
     pub columns: DMatrix<f64>,
-    /// Parameter names and units, for the report.
-    pub params: Vec<(&'static str, &'static str)>,
     /// The magnitude reported from the fitted parameters, and its unit.
     pub magnitude: fn(&[f64]) -> f64,
     pub unit: &'static str,
@@ -127,7 +125,6 @@ pub fn build(
                 effect: "incidence",
                 place: "all".into(),
                 columns: c,
-                params: vec![("e_axial_um", "µm"), ("e_h_um", "µm"), ("e_v_um", "µm")],
                 magnitude: first,
                 unit: "µm",
                 alternatives: 1,
@@ -154,7 +151,6 @@ pub fn build(
                 effect: "incidence-table9",
                 place: "all".into(),
                 columns: c,
-                params: vec![("scale", "×")],
                 magnitude: first,
                 unit: "× Table 9",
                 alternatives: 1,
@@ -171,31 +167,31 @@ pub fn build(
 
     // range-scale: each station alone, and every station at once.
     if enabled("range-scale") {
-        for (s, id) in stations.iter().enumerate() {
-            let mut c = sig.columns(1);
-            for (i, r) in readings.iter().enumerate().filter(|(_, r)| r.station == s) {
-                put_d(&mut c, i, r, 0, 1e-6 * r.d);
+        // One ppm column per station that `col` maps to a column.
+        let scale = |n: usize, col: &dyn Fn(usize) -> Option<usize>| {
+            let mut c = sig.columns(n);
+            for (i, r) in readings.iter().enumerate() {
+                if let Some(k) = col(r.station) {
+                    put_d(&mut c, i, r, k, 1e-6 * r.d);
+                }
             }
+            c
+        };
+        for (s, id) in stations.iter().enumerate() {
             out.push(Candidate {
                 effect: "range-scale",
                 place: id.clone(),
-                columns: c,
-                params: vec![("ppm", "ppm")],
+                columns: scale(1, &|station| (station == s).then_some(0)),
                 magnitude: first,
                 unit: "ppm",
                 alternatives: 1,
                 detail: String::new(),
             });
         }
-        let mut c = sig.columns(stations.len());
-        for (i, r) in readings.iter().enumerate() {
-            put_d(&mut c, i, r, r.station, 1e-6 * r.d);
-        }
         out.push(Candidate {
             effect: "range-scale",
             place: "all".into(),
-            columns: c,
-            params: vec![("ppm", "ppm"); stations.len()],
+            columns: scale(stations.len(), &Some),
             magnitude: |b| b.iter().fold(0.0, |m: f64, x| m.max(x.abs())),
             unit: "ppm (largest)",
             alternatives: 1,
@@ -218,7 +214,6 @@ pub fn build(
                 effect: "air-refraction",
                 place: "all".into(),
                 columns: c,
-                params: vec![("ppm_per_k", "ppm/K"), ("ppm", "ppm")],
                 magnitude: first,
                 unit: "ppm/K",
                 alternatives: 1,
@@ -248,7 +243,6 @@ pub fn build(
                     effect: "encoder-harmonic",
                     place: axis.into(),
                     columns: c,
-                    params: vec![("a_sin_urad", "µrad"), ("b_cos_urad", "µrad")],
                     magnitude: norm,
                     unit: "µrad",
                     alternatives: 3,
@@ -279,11 +273,6 @@ pub fn build(
                     effect: "station-drift",
                     place: id.clone(),
                     columns: c,
-                    params: vec![
-                        ("vx_um_per_min", "µm/min"),
-                        ("vy_um_per_min", "µm/min"),
-                        ("vz_um_per_min", "µm/min"),
-                    ],
                     magnitude: norm,
                     unit: "µm/min",
                     alternatives: 1,
@@ -298,11 +287,6 @@ pub fn build(
                 effect: "station-drift",
                 place: "all".into(),
                 columns: c,
-                params: vec![
-                    ("vx_um_per_min", "µm/min"),
-                    ("vy_um_per_min", "µm/min"),
-                    ("vz_um_per_min", "µm/min"),
-                ],
                 magnitude: norm,
                 unit: "µm/min",
                 alternatives: 1,
@@ -340,7 +324,6 @@ pub fn build(
                     effect: "target-shift",
                     place: id.clone(),
                     columns: c,
-                    params: vec![("sx_um", "µm"), ("sy_um", "µm"), ("sz_um", "µm")],
                     magnitude: norm,
                     unit: "µm",
                     alternatives: n_from,

@@ -27,7 +27,6 @@ use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
 use crate::campaign::{self, Campaign};
 use crate::error_model::{ParamId, Shape};
-use crate::identifiability;
 use crate::table::TableBuilder;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
@@ -44,17 +43,10 @@ pub struct CalibrateStage {
     pub fixed: Vec<ParamId>,
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
-    #[serde(default = "default_rank_tol")]
+    #[serde(default = "fitting::default_rank_tol")]
     pub rank_tol: f64,
-    #[serde(default = "default_max_iters")]
+    #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
-}
-
-fn default_rank_tol() -> f64 {
-    identifiability::DEFAULT_REL_TOL
-}
-fn default_max_iters() -> u64 {
-    100
 }
 
 impl CalibrateStage {

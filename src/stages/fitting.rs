@@ -11,6 +11,16 @@ use anyhow::Result;
 use polars::prelude::DataFrame;
 use std::collections::BTreeMap;
 
+/// The default relative singular-value threshold of a fit's `rank_tol`.
+pub fn default_rank_tol() -> f64 {
+    crate::identifiability::DEFAULT_REL_TOL
+}
+
+/// The default `max_iters` of a fit.
+pub fn default_max_iters() -> u64 {
+    100
+}
+
 /// The error model with the given shapes (constants elsewhere).
 pub fn model(shapes: &BTreeMap<ParamId, Shape>) -> Result<ErrorModel, Invalid> {
     let mut m = ErrorModel::constant();

@@ -18,7 +18,6 @@
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::error_model::{ParamId, Shape};
-use crate::identifiability;
 use crate::identify::{self, KnownPoint, Settings};
 use crate::schema;
 use crate::table::TableBuilder;
@@ -33,17 +32,10 @@ pub struct IdentifyStage {
     pub fixed: Vec<ParamId>,
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
-    #[serde(default = "default_rank_tol")]
+    #[serde(default = "fitting::default_rank_tol")]
     pub rank_tol: f64,
-    #[serde(default = "default_max_iters")]
+    #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
-}
-
-fn default_rank_tol() -> f64 {
-    identifiability::DEFAULT_REL_TOL
-}
-fn default_max_iters() -> u64 {
-    100
 }
 
 impl StageKind for IdentifyStage {

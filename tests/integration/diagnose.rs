@@ -145,16 +145,31 @@ fn blind_check_meets_its_targets() {
 #[test]
 fn paper_gap_scenarios_account_for_the_shortfall() {
     let dir = tempfile::tempdir().unwrap();
-    crate::util::run_pipeline(&crate::util::pipeline_path("paper-gap.toml"), dir.path(), &[]);
+    crate::util::run_pipeline(
+        &crate::util::pipeline_path("paper-gap.toml"),
+        dir.path(),
+        &[],
+    );
     let gap = crate::util::table(dir.path(), "paper-gap", "gap", "gap");
     let get = |scenario: &str, col: &str| crate::util::cell(&gap, "scenario", scenario, col);
-    for c in ["table7_coordinates", "table7_distances", "table8_coordinates", "table8_distances"] {
+    for c in [
+        "table7_coordinates",
+        "table7_distances",
+        "table8_coordinates",
+        "table8_distances",
+    ] {
         assert!(get("pure model", &format!("{c}_pct")) >= 98.0, "{c}");
-        assert!(get("compensated + noise + table9", &format!("{c}_pct")) < 10.0, "{c}");
+        assert!(
+            get("compensated + noise + table9", &format!("{c}_pct")) < 10.0,
+            "{c}"
+        );
     }
     // Noise alone already accounts for most of the corner campaign's shortfall.
     assert!(get("noise", "table7_coordinates_share_pct") > 80.0);
     // Paper-sized errors reach the paper's initial error within a factor 1.5.
-    let init = get("paper-sized errors + noise + all", "table7_coordinates_initial_um");
+    let init = get(
+        "paper-sized errors + noise + all",
+        "table7_coordinates_initial_um",
+    );
     assert!((46.0 / 1.5..46.0 * 1.5).contains(&init), "{init}");
 }

@@ -66,7 +66,13 @@ filter = {{ criterion = "coordinates", station = "all", statistic = "average" }}
 }
 
 fn gathered(results: &Path, name: &str) -> Vec<u8> {
-    std::fs::read(results.join(name).join("sweep").join("evaluation.criteria.parquet")).unwrap()
+    std::fs::read(
+        results
+            .join(name)
+            .join("sweep")
+            .join("evaluation.criteria.parquet"),
+    )
+    .unwrap()
 }
 
 #[test]
@@ -80,14 +86,30 @@ fn a_sweep_of_200_points_gathers_and_an_immediate_rerun_recomputes_nothing() {
     // Per point: coordinates and distances × (4 stations + all) × (average,
     // maximum) = 20 rows.
     assert_eq!(g.height(), 200 * 20);
-    for c in ["point", "sigma_angle_urad", "sigma_range_um", "seed", "criterion", "improvement_pct"] {
+    for c in [
+        "point",
+        "sigma_angle_urad",
+        "sigma_range_um",
+        "seed",
+        "criterion",
+        "improvement_pct",
+    ] {
         assert!(g.column(c).is_ok(), "gathered table lacks `{c}`");
     }
-    assert!(first.stages.iter().any(|s| s.stage == "figure" && s.status == "ran"));
+    assert!(
+        first
+            .stages
+            .iter()
+            .any(|s| s.stage == "figure" && s.status == "ran")
+    );
     let second = run_pipeline(&file, dir.path(), &[]);
     let sw = second.sweep.clone().unwrap();
     assert_eq!((sw.ran, sw.cached), (0, 200));
-    assert!(second.with_status("ran").is_empty(), "{:?}", second.with_status("ran"));
+    assert!(
+        second.with_status("ran").is_empty(),
+        "{:?}",
+        second.with_status("ran")
+    );
 }
 
 #[test]
@@ -97,11 +119,17 @@ fn sweep_results_do_not_depend_on_the_number_of_threads() {
     let mut outputs = Vec::new();
     for threads in [1, 2] {
         let results = dir.path().join(format!("j{threads}"));
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         pool.install(|| run_pipeline(&file, &results, &[]));
         outputs.push(gathered(&results, "threads"));
     }
-    assert_eq!(outputs[0], outputs[1], "the gathered tables differ between 1 and 2 threads");
+    assert_eq!(
+        outputs[0], outputs[1],
+        "the gathered tables differ between 1 and 2 threads"
+    );
 }
 
 #[test]
@@ -111,7 +139,13 @@ fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
     let killed = dir.path().join("killed-results");
     let cache = killed.join("killed").join(".ltcal").join("cache");
     let mut child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
-        .args(["run", file.to_str().unwrap(), "--results", killed.to_str().unwrap(), "-q"])
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "--results",
+            killed.to_str().unwrap(),
+            "-q",
+        ])
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -133,7 +167,12 @@ fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
     let resumed = run_pipeline(&file, &killed, &[]);
     let sw = resumed.sweep.unwrap();
     assert_eq!(sw.ran + sw.cached, 200);
-    assert!(sw.cached >= 30 && sw.ran >= 30, "cached {} ran {}: the kill should fall mid-sweep", sw.cached, sw.ran);
+    assert!(
+        sw.cached >= 30 && sw.ran >= 30,
+        "cached {} ran {}: the kill should fall mid-sweep",
+        sw.cached,
+        sw.ran
+    );
     // And the result is the one of an uninterrupted run.
     let clean = dir.path().join("clean-results");
     run_pipeline(&file, &clean, &[]);
@@ -144,15 +183,25 @@ fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
 fn sweep_mistakes_point_into_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let file = sweep_file(dir.path(), "bad", 4, 2);
-    let text = std::fs::read_to_string(&file).unwrap().replace("stages.corner.seed", "stages.cornr.seed");
+    let text = std::fs::read_to_string(&file)
+        .unwrap()
+        .replace("stages.corner.seed", "stages.cornr.seed");
     std::fs::write(&file, &text).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
-        .args(["run", file.to_str().unwrap(), "--results", dir.path().join("r").to_str().unwrap()])
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "--results",
+            dir.path().join("r").to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     let line = text.lines().position(|l| l.contains("cornr")).unwrap() + 1;
     assert_eq!(out.status.code(), Some(2));
     assert!(err.contains(&format!("bad.toml:{line}:8")), "{err}");
-    assert!(err.contains("an axis sweeps `stages.<stage>.<field>`"), "{err}");
+    assert!(
+        err.contains("an axis sweeps `stages.<stage>.<field>`"),
+        "{err}"
+    );
 }
