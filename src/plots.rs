@@ -62,7 +62,14 @@ pub fn mesh_errors(title: &str, pts: &[PointError]) -> Result<String> {
             .fold(0.0, f64::max)
             .max(1e-12);
         mesh_3d(&mesh_area, pts, emax)?;
-        colour_bar(&bar_area, 0.0, emax, "error before (µm)")?;
+        colour_bar(
+            &bar_area,
+            0.0,
+            emax,
+            "error before (µm)",
+            viridis,
+            &FIGURE_BAR,
+        )?;
         errors_by_point(&right, pts)?;
         root.present().map_err(err)?;
     }
@@ -117,44 +124,6 @@ fn mesh_3d(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError], emax: f64)
         (20, area.dim_in_pixel().1 as i32 - 24),
     )
     .map_err(err)?;
-    Ok(())
-}
-
-/// A vertical colour bar from `lo` to `hi`.
-pub fn colour_bar(
-    area: &DrawingArea<SVGBackend, Shift>,
-    lo: f64,
-    hi: f64,
-    label: &str,
-) -> Result<()> {
-    let mut chart = ChartBuilder::on(area)
-        .margin_top(60)
-        .margin_bottom(60)
-        .margin_right(10)
-        .y_label_area_size(0)
-        .right_y_label_area_size(55)
-        .build_cartesian_2d(0.0..1.0, lo..hi)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .disable_x_mesh()
-        .disable_y_mesh()
-        .disable_x_axis()
-        .y_desc(label)
-        .label_style(("sans-serif", 12))
-        .draw()
-        .map_err(err)?;
-    let n = 64;
-    let step = (hi - lo) / n as f64;
-    chart
-        .draw_series((0..n).map(|i| {
-            let a = lo + i as f64 * step;
-            Rectangle::new(
-                [(0.0, a), (1.0, a + step)],
-                viridis((i as f64 + 0.5) / n as f64).filled(),
-            )
-        }))
-        .map_err(err)?;
     Ok(())
 }
 
@@ -342,7 +311,14 @@ pub fn sensitivity_fields(title: &str, panels: &[ParamField]) -> Result<String> 
                 )
                 .map_err(err)?;
         }
-        colour_bar(&bar, d_lo / 1000.0, d_hi / 1000.0, "distance d (m)")?;
+        colour_bar(
+            &bar,
+            d_lo / 1000.0,
+            d_hi / 1000.0,
+            "distance d (m)",
+            viridis,
+            &FIGURE_BAR,
+        )?;
         root.present().map_err(err)?;
     }
     Ok(svg)
@@ -527,20 +503,49 @@ pub fn diverging(t: f64) -> RGBColor {
     RGBColor(lerp(a.0, b.0), lerp(a.1, b.1), lerp(a.2, b.2))
 }
 
-/// A vertical colour bar from `lo` to `hi` in any colour map.
-pub fn colour_bar_with(
+/// Where a colour bar sits in its area: the mesh figures give it a tall
+/// strip of their own, the heat maps a narrow one beside each panel.
+struct BarLayout {
+    margin_top: u32,
+    margin_bottom: u32,
+    margin_right: u32,
+    labels_px: u32,
+    font_px: u32,
+}
+
+/// The bar beside a mesh figure.
+const FIGURE_BAR: BarLayout = BarLayout {
+    margin_top: 60,
+    margin_bottom: 60,
+    margin_right: 10,
+    labels_px: 55,
+    font_px: 12,
+};
+
+/// The bar beside one heat-map panel.
+const PANEL_BAR: BarLayout = BarLayout {
+    margin_top: 30,
+    margin_bottom: 40,
+    margin_right: 4,
+    labels_px: 50,
+    font_px: 11,
+};
+
+/// A vertical colour bar from `lo` to `hi` in the colour map `map`.
+fn colour_bar(
     area: &DrawingArea<SVGBackend, Shift>,
     lo: f64,
     hi: f64,
     label: &str,
     map: fn(f64) -> RGBColor,
+    layout: &BarLayout,
 ) -> Result<()> {
     let mut chart = ChartBuilder::on(area)
-        .margin_top(30)
-        .margin_bottom(40)
-        .margin_right(4)
+        .margin_top(layout.margin_top)
+        .margin_bottom(layout.margin_bottom)
+        .margin_right(layout.margin_right)
         .y_label_area_size(0)
-        .right_y_label_area_size(50)
+        .right_y_label_area_size(layout.labels_px)
         .build_cartesian_2d(0.0..1.0, lo..hi)
         .map_err(err)?;
     chart
@@ -550,7 +555,7 @@ pub fn colour_bar_with(
         .disable_x_axis()
         .y_desc(label)
         .y_labels(6)
-        .label_style(("sans-serif", 11))
+        .label_style(("sans-serif", layout.font_px))
         .draw()
         .map_err(err)?;
     let n = 64;
@@ -642,7 +647,7 @@ fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
                 .map_err(err)?;
         }
     }
-    colour_bar_with(&bar, h.lo, h.hi, h.bar_label, h.map)
+    colour_bar(&bar, h.lo, h.hi, h.bar_label, h.map, &PANEL_BAR)
 }
 
 /// One fitted model of an incidence grid, for [`incidence_maps`].

@@ -154,10 +154,9 @@ impl<'a> TableRef<'a> {
         self.df.height()
     }
 
-    /// A numeric column with no missing values.
-    pub fn f64(&self, col: &str) -> Result<Vec<f64>> {
-        self.opt_f64(col)?
-            .iter()
+    /// `values` of column `col`, or an error naming the first missing one.
+    fn required<T>(&self, col: &str, values: impl Iterator<Item = Option<T>>) -> Result<Vec<T>> {
+        values
             .enumerate()
             .map(|(i, v)| {
                 v.ok_or_else(|| {
@@ -168,6 +167,11 @@ impl<'a> TableRef<'a> {
                 })
             })
             .collect()
+    }
+
+    /// A numeric column with no missing values.
+    pub fn f64(&self, col: &str) -> Result<Vec<f64>> {
+        self.required(col, self.opt_f64(col)?.into_iter())
     }
 
     pub fn opt_f64(&self, col: &str) -> Result<Vec<Option<f64>>> {
@@ -183,18 +187,7 @@ impl<'a> TableRef<'a> {
         let c = c
             .cast(&DataType::Int64)
             .map_err(|_| anyhow!("table `{}`, column `{col}` is not an integer", self.name))?;
-        c.i64()?
-            .iter()
-            .enumerate()
-            .map(|(i, v)| {
-                v.ok_or_else(|| {
-                    anyhow!(
-                        "table `{}`, column `{col}`, row {i}: missing value",
-                        self.name
-                    )
-                })
-            })
-            .collect()
+        self.required(col, c.i64()?.iter())
     }
 
     pub fn str(&self, col: &str) -> Result<Vec<String>> {
@@ -202,17 +195,7 @@ impl<'a> TableRef<'a> {
         let s = c
             .str()
             .map_err(|_| anyhow!("table `{}`, column `{col}` is not text", self.name))?;
-        s.iter()
-            .enumerate()
-            .map(|(i, v)| {
-                v.map(str::to_string).ok_or_else(|| {
-                    anyhow!(
-                        "table `{}`, column `{col}`, row {i}: missing value",
-                        self.name
-                    )
-                })
-            })
-            .collect()
+        self.required(col, s.iter().map(|v| v.map(str::to_string)))
     }
 
     pub fn bool(&self, col: &str) -> Result<Vec<bool>> {
@@ -220,17 +203,7 @@ impl<'a> TableRef<'a> {
         let s = c
             .bool()
             .map_err(|_| anyhow!("table `{}`, column `{col}` is not boolean", self.name))?;
-        s.iter()
-            .enumerate()
-            .map(|(i, v)| {
-                v.ok_or_else(|| {
-                    anyhow!(
-                        "table `{}`, column `{col}`, row {i}: missing value",
-                        self.name
-                    )
-                })
-            })
-            .collect()
+        self.required(col, s.iter())
     }
 }
 
