@@ -2,7 +2,11 @@
 //! `show`, `kinds`.
 
 use crate::pipeline::{
-    self, InputError, cache::Store, explain, graph, plan, resolve::Override, run, snapshot,
+    self, InputError,
+    cache::{self, Store},
+    explain, graph, plan,
+    resolve::Override,
+    run, snapshot, sweep,
 };
 use crate::stages;
 use crate::table;
@@ -243,7 +247,7 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
         return Ok(ExitCode::SUCCESS);
     }
     let checks = snapshot::check(&pipeline, snap, &tables, dir)?;
-    print!("{}", snapshot::Report(&checks));
+    print_out(&snapshot::Report(&checks).to_string())?;
     let bad = checks
         .iter()
         .filter(|c| !matches!(c.outcome, snapshot::Outcome::Same { .. }))
@@ -346,9 +350,10 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let pipeline = load(&p)?;
             let items = plan::plan(&pipeline, &store(&p, &pipeline));
             if json {
-                println!("{}", serde_json::to_string_pretty(&items)?);
+                print_out(&format!("{}\n", serde_json::to_string_pretty(&items)?))?;
             } else {
                 let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
+                let mut text = String::new();
                 for i in &items {
                     let reason = if i.reason.is_empty() {
                         String::new()
@@ -356,8 +361,10 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                         format!("  {}", i.reason)
                     };
                     let line = format!("{:>6}  {:width$}  {:9}{reason}", i.status, i.stage, i.kind);
-                    println!("{}", line.trim_end());
+                    text += line.trim_end();
+                    text += "\n";
                 }
+                print_out(&text)?;
             }
             let stale = items.iter().filter(|i| i.status != "cached").count();
             if check && stale > 0 {
@@ -370,9 +377,9 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let pipeline = load(&p)?;
             let e = explain::explain(&pipeline, &store(&p, &pipeline), &stage)?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&e)?);
+                print_out(&format!("{}\n", serde_json::to_string_pretty(&e)?))?;
             } else {
-                print!("{e}");
+                print_out(&e.to_string())?;
             }
             Ok(ExitCode::SUCCESS)
         }
@@ -382,36 +389,15 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 .into_iter()
                 .map(|i| (i.stage, i.status))
                 .collect();
-            match format {
-                GraphFormat::Dot => print!("{}", graph::dot(&pipeline, &statuses)),
-                GraphFormat::Mermaid => print!("{}", graph::mermaid(&pipeline, &statuses)),
-                GraphFormat::Svg => print!("{}", graph::svg(&pipeline, &statuses)?),
-            }
+            print_out(&match format {
+                GraphFormat::Dot => graph::dot(&pipeline, &statuses),
+                GraphFormat::Mermaid => graph::mermaid(&pipeline, &statuses),
+                GraphFormat::Svg => graph::svg(&pipeline, &statuses)?,
+            })?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Snapshot { p, check, dir } => snapshot_command(&p, check, &dir),
-        Command::Show { p, table, digits } => {
-            let pipeline = load(&p)?;
-            let (stage, name) = match table.split_once('.') {
-                Some((s, t)) => (s.to_string(), Some(t.to_string())),
-                None => (table.clone(), None),
-            };
-            let Some(s) = pipeline.stages.iter().find(|s| s.name == stage) else {
-                bail!("the pipeline has no stage `{stage}`");
-            };
-            let name = name.unwrap_or_else(|| s.config.outputs()[0].to_string());
-            let path = run::pipeline_dir(&p.results, &pipeline)
-                .join(&stage)
-                .join(format!("{name}.parquet"));
-            let df = table::read_parquet(&path).with_context(|| {
-                format!(
-                    "no result yet: run `ltcal run {}` first",
-                    p.pipeline.display()
-                )
-            })?;
-            print!("{}", table::to_text(&df, digits));
-            Ok(ExitCode::SUCCESS)
-        }
+        Command::Show { p, table, digits } => show(&p, &table, digits),
         Command::Diagnose {
             campaign,
             out,
@@ -421,10 +407,113 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             seed,
         } => diagnose_command(&campaign, &out, effects, folds, mc_draws, seed),
         Command::Kinds => {
-            for (k, s) in stages::summaries() {
-                println!("{k:10}  {s}");
-            }
+            let kinds: String = stages::summaries()
+                .into_iter()
+                .map(|(k, s)| format!("{k:10}  {s}\n"))
+                .collect();
+            print_out(&kinds)?;
             Ok(ExitCode::SUCCESS)
         }
+    }
+}
+
+/// `ltcal show`: a published table, checked against the cache entry it
+/// came from, so that an edited or damaged file or a stale result is never
+/// shown as current.
+fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
+    let pipeline = load(p)?;
+    let dir = run::pipeline_dir(&p.results, &pipeline);
+    let wrong = |m: String| anyhow::Error::from(InputError(vec![pipeline::Problem::Arg(m)]));
+    let (stage, name) = match table.split_once('.') {
+        Some((s, t)) => (s, Some(t)),
+        None => (table, None),
+    };
+    let (path, stage) = match (&pipeline.sweep, stage) {
+        (Some(sw), sweep::PSEUDO_STAGE) => {
+            let names = sw.table_names();
+            let Some(name) = name.filter(|n| names.iter().any(|g| g == n)) else {
+                return Err(wrong(format!(
+                    "the sweep gathers {}: show one as `sweep.<stage>.<table>`",
+                    names.join(", ")
+                )));
+            };
+            (dir.join(stage).join(format!("{name}.parquet")), None)
+        }
+        _ => {
+            let Some(s) = pipeline.stages.iter().find(|s| s.name == stage) else {
+                let names: Vec<&str> = pipeline.stages.iter().map(|s| s.name.as_str()).collect();
+                return Err(wrong(format!(
+                    "the pipeline has no stage `{stage}`; its stages are: {}",
+                    names.join(", ")
+                )));
+            };
+            let outputs = s.config.outputs();
+            let name = name.unwrap_or(outputs[0]);
+            if !outputs.contains(&name) {
+                return Err(wrong(format!(
+                    "stage `{stage}` has no table `{name}`; its tables are: {}",
+                    outputs.join(", ")
+                )));
+            }
+            (
+                dir.join(stage).join(format!("{name}.parquet")),
+                Some((stage, name)),
+            )
+        }
+    };
+    let rerun = format!("`ltcal run {}`", p.pipeline.display());
+    let bytes = match std::fs::read(&path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!(
+                "no result yet ({} does not exist): run {rerun} first",
+                path.display()
+            )
+        }
+        Err(e) => bail!("reading {}: {e}", path.display()),
+    };
+    if let Some((stage, name)) = stage {
+        let item = plan::plan(&pipeline, &store(p, &pipeline))
+            .into_iter()
+            .find(|i| i.stage == stage)
+            .expect("every stage is planned");
+        let manifest = item
+            .key
+            .as_deref()
+            .and_then(|k| store(p, &pipeline).check(k));
+        match (item.status.as_str(), manifest) {
+            ("cached", Some(Ok(m))) => {
+                let stored = m.tables.iter().find(|t| t.name == name).map(|t| &t.hash);
+                if stored != Some(&cache::hash_bytes(&bytes)) {
+                    bail!(
+                        "{} differs from the result it was published from (edited or damaged): \
+                         {rerun} restores it",
+                        path.display()
+                    );
+                }
+            }
+            _ => eprintln!(
+                "note: this table is from an earlier run; `{stage}` would run again ({}): run {rerun}",
+                item.reason
+            ),
+        }
+    }
+    let df = table::from_parquet_bytes(&bytes).with_context(|| {
+        format!(
+            "{} is not a readable table: {rerun} restores it",
+            path.display()
+        )
+    })?;
+    print_out(&table::to_text(&df, digits))?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Writes to standard output; a closed pipe (`ltcal show … | head`) ends
+/// the output quietly instead of panicking as `print!` does.
+fn print_out(text: &str) -> Result<()> {
+    use std::io::Write;
+    match std::io::stdout().lock().write_all(text.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
     }
 }

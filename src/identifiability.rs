@@ -12,7 +12,12 @@
 //! Columns are compared in display units (µm, µrad), so "orthogonal" and
 //! "minimum norm" are meant in those units.
 
+use anyhow::{Result, anyhow, bail};
 use nalgebra::{DMatrix, DVector};
+
+/// A bound on the SVD's sweeps, far above what a finite matrix of our size
+/// needs (tens), so that a pathological one fails instead of hanging.
+const MAX_SVD_ITERS: usize = 10_000;
 
 /// The singular-value analysis of a Jacobian.
 #[derive(Clone, Debug)]
@@ -34,8 +39,18 @@ pub struct Analysis {
 /// poor layouts stay well above 1e-9.
 pub const DEFAULT_REL_TOL: f64 = 1e-9;
 
-/// Singular values and bases of `j` (m × n, any m).
-pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Analysis {
+/// Singular values and bases of `j` (m × n, any m). Fails on a Jacobian
+/// with NaN or infinite entries — degenerate data (a reading or gauge that
+/// divides by zero) on which nalgebra's SVD would iterate forever.
+pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Result<Analysis> {
+    if let Some(k) = j.iter().position(|x| !x.is_finite()) {
+        bail!(
+            "the Jacobian has a non-finite entry (row {}, column {}): the data are degenerate \
+             (e.g. a reading or gauge length that divides by zero)",
+            k % j.nrows(),
+            k / j.nrows()
+        );
+    }
     let n = j.ncols();
     // Reduce a tall Jacobian to its triangular factor first: same singular
     // values and right vectors, a fraction of the work.
@@ -44,7 +59,9 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Analysis {
     } else {
         j.clone()
     };
-    let svd = r.svd(false, true);
+    let svd = r
+        .try_svd(false, true, f64::EPSILON, MAX_SVD_ITERS)
+        .ok_or_else(|| anyhow!("the singular value decomposition did not converge"))?;
     let v_t = svd.v_t.expect("right singular vectors were requested");
     let mut order: Vec<usize> = (0..svd.singular_values.len()).collect();
     order.sort_by(|&a, &b| svd.singular_values[b].total_cmp(&svd.singular_values[a]));
@@ -62,13 +79,13 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Analysis {
     } else {
         DMatrix::zeros(n, 0)
     };
-    Analysis {
+    Ok(Analysis {
         singular_values: sv,
         rank,
         tol,
         row_basis,
         null_basis,
-    }
+    })
 }
 
 /// The observability indices of robot calibration, computed over the
@@ -269,6 +286,14 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_non_finite_jacobian_is_an_error_not_a_hang() {
+        let mut j = DMatrix::from_element(6, 3, 1.0);
+        j[(4, 2)] = f64::NAN;
+        let e = analyse(&j, DEFAULT_REL_TOL).unwrap_err().to_string();
+        assert!(e.contains("row 4, column 2"), "{e}");
+    }
+
+    #[test]
     fn finds_and_names_a_duplicated_and_a_dead_column() {
         // Columns: a, b (= a), c (zero), d.
         let j = DMatrix::from_row_slice(
@@ -281,7 +306,7 @@ mod tests {
                 1.0, 1.0, 0.0, -1.0,
             ],
         );
-        let a = analyse(&j, DEFAULT_REL_TOL);
+        let a = analyse(&j, DEFAULT_REL_TOL).unwrap();
         assert_eq!(a.rank, 2);
         let names: Vec<String> = ["a", "b", "c", "d"].iter().map(|s| s.to_string()).collect();
         let combos = describe_null_space(&a.null_basis, &names);

@@ -192,7 +192,7 @@ pub fn identify(
     let obs = &prepare(obs)[..];
     let r0 = residuals(start, obs);
     let j0 = jacobian(start, obs, &free_index);
-    let analysis = identifiability::analyse(&j0, settings.rank_tol);
+    let analysis = identifiability::analyse(&j0, settings.rank_tol)?;
     let names: Vec<String> = free_index
         .iter()
         .map(|&i| start.coefs()[i].symbol())

@@ -587,7 +587,7 @@ fn analyse_setup(
     let layout = setup.layout(net, n);
     let probe = setup.problem(net, start, &identity, &layout);
     let j = probe.dense_jacobian(&setup.initial(&layout), true);
-    let analysis = identifiability::analyse(&project_out(&j, n)?, rank_tol);
+    let analysis = identifiability::analyse(&project_out(&j, n)?, rank_tol)?;
     let names: Vec<String> = setup
         .free_index
         .iter()

@@ -289,7 +289,7 @@ pub fn calibrate(
     let terms = terms(net, &views, settings.objective)?;
     let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
     let e0 = evaluate(net, &views, &terms, start, &free_index, true);
-    let analysis = identifiability::analyse(e0.j.as_ref().expect("requested"), settings.rank_tol);
+    let analysis = identifiability::analyse(e0.j.as_ref().expect("requested"), settings.rank_tol)?;
     let names: Vec<String> = free_index
         .iter()
         .map(|&i| start.coefs()[i].symbol())

@@ -43,7 +43,8 @@ pub fn fit(from: &[Vector3<f64>], to: &[Vector3<f64>]) -> Option<Rigid> {
     for (a, b) in from.iter().zip(to) {
         h += (a - ca) * (b - cb).transpose();
     }
-    let svd = h.svd(true, true);
+    // Bounded sweeps: NaN coordinates must give `None`, not a hang.
+    let svd = h.try_svd(true, true, f64::EPSILON, 10_000)?;
     let (u, v_t) = (svd.u?, svd.v_t?);
     let sv = svd.singular_values;
     // Points on a line leave a rotation about it free.

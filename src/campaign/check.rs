@@ -256,6 +256,17 @@ impl Campaign {
                     ));
                 }
             }
+            if !g.target_a.is_empty() && g.target_a == g.target_b {
+                out.push(Issue::cell(
+                    t,
+                    i,
+                    "target_b",
+                    format!(
+                        "a gauge joins two different reflectors: target_b is target_a ({})",
+                        g.target_a
+                    ),
+                ));
+            }
             if let Some(m) = not_finite(g.distance_mm).or_else(|| {
                 (g.distance_mm <= 0.0)
                     .then(|| format!("a distance must be > 0, got {}", g.distance_mm))

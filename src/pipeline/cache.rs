@@ -280,12 +280,16 @@ impl Store {
         }
     }
 
-    /// Verifies the entry for `key` without loading it for use or removing
-    /// it: `None` when there is none, `Some(Err(why))` when it is bad.
-    pub fn check(&self, key: &str) -> Option<Result<Manifest>> {
+    /// Reads and verifies the entry for `key` without removing a bad one:
+    /// `None` when there is none, `Some(Err(why))` when it is bad.
+    pub fn read(&self, key: &str) -> Option<Result<Entry>> {
         let dir = self.entry_dir(key);
-        dir.exists()
-            .then(|| self.read_entry(&dir, key).map(|e| e.manifest))
+        dir.exists().then(|| self.read_entry(&dir, key))
+    }
+
+    /// [`Store::read`], keeping only the manifest.
+    pub fn check(&self, key: &str) -> Option<Result<Manifest>> {
+        self.read(key).map(|e| e.map(|e| e.manifest))
     }
 
     fn read_entry(&self, dir: &Path, key: &str) -> Result<Entry> {

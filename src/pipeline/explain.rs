@@ -10,7 +10,8 @@
 use super::cache::{KeyFields, Store, short};
 use super::plan::{self, Assessment};
 use super::resolve::Pipeline;
-use anyhow::{Result, bail};
+use super::{InputError, Problem};
+use anyhow::Result;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt;
@@ -47,10 +48,11 @@ pub struct Explanation {
 pub fn explain(p: &Pipeline, store: &Store, stage: &str) -> Result<Explanation> {
     if p.index(stage).is_none() {
         let names: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
-        bail!(
+        return Err(InputError(vec![Problem::Arg(format!(
             "the pipeline has no stage `{stage}`; its stages are: {}",
             names.join(", ")
-        );
+        ))])
+        .into());
     }
     let a = plan::assess(p, store)
         .into_iter()

@@ -3,8 +3,11 @@
 //! computes each stage's cache key where its inputs are known, and says for
 //! every stage whether it is cached or why it would run.
 
-use super::cache::{KeyFields, Store};
-use super::resolve::{Pipeline, Stage};
+use super::cache::{self, KeyFields, Store};
+use super::resolve::{Pipeline, Stage, Sweep};
+use super::sweep::{self, PSEUDO_STAGE};
+use crate::table;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -113,14 +116,98 @@ pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
     assess(p, store).into_iter().map(|a| a.item).collect()
 }
 
-/// Every stage assessed against the store, in execution order.
+/// Every stage assessed against the store, in execution order. A sweep's
+/// per-point stages are assessed at every point and reported once each
+/// (cached when every point has it), then the stages after the sweep.
 pub fn assess(p: &Pipeline, store: &Store) -> Vec<Assessment> {
-    let graph = Graph::new(p);
-    // Stage → table → content hash, for stages known to be cached.
-    let mut known: BTreeMap<&str, BTreeMap<String, String>> = BTreeMap::new();
+    match &p.sweep {
+        None => assess_stages(&p.stages, store, BTreeMap::new()),
+        Some(sw) => assess_sweep(p, sw, store),
+    }
+}
+
+/// Stage → table → content hash, for stages known to be cached.
+type Known = BTreeMap<String, BTreeMap<String, String>>;
+
+fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
+    let points: Vec<Vec<Assessment>> = sw
+        .points
+        .par_iter()
+        .map(|pt| assess_stages(&pt.stages, store, BTreeMap::new()))
+        .collect();
+    let mut out = Vec::new();
+    if let Some(first) = points.first() {
+        for (k, a0) in first.iter().enumerate() {
+            let stale: Vec<&Assessment> = points
+                .iter()
+                .filter_map(|pt| pt.get(k).filter(|a| a.item.status != "cached"))
+                .collect();
+            let mut a = a0.clone();
+            a.item.key = None;
+            if let Some(s) = stale.first() {
+                a.item.status = "run".into();
+                a.item.reason = format!(
+                    "{} of {} sweep points would run it (first: {})",
+                    stale.len(),
+                    points.len(),
+                    s.item.reason
+                );
+            }
+            out.push(a);
+        }
+    }
+    let all_cached = out.iter().all(|a| a.item.status == "cached");
+    let mut known = Known::new();
+    if all_cached {
+        if let Some(h) = gathered_hashes(sw, store, &points) {
+            known.insert(PSEUDO_STAGE.to_string(), h);
+        }
+    }
+    let after: Vec<Stage> = p
+        .stages
+        .iter()
+        .filter(|s| sw.after.contains(&s.name))
+        .cloned()
+        .collect();
+    out.extend(assess_stages(&after, store, known));
+    out
+}
+
+/// The content hashes of a fully cached sweep's gathered tables, gathered
+/// from the cache exactly as a run gathers them; `None` when an entry
+/// cannot be read (the run will say why).
+fn gathered_hashes(
+    sw: &Sweep,
+    store: &Store,
+    points: &[Vec<Assessment>],
+) -> Option<BTreeMap<String, String>> {
+    let mut out = BTreeMap::new();
+    for g in &sw.gather {
+        let mut frames = Vec::new();
+        for (pt, assessed) in sw.points.iter().zip(points) {
+            let key = assessed
+                .iter()
+                .find(|a| a.item.stage == g.stage)?
+                .item
+                .key
+                .as_ref()?;
+            let entry = store.read(key)?.ok()?;
+            let df = table::from_parquet_bytes(entry.tables.get(&g.table)?).ok()?;
+            frames.push((pt, df));
+        }
+        let (_, bytes) = sweep::gather(sw, frames.iter().map(|(pt, df)| (*pt, df))).ok()?;
+        out.insert(g.to_string(), cache::hash_bytes(&bytes));
+    }
+    Some(out)
+}
+
+/// `stages` assessed in execution order; `known` holds the tables of
+/// producers outside the list.
+fn assess_stages(stages: &[Stage], store: &Store, mut known: Known) -> Vec<Assessment> {
+    let graph = Graph::of(stages);
     let mut out = Vec::new();
     for i in graph.order() {
-        let s = &p.stages[i];
+        let s = &stages[i];
         let mut hashes = BTreeMap::new();
         let mut pending = BTreeMap::new();
         for (slot, r) in s.wired_tables() {
@@ -144,7 +231,7 @@ pub fn assess(p: &Pipeline, store: &Store) -> Vec<Assessment> {
             let (status, reason) = match store.check(&key) {
                 Some(Ok(m)) => {
                     known.insert(
-                        &s.name,
+                        s.name.clone(),
                         m.tables
                             .iter()
                             .map(|t| (t.name.clone(), t.hash.clone()))

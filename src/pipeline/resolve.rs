@@ -12,6 +12,7 @@ use crate::stages::StageConfig;
 use anyhow::{Result, anyhow, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
+use std::ops::Range;
 
 /// One `--set path=value`: `path` is dotted (`stages.measure.seed`), with
 /// double quotes around a segment that contains dots; `value` is a TOML
@@ -22,6 +23,8 @@ pub struct Override {
     pub value: serde_json::Value,
     /// As the user typed it, for messages.
     pub text: String,
+    /// A sweep axis's `path` in the pipeline file; `None` for `--set`.
+    pub origin: Option<Range<usize>>,
 }
 
 impl Override {
@@ -40,7 +43,26 @@ impl Override {
             path,
             value,
             text: arg.to_string(),
+            origin: None,
         })
+    }
+
+    /// `--set <text>` or `sweep axis <text>`, for messages.
+    fn name(&self) -> String {
+        match self.origin {
+            Some(_) => format!("sweep axis `{}`", self.text),
+            None => format!("--set {}", self.text),
+        }
+    }
+
+    /// A problem with this override: at the sweep axis in the file, or
+    /// naming the `--set` argument.
+    fn problem(&self, src: &Source, message: impl std::fmt::Display) -> Problem {
+        let message = format!("{}: {message}", self.name());
+        match &self.origin {
+            Some(span) => Problem::At(src.error(span.clone(), message)),
+            None => Problem::Arg(message),
+        }
     }
 
     /// The path after `stages.<name>.`, when it targets that stage.
@@ -203,16 +225,13 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
         match o.path.as_slice() {
             [s, name, _, ..] if s == "stages" => {
                 if !raw.stages.iter().any(|st| &st.name == name) {
-                    problems.push(Problem::Arg(format!(
-                        "--set {}: the pipeline has no stage `{name}`",
-                        o.text
-                    )));
+                    problems.push(o.problem(src, format!("the pipeline has no stage `{name}`")));
                 }
             }
-            _ => problems.push(Problem::Arg(format!(
-                "--set {}: a path starts with `stages.<stage>.`, e.g. stages.measure.seed=3",
-                o.text
-            ))),
+            _ => problems.push(o.problem(
+                src,
+                "a path starts with `stages.<stage>.`, e.g. stages.measure.seed=3",
+            )),
         }
     }
     let mut stages = Vec::new();
@@ -225,17 +244,22 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
     if !problems.is_empty() {
         return Err(problems);
     }
-    let name = raw.meta.name.clone().unwrap_or_else(|| {
-        src.path
+    let name = match &raw.meta.name {
+        Some(n) => n.get_ref().clone(),
+        None => src
+            .path
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "pipeline".into())
-    });
+            .unwrap_or_else(|| "pipeline".into()),
+    };
     if !super::raw::valid_name(&name) {
-        return Err(vec![Problem::Arg(format!(
-            "{}: the pipeline name `{name}` may only use letters, digits, `_` and `-` (it names the results folder)",
-            src.path.display()
-        ))]);
+        let message = format!(
+            "the pipeline name `{name}` may only use letters, digits, `_` and `-` (it names the results folder)"
+        );
+        return Err(vec![match &raw.meta.name {
+            Some(n) => Problem::At(src.error(n.span(), message)),
+            None => Problem::Arg(format!("{}: {message}", src.path.display())),
+        }]);
     }
     let gather_names: Vec<String> = raw
         .sweep
@@ -292,32 +316,31 @@ fn resolve_stage(
         .iter()
         .filter_map(|o| o.within(&rs.name).map(|rest| (o, rest)))
         .collect();
+    let set = |json: &mut serde_json::Value, rest: &[String], value: &serde_json::Value| {
+        for k in 1..rest.len() {
+            let prefix = &rest[..k];
+            if get_path(json, prefix).is_none_or(|v| v.is_null()) {
+                if let Some(d) = get_path(&defaults, prefix) {
+                    let _ = set_path(json, prefix, d.clone());
+                }
+            }
+        }
+        set_path(json, rest, value.clone())
+    };
     for &(o, rest) in &mine {
         match rest {
-            [k] if k == "kind" => problems.push(Problem::Arg(format!(
-                "--set {}: a stage's kind cannot be overridden",
-                o.text
-            ))),
+            [k] if k == "kind" => {
+                problems.push(o.problem(src, "a stage's kind cannot be overridden"))
+            }
             [k, slot] if k == "inputs" => match o.value.as_str() {
                 Some(t) => {
                     inputs.insert(slot.clone(), t.to_string());
                 }
-                None => problems.push(Problem::Arg(format!(
-                    "--set {}: an input names a stage, as a string",
-                    o.text
-                ))),
+                None => problems.push(o.problem(src, "an input names a stage, as a string")),
             },
             _ => {
-                for k in 1..rest.len() {
-                    let prefix = &rest[..k];
-                    if get_path(&json, prefix).is_none_or(|v| v.is_null()) {
-                        if let Some(d) = get_path(&defaults, prefix) {
-                            let _ = set_path(&mut json, prefix, d.clone());
-                        }
-                    }
-                }
-                if let Err(e) = set_path(&mut json, rest, o.value.clone()) {
-                    problems.push(Problem::Arg(format!("--set {}: {e}", o.text)));
+                if let Err(e) = set(&mut json, rest, &o.value) {
+                    problems.push(o.problem(src, e));
                 }
             }
         }
@@ -329,11 +352,24 @@ fn resolve_stage(
         rs.config.clone()
     } else {
         StageConfig::from_json(&rs.kind, json).map_err(|e| {
-            let sets: Vec<&str> = mine.iter().map(|(o, _)| o.text.as_str()).collect();
-            vec![Problem::Arg(format!(
-                "--set {}: {e}",
-                sets.join(", --set ")
-            ))]
+            // Blame the override that fails on its own (a sweep axis with a
+            // misspelt field among several axes of one stage); only an
+            // interaction between several is reported against all of them.
+            let alone: Vec<Problem> = mine
+                .iter()
+                .filter(|(_, rest)| !matches!(rest, [k, ..] if k == "inputs"))
+                .filter_map(|&(o, rest)| {
+                    let mut j = rs.config.to_json();
+                    set(&mut j, rest, &o.value).ok()?;
+                    let e = StageConfig::from_json(&rs.kind, j).err()?;
+                    Some(o.problem(src, e))
+                })
+                .collect();
+            if !alone.is_empty() {
+                return alone;
+            }
+            let sets: Vec<String> = mine.iter().map(|(o, _)| o.name()).collect();
+            vec![Problem::Arg(format!("{}: {e}", sets.join(", ")))]
         })?
     };
     config.resolve();
@@ -345,9 +381,7 @@ fn resolve_stage(
                 || p.starts_with(&format!("{}.", inv.field))
         });
         match overridden {
-            Some((o, _)) => {
-                problems.push(Problem::Arg(format!("--set {}: {}", o.text, inv.message)))
-            }
+            Some((o, _)) => problems.push(o.problem(src, &inv.message)),
             None => {
                 let span = rs
                     .fields

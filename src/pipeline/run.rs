@@ -383,15 +383,15 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
     }
     let mut tables = BTreeMap::new();
     for g in &sw.gather {
-        let mut frames = Vec::new();
-        for (pt, (_, produced)) in sw.points.iter().zip(&outcomes) {
-            let Some((df, _)) = produced.get(&g.stage).and_then(|p| p.tables.get(&g.table)) else {
-                continue;
-            };
-            frames.push(with_point_columns(sw, pt, df)?);
-        }
-        let df = table::concat_diagonal(&frames)?;
-        let bytes = table::to_parquet_bytes(&df)?;
+        let frames = sw
+            .points
+            .iter()
+            .zip(&outcomes)
+            .filter_map(|(pt, (_, produced))| {
+                let (df, _) = produced.get(&g.stage)?.tables.get(&g.table)?;
+                Some((pt, df.as_ref()))
+            });
+        let (df, bytes) = sweep::gather(sw, frames)?;
         let name = g.to_string();
         counts.gathered.insert(name.clone(), df.height());
         if runner.publish {
@@ -416,28 +416,6 @@ fn point_label(sw: &Sweep, pt: &SweepPoint) -> String {
         .map(|(a, v)| format!("{}={v}", a.name))
         .collect::<Vec<_>>()
         .join(", ")
-}
-
-/// A point's table with `point` and one column per axis in front.
-fn with_point_columns(sw: &Sweep, pt: &SweepPoint, df: &DataFrame) -> Result<DataFrame> {
-    let n = df.height();
-    let mut cols = vec![polars::prelude::Column::new(
-        "point".into(),
-        vec![pt.index as i64; n],
-    )];
-    for (a, v) in sw.axes.iter().zip(&pt.values) {
-        cols.push(table::constant_column(&a.name, v, n)?);
-    }
-    for c in df.columns() {
-        if sw.axes.iter().any(|a| a.name == c.name().as_str()) || c.name().as_str() == "point" {
-            return Err(anyhow!(
-                "the gathered table already has a column `{}`: name the axis differently",
-                c.name()
-            ));
-        }
-        cols.push(c.clone());
-    }
-    DataFrame::new_infer_height(cols).map_err(|e| anyhow!("gathering a sweep table: {e}"))
 }
 
 fn progress_line(r: &StageReport) {

@@ -31,11 +31,14 @@
 //! tables.
 
 use super::Problem;
-use super::resolve::{Override, split_path};
+use super::resolve::{Override, Sweep, SweepPoint, split_path};
 use super::source::Source;
-use crate::random;
+use crate::{random, table};
+use anyhow::{Result, anyhow};
+use polars::prelude::{Column, DataFrame};
 use serde::Deserialize;
 use std::collections::BTreeMap;
+use std::ops::Range;
 use toml::Spanned;
 
 /// The most points a sweep may expand to.
@@ -92,6 +95,8 @@ pub struct Axis {
     pub name: String,
     pub path: Vec<String>,
     pub values: Vec<serde_json::Value>,
+    /// Where the axis's `path` stands in the file, for messages.
+    pub span: Range<usize>,
 }
 
 /// One point: a value per axis.
@@ -110,6 +115,7 @@ impl PointValues {
                 path: a.path.clone(),
                 value: v.clone(),
                 text: format!("{}={v} (sweep point {})", a.path.join("."), self.index),
+                origin: Some(a.span.clone()),
             })
             .collect()
     }
@@ -206,30 +212,34 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
                     Some(g) => g.1.push(axes.len()),
                     None => groups.push((group, vec![axes.len()])),
                 }
-                axes.push((Axis { name, path, values }, a.path.span()));
+                axes.push(Axis {
+                    name,
+                    path,
+                    values,
+                    span: a.path.span(),
+                });
             }
             Err(p) => problems.push(p),
         }
     }
     let mut names: BTreeMap<&str, usize> = BTreeMap::new();
-    for (i, (a, span)) in axes.iter().enumerate() {
-        if let Some(j) = names.insert(a.name.as_str(), i) {
-            let _ = j;
+    for (i, a) in axes.iter().enumerate() {
+        if names.insert(a.name.as_str(), i).is_some() {
             problems.push(Problem::At(src.error(
-                span.clone(),
+                a.span.clone(),
                 format!("two axes are named `{}`: give one a `name`", a.name),
             )));
         }
     }
     for (g, members) in &groups {
-        let n = axes[members[0]].0.values.len();
+        let n = axes[members[0]].values.len();
         for &m in &members[1..] {
-            if axes[m].0.values.len() != n {
+            if axes[m].values.len() != n {
                 problems.push(Problem::At(src.error(
-                    axes[m].1.clone(),
+                    axes[m].span.clone(),
                     format!(
                         "axes of group `{g}` advance together and need the same number of values ({n} and {})",
-                        axes[m].0.values.len()
+                        axes[m].values.len()
                     ),
                 )));
             }
@@ -240,7 +250,7 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
     }
     let total: usize = groups
         .iter()
-        .map(|(_, m)| axes[m[0]].0.values.len())
+        .map(|(_, m)| axes[m[0]].values.len())
         .try_fold(1usize, |acc, n| acc.checked_mul(n))
         .unwrap_or(usize::MAX);
     if total > MAX_POINTS {
@@ -255,16 +265,50 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
         let mut rest = index;
         // The last group varies fastest.
         for (_, members) in groups.iter().rev() {
-            let n = axes[members[0]].0.values.len();
+            let n = axes[members[0]].values.len();
             let k = rest % n;
             rest /= n;
             for &m in members {
-                values[m] = axes[m].0.values[k].clone();
+                values[m] = axes[m].values[k].clone();
             }
         }
         points.push(PointValues { index, values });
     }
-    Ok((axes.into_iter().map(|(a, _)| a).collect(), points))
+    Ok((axes, points))
+}
+
+/// One gathered table: each point's table with `point` and one column per
+/// axis in front, stacked in point order; and its Parquet bytes. The same
+/// function serves the run and the plan, so both hash the same bytes.
+pub fn gather<'a>(
+    sw: &Sweep,
+    frames: impl Iterator<Item = (&'a SweepPoint, &'a DataFrame)>,
+) -> Result<(DataFrame, Vec<u8>)> {
+    let frames = frames
+        .map(|(pt, df)| with_point_columns(sw, pt, df))
+        .collect::<Result<Vec<_>>>()?;
+    let df = table::concat_diagonal(&frames)?;
+    let bytes = table::to_parquet_bytes(&df)?;
+    Ok((df, bytes))
+}
+
+/// A point's table with `point` and one column per axis in front.
+fn with_point_columns(sw: &Sweep, pt: &SweepPoint, df: &DataFrame) -> Result<DataFrame> {
+    let n = df.height();
+    let mut cols = vec![Column::new("point".into(), vec![pt.index as i64; n])];
+    for (a, v) in sw.axes.iter().zip(&pt.values) {
+        cols.push(table::constant_column(&a.name, v, n)?);
+    }
+    for c in df.columns() {
+        if sw.axes.iter().any(|a| a.name == c.name().as_str()) || c.name().as_str() == "point" {
+            return Err(anyhow!(
+                "the gathered table already has a column `{}`: name the axis differently",
+                c.name()
+            ));
+        }
+        cols.push(c.clone());
+    }
+    DataFrame::new_infer_height(cols).map_err(|e| anyhow!("gathering a sweep table: {e}"))
 }
 
 #[cfg(test)]

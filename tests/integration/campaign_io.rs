@@ -233,6 +233,13 @@ const BAD: &[(&str, &str, &str)] = &[
         "readings.csv:11:1",
         "the station id is empty",
     ),
+    // Regression: a reflector paired with itself made the calibration's
+    // Jacobian NaN (0/0) and nalgebra's SVD loop forever.
+    (
+        "gauge-joins-a-reflector-to-itself",
+        "gauge.csv:2:5",
+        "a gauge joins two different reflectors",
+    ),
     (
         "gauge-distance-negative",
         "gauge.csv:2:9",

@@ -415,6 +415,7 @@ fn changing_any_resolved_setting_of_any_stage_kind_changes_the_key() {
                     path: vec!["stages".into(), s.name.clone(), top.into()],
                     value: v.clone(),
                     text: format!("stages.{}.{top}={v}", s.name),
+                    origin: None,
                 };
                 let p = pipeline::load_source(&src, &[o]).map_err(|e| e.to_string())?;
                 let st = &p.stages[p.index(&s.name).unwrap()];
@@ -714,8 +715,9 @@ fn explain_compares_the_key_with_the_last_run_field_by_field() {
     assert_eq!(rows.len(), 4, "version, kind and two inputs: {rows:?}");
     assert!(rows.iter().all(|r| r["changed"] == false));
 
+    // A misspelt stage is the user's input error (exit 2), like a bad flag.
     let out = synthetic("explain", &r, &["evaluate_spher"]);
-    assert_code(&out, 1);
+    assert_code(&out, 2);
     assert!(stderr(&out).contains("the pipeline has no stage `evaluate_spher`"));
 }
 
@@ -764,4 +766,42 @@ fn graph_draws_every_stage_and_input_with_its_status() {
     for s in ["truth", "figure8_noisy", "identify_sphere_table3"] {
         assert!(svg.contains(&format!("\n{s}\n</text>")), "{s}");
     }
+}
+
+#[test]
+fn show_prints_a_table_and_refuses_one_edited_after_publishing() {
+    let (_dir, r) = synthetic_results();
+    let out = synthetic("show", &r, &["evaluate_sphere.summary", "--digits", "3"]);
+    assert_code(&out, 0);
+    let text = stdout(&out);
+    assert!(
+        text.starts_with("statistic") && text.contains("reduction_pct"),
+        "{text}"
+    );
+    assert!(
+        text.lines()
+            .any(|l| l.trim_start().starts_with("rms") && l.ends_with("100.000")),
+        "{text}"
+    );
+
+    let out = synthetic("show", &r, &["evaluate_sphere.nope"]);
+    assert_code(&out, 2);
+    assert!(stderr(&out).contains("its tables are: summary, points"));
+
+    // A published table changed by hand is not shown as if it were the result.
+    let published = Path::new(&r)
+        .join("synthetic-validation")
+        .join("evaluate_sphere")
+        .join("summary.parquet");
+    let mut bytes = std::fs::read(&published).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x20;
+    std::fs::write(&published, bytes).unwrap();
+    let out = synthetic("show", &r, &["evaluate_sphere.summary"]);
+    assert_code(&out, 1);
+    assert!(
+        stderr(&out).contains("differs from the result it was published from"),
+        "{}",
+        stderr(&out)
+    );
 }

@@ -1,6 +1,7 @@
 //! Batch sweeps: cached points, resumption after a kill, independence from
 //! the number of threads, and errors that point into the file.
 
+use crate::cli::*;
 use crate::util::*;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -110,6 +111,19 @@ fn a_sweep_of_200_points_gathers_and_an_immediate_rerun_recomputes_nothing() {
         "{:?}",
         second.with_status("ran")
     );
+
+    // `plan --check` sees the whole sweep cached, and `show` reads the
+    // gathered table.
+    let r = dir.path().to_str().unwrap();
+    let f = file.to_str().unwrap();
+    let out = ltcal(dir.path(), &["plan", f, "--results", r, "--check"]);
+    assert_code(&out, 0);
+    let out = ltcal(
+        dir.path(),
+        &["show", f, "--results", r, "sweep.evaluation.criteria"],
+    );
+    assert_code(&out, 0);
+    assert_eq!(stdout(&out).lines().count(), 1 + 200 * 20);
 }
 
 #[test]
@@ -204,4 +218,22 @@ fn sweep_mistakes_point_into_the_file() {
         err.contains("an axis sweeps `stages.<stage>.<field>`"),
         "{err}"
     );
+}
+
+#[test]
+fn a_sweep_axis_naming_an_unknown_field_points_at_the_axis() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "badfield", 4, 2);
+    let text = std::fs::read_to_string(&file)
+        .unwrap()
+        .replace("stages.corner.seed", "stages.corner.sed");
+    std::fs::write(&file, &text).unwrap();
+    let f = file.to_str().unwrap();
+    let r = dir.path().join("r");
+    let out = ltcal(dir.path(), &["plan", f, "--results", r.to_str().unwrap()]);
+    assert_code(&out, 2);
+    let err = stderr(&out);
+    let line = text.lines().position(|l| l.contains("corner.sed")).unwrap() + 1;
+    assert!(err.contains(&format!("badfield.toml:{line}:8")), "{err}");
+    assert!(err.contains("sed"), "{err}");
 }
