@@ -228,11 +228,30 @@ impl Effects {
         }
         if let Some(a) = &self.air_refraction {
             finite("air-refraction.t0_c", a.t0_c);
+            finite("air-refraction.offset_c", a.offset_c);
             finite("air-refraction.amplitude_c", a.amplitude_c);
+            finite("air-refraction.period_s", a.period_s);
+            finite("air-refraction.phase_deg", a.phase_deg);
             finite("air-refraction.drift_c_per_h", a.drift_c_per_h);
         }
         if let Some(e) = &self.encoder_harmonic {
             finite("encoder-harmonic.amplitude_urad", e.amplitude_urad);
+            finite("encoder-harmonic.phase_deg", e.phase_deg);
+        }
+        if let Some(r) = &self.range_scale {
+            for (station, ppm) in &r.ppm {
+                finite(&format!("range-scale.ppm.{station}"), *ppm);
+            }
+        }
+        if let Some(d) = &self.station_drift {
+            for v in d.velocity_um_per_min {
+                finite("station-drift.velocity_um_per_min", v);
+            }
+        }
+        if let Some(t) = &self.target_shift {
+            for v in t.shift_um {
+                finite("target-shift.shift_um", v);
+            }
         }
         if let Some(i) = &self.incidence {
             if !(i.max_angle_deg > 0.0 && i.max_angle_deg <= 90.0) {

@@ -20,6 +20,10 @@
 use nalgebra::{Matrix3, Matrix4, Vector3};
 use std::f64::consts::{FRAC_PI_2, PI};
 
+/// The `[tracker] model` of a campaign whose readings this chain describes
+/// (campaign-format.md).
+pub const MODEL: &str = "api-tracker3";
+
 /// Which face of the tracker took a reading. The back face turns the head 180°
 /// in azimuth and flips the elevation axis: it reads `(az + 180°, 180° − el, d)`
 /// for the same point.

@@ -108,7 +108,8 @@ pub struct CampaignSpec<'a> {
     pub errors: Option<&'a ErrorParams>,
     pub faces: &'a [Face],
     pub aim: Aim,
-    /// SMR acceptance: readings beyond it are not taken.
+    /// SMR acceptance: readings beyond it are not taken. The `incidence`
+    /// effect's own `max_angle_deg` replaces it when that effect is on.
     pub max_angle_deg: f64,
     pub noise: Noise,
     pub effects: &'a Effects,
@@ -204,7 +205,14 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
     }
     let centroid: Vector3<f64> =
         poses.iter().map(|p| p.position).sum::<Vector3<f64>>() / poses.len().max(1) as f64;
-    let max_angle = spec.max_angle_deg.to_radians();
+    // The SMR's acceptance: with the `incidence` effect on, its own
+    // `max_angle_deg` (effects.md: "a reading with α over max_angle_deg is
+    // not taken"), else the campaign's.
+    let max_angle = fx
+        .incidence
+        .as_ref()
+        .map_or(spec.max_angle_deg, |i| i.max_angle_deg)
+        .to_radians();
     let mut noise_rng = random::stream(spec.seed, "noise");
     let mut time_rng = random::stream(spec.seed, "time");
     let mut temp_rng = random::stream(spec.seed, "temperature");
@@ -215,7 +223,9 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
         if si > 0 {
             time += STATION_CHANGE_S;
         }
-        let first_time = time;
+        // station-drift runs "from the time of that station's first
+        // reading": the first one taken, not an attempt beyond acceptance.
+        let mut first_time: Option<f64> = None;
         let mut first = true;
         for (tid, x0) in &layout.targets {
             let mut x = *x0;
@@ -232,7 +242,7 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                 first = false;
                 let mut origin = pose.position;
                 if let Some(d) = fx.station_drift.as_ref().filter(|d| d.applies_to(&pose.id)) {
-                    origin += d.displacement_mm(time - first_time);
+                    origin += d.displacement_mm(time - first_time.unwrap_or(time));
                 }
                 let at = StationPose {
                     position: origin,
@@ -243,24 +253,22 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                     not_taken += 1;
                     continue;
                 }
-                let mut r = read(spec.errors, &at.to_local(&x), face)
-                    .map_err(|e| format!("station {}, reflector {tid}: {e}", pose.id))?;
-                let mut dd_mm = 0.0;
-                if let Some(i) = &fx.incidence {
-                    if angles.alpha > i.max_angle_deg.to_radians() {
-                        not_taken += 1;
-                        continue;
-                    }
-                    dd_mm += i.delta_d_um(&angles) * 1e-3;
-                }
-                if fx.incidence_table9.is_some() {
-                    match table9_delta_d_um(angles.alpha_v, angles.alpha_h) {
-                        Some(um) => dd_mm += um * 1e-3,
+                let table9_um = match fx.incidence_table9 {
+                    Some(_) => match table9_delta_d_um(angles.alpha_v, angles.alpha_h) {
+                        Some(um) => um,
                         None => {
                             not_taken += 1;
                             continue;
                         }
-                    }
+                    },
+                    None => 0.0,
+                };
+                first_time.get_or_insert(time);
+                let mut r = read(spec.errors, &at.to_local(&x), face)
+                    .map_err(|e| format!("station {}, reflector {tid}: {e}", pose.id))?;
+                let mut dd_mm = table9_um * 1e-3;
+                if let Some(i) = &fx.incidence {
+                    dd_mm += i.delta_d_um(&angles) * 1e-3;
                 }
                 if let Some(ppm) = range_ppm.get(&pose.id) {
                     dd_mm += RangeScale::delta_d_mm(*ppm, r.d);
@@ -335,7 +343,7 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
             name: spec.name.clone(),
             description: format!("simulated by ltcal {}", crate::VERSION),
             tracker: Tracker {
-                model: "api-tracker3".into(),
+                model: crate::kinematics::MODEL.into(),
                 sigma_angle_urad: Some(spec.noise.sigma_angle_urad),
                 sigma_range_um: Some(spec.noise.sigma_range_um),
                 sigma_range_ppm: Some(spec.noise.sigma_range_ppm),

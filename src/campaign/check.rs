@@ -8,8 +8,8 @@
 //! in a number column, a truncated row) is the reader's business, not this
 //! module's.
 
-use super::{Aim, Campaign};
-use crate::kinematics::nominal_point;
+use super::Campaign;
+use crate::kinematics::{self, nominal_point};
 use nalgebra::Vector3;
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
@@ -124,8 +124,16 @@ impl Campaign {
         if m.name.is_empty() {
             issue("name", "`name` must not be empty".into());
         }
-        if m.tracker.model.is_empty() {
-            issue("tracker.model", "`model` must not be empty".into());
+        if m.tracker.model != kinematics::MODEL {
+            issue(
+                "tracker.model",
+                format!(
+                    "the readings come from tracker model \"{}\", but ltcal models only \"{}\" \
+                     (the paper's Table 1): another kinematic chain would be calibrated wrongly",
+                    m.tracker.model,
+                    kinematics::MODEL
+                ),
+            );
         }
         let t = &m.tracker;
         for (key, v) in [
@@ -170,19 +178,8 @@ impl Campaign {
             if let Some(u) = target.u_mm {
                 uncertainty(t, i, u, out);
             }
-            match target.aim {
-                Some(p) => vector_finite(t, i, ["aim_x_mm", "aim_y_mm", "aim_z_mm"], &p, out),
-                None if self.meta.aim == Aim::AimColumns => out.push(Issue::cell(
-                    t,
-                    i,
-                    "aim_x_mm",
-                    format!(
-                        "target `{}` has no aim point, but campaign.toml says [smr] aim = \"aim-columns\": \
-                         give aim_x_mm, aim_y_mm, aim_z_mm for every target, or use aim = \"stations-centroid\"",
-                        target.id
-                    ),
-                )),
-                None => {}
+            if let Some(p) = target.aim {
+                vector_finite(t, i, ["aim_x_mm", "aim_y_mm", "aim_z_mm"], &p, out);
             }
         }
     }

@@ -128,15 +128,15 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         },
         None => None,
     };
-    let aim = meta.as_ref().map(|(m, ..)| m.aim);
     let readings = load(&dir.join("readings.csv"), true, &mut problems)
-        .and_then(|s| Csv::parse(s, &mut problems))
+        .and_then(|s| Csv::parse(s, READINGS_COLUMNS, &mut problems))
         .and_then(|csv| parse_readings(csv, &mut problems));
     let targets = load(&dir.join("targets.csv"), true, &mut problems)
-        .and_then(|s| Csv::parse(s, &mut problems))
-        .and_then(|csv| parse_targets(csv, aim, &mut problems));
+        .and_then(|s| Csv::parse(s, TARGETS_COLUMNS, &mut problems))
+        .and_then(|csv| parse_targets(csv, &mut problems));
     let gauge = match load(&dir.join("gauge.csv"), false, &mut problems) {
-        Some(s) => Csv::parse(s, &mut problems).and_then(|csv| parse_gauge(csv, &mut problems)),
+        Some(s) => Csv::parse(s, GAUGE_COLUMNS, &mut problems)
+            .and_then(|csv| parse_gauge(csv, &mut problems)),
         None => Some((Vec::new(), None)),
     };
     let (
@@ -333,10 +333,31 @@ struct Csv {
     rows: Vec<Vec<Cell>>,
 }
 
+/// The columns campaign-format.md defines for each file; any other column
+/// is ignored.
+const READINGS_COLUMNS: &[&str] = &[
+    "station",
+    "target",
+    "az_deg",
+    "el_deg",
+    "d_mm",
+    "face",
+    "time_s",
+    "temperature_c",
+    "pressure_hpa",
+    "humidity_pct",
+];
+const TARGETS_COLUMNS: &[&str] = &[
+    "target", "x_mm", "y_mm", "z_mm", "u_mm", "aim_x_mm", "aim_y_mm", "aim_z_mm",
+];
+const GAUGE_COLUMNS: &[&str] = &["target_a", "target_b", "distance_mm", "u_mm"];
+
 impl Csv {
-    /// Tokenizes a file and checks its shape: a header without repeated
-    /// names, every row as wide as the header, every quote closed.
-    fn parse(src: Source, problems: &mut Vec<Problem>) -> Option<Csv> {
+    /// Tokenizes a file and checks its shape: none of the `known` columns
+    /// named twice in the header (a repeated unknown column is ignored like
+    /// any unknown column), every row as wide as the header, every quote
+    /// closed.
+    fn parse(src: Source, known: &[&str], problems: &mut Vec<Problem>) -> Option<Csv> {
         let before = problems.len();
         let mut records = tokenize(&src, problems).into_iter();
         let Some(header) = records.next() else {
@@ -347,7 +368,7 @@ impl Csv {
             return None;
         };
         let mut first: BTreeMap<&str, &Cell> = BTreeMap::new();
-        for cell in &header {
+        for cell in header.iter().filter(|c| known.contains(&c.text.as_str())) {
             if let Some(earlier) = first.insert(&cell.text, cell) {
                 let (_, col) = src.line_col(earlier.span.start);
                 problems.push(Problem::At(src.error(
@@ -716,27 +737,16 @@ fn parse_readings(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<Campaign
     Some((readings, csv))
 }
 
-fn parse_targets(
-    csv: Csv,
-    aim: Option<Aim>,
-    problems: &mut Vec<Problem>,
-) -> Option<(Vec<Target>, Csv)> {
+fn parse_targets(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<Target>, Csv)> {
     let c = Columns::new(&csv);
     let before = problems.len();
     let id = c.require("target", problems);
     let reference = c.triple(["x_mm", "y_mm", "z_mm"], problems);
     let u = c.optional("u_mm");
-    let aim_names = ["aim_x_mm", "aim_y_mm", "aim_z_mm"];
-    let aim_cols = c.triple(aim_names, problems);
-    if aim == Some(Aim::AimColumns) && aim_names.iter().all(|n| c.optional(n).is_none()) {
-        let end = csv.header.last().map_or(0, |c| c.span.end);
-        problems.push(csv.error(
-            0..end,
-            "targets.csv lacks the columns `aim_x_mm`, `aim_y_mm`, `aim_z_mm`, which campaign.toml's \
-             [smr] aim = \"aim-columns\" requires: every target needs its aim point \
-             (or use aim = \"stations-centroid\")",
-        ));
-    }
+    // With `[smr] aim = "aim-columns"`, a target without its aim point has
+    // an SMR axis that is not known (campaign-format.md: a missing optional
+    // column and an empty cell both mean "not known").
+    let aim_cols = c.triple(["aim_x_mm", "aim_y_mm", "aim_z_mm"], problems);
     let id = id?;
     if problems.len() > before {
         return None;

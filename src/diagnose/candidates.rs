@@ -110,13 +110,24 @@ pub fn build(
         })
     };
 
-    // incidence and incidence-table9: the SMR axes.
-    let has_incidence = readings.iter().all(|r| r.incidence.is_some());
+    // incidence and incidence-table9: the SMR axes. A reflector whose axis
+    // is not known (no aim point) contributes nothing to these columns: the
+    // effect is fitted on the readings whose incidence is known.
+    let known = readings.iter().filter(|r| r.incidence.is_some()).count();
+    let has_incidence = known > 0;
+    let incidence_detail = if known < readings.len() {
+        format!(
+            "fitted on the {known} of {} readings whose SMR axis is known",
+            readings.len()
+        )
+    } else {
+        String::new()
+    };
     if enabled("incidence") {
         if has_incidence {
             let mut c = sig.columns(3);
             for (i, r) in readings.iter().enumerate() {
-                let a = r.incidence.expect("checked");
+                let Some(a) = r.incidence else { continue };
                 put_d(&mut c, i, r, 0, 1e-3 * (1.0 - a.alpha.cos()));
                 put_d(&mut c, i, r, 1, 1e-3 * a.alpha_h.sin());
                 put_d(&mut c, i, r, 2, 1e-3 * a.alpha_v.sin());
@@ -128,12 +139,12 @@ pub fn build(
                 magnitude: first,
                 unit: "µm",
                 alternatives: 1,
-                detail: String::new(),
+                detail: incidence_detail.clone(),
             });
         } else {
             skip(
                 "incidence",
-                "the SMR axes are unknown: no aim columns usable in this frame and no aim rule",
+                "the SMR axes are unknown: no aim point usable in this frame and no aim rule",
                 &mut skipped,
             );
         }
@@ -142,7 +153,7 @@ pub fn build(
         if has_incidence {
             let mut c = sig.columns(1);
             for (i, r) in readings.iter().enumerate() {
-                let a = r.incidence.expect("checked");
+                let Some(a) = r.incidence else { continue };
                 if let Some(um) = table9_delta_d_um(a.alpha_v, a.alpha_h) {
                     put_d(&mut c, i, r, 0, 1e-3 * um);
                 }
@@ -154,12 +165,12 @@ pub fn build(
                 magnitude: first,
                 unit: "× Table 9",
                 alternatives: 1,
-                detail: String::new(),
+                detail: incidence_detail.clone(),
             });
         } else {
             skip(
                 "incidence-table9",
-                "the SMR axes are unknown: no aim columns usable in this frame and no aim rule",
+                "the SMR axes are unknown: no aim point usable in this frame and no aim rule",
                 &mut skipped,
             );
         }

@@ -130,24 +130,42 @@ impl Diagnosis {
     }
 }
 
-/// The order in which stations measured: by their first `time_s`, else by
-/// their first reading in the file.
-fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
-    let mut first: Vec<(f64, usize)> = stations
+/// Each station's earliest `time_s`, when its readings carry one.
+fn first_times(c: &Campaign, stations: &[String]) -> Vec<Option<f64>> {
+    stations
         .iter()
-        .enumerate()
-        .map(|(s, id)| {
-            let pos = c
-                .readings
+        .map(|id| {
+            c.readings
+                .iter()
+                .filter(|r| &r.station == id)
+                .filter_map(|r| r.time_s)
+                .reduce(f64::min)
+        })
+        .collect()
+}
+
+/// The order in which stations measured: by their earliest `time_s` when
+/// every station has one, else by their first reading in the file (times
+/// and file positions are not compared with each other).
+fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
+    let first_row: Vec<usize> = stations
+        .iter()
+        .map(|id| {
+            c.readings
                 .iter()
                 .position(|r| &r.station == id)
-                .unwrap_or(0);
-            let t = c.readings[pos].time_s.unwrap_or(pos as f64);
-            (t, s)
+                .unwrap_or(usize::MAX)
         })
         .collect();
-    first.sort_by(|a, b| a.0.total_cmp(&b.0));
-    first.into_iter().map(|(_, s)| s).collect()
+    let times: Option<Vec<f64>> = first_times(c, stations).into_iter().collect();
+    let mut order: Vec<usize> = (0..stations.len()).collect();
+    match times {
+        Some(t) => {
+            order.sort_by(|&a, &b| t[a].total_cmp(&t[b]).then(first_row[a].cmp(&first_row[b])))
+        }
+        None => order.sort_by_key(|&s| first_row[s]),
+    }
+    order
 }
 
 /// Diagnoses a campaign.
@@ -178,16 +196,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
 
     // Per reading: what the candidates and the factors need.
     let stations = net.stations.clone();
-    let first_time: Vec<Option<f64>> = stations
-        .iter()
-        .map(|id| {
-            c.readings
-                .iter()
-                .filter(|r| &r.station == id)
-                .filter_map(|r| r.time_s)
-                .reduce(f64::min)
-        })
-        .collect();
+    let first_time = first_times(c, &stations);
     let centroid = cal
         .poses
         .iter()
@@ -431,4 +440,46 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         sigma: net.obs.iter().map(|o| o.sigma).collect(),
         tried,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::campaign::CampaignReading;
+    use crate::kinematics::Face;
+
+    fn campaign(rows: &[(&str, Option<f64>)]) -> Campaign {
+        let readings = rows
+            .iter()
+            .map(|&(station, time_s)| CampaignReading {
+                station: station.into(),
+                target: "T01".into(),
+                az_deg: 0.0,
+                el_deg: 0.0,
+                d_mm: 1000.0,
+                face: Face::Front,
+                time_s,
+                temperature_c: None,
+                pressure_hpa: None,
+                humidity_pct: None,
+            })
+            .collect();
+        Campaign {
+            readings,
+            ..Campaign::default()
+        }
+    }
+
+    /// Regression: the order came from the time of each station's first
+    /// row in the file, and compared file positions with times when only
+    /// some readings had a time.
+    #[test]
+    fn stations_are_ordered_by_their_earliest_time_else_by_the_file() {
+        let ids = ["S1".to_string(), "S2".to_string()];
+        // S2's rows come first in the file but S1 measured first.
+        let timed = campaign(&[("S2", Some(500.0)), ("S1", Some(900.0)), ("S1", Some(10.0))]);
+        assert_eq!(station_order(&timed, &ids), [0, 1]);
+        let partly = campaign(&[("S2", Some(500.0)), ("S1", None)]);
+        assert_eq!(station_order(&partly, &ids), [1, 0]);
+    }
 }

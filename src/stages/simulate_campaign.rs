@@ -12,6 +12,7 @@
 //! faces = "front"                        # "front", "back" or "both"
 //! aim = "stations-centroid"              # or "aim-columns" (written to targets.csv)
 //! max_angle_deg = 30                     # SMR acceptance: readings beyond it are not taken
+//!                                        # (with the incidence effect, its own max_angle_deg)
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0, sigma_range_ppm = 0.3 }
 //! seed = 1
 //! [stages.corner.effects.incidence]     # any effect of effects.md, by its id
@@ -187,6 +188,21 @@ impl StageKind for SimulateCampaignStage {
         if self.max_angle_deg == 0.0 {
             out.push(Invalid::new("max_angle_deg", "`max_angle_deg` must be > 0"));
         }
+        // effects.md: station-drift "needs time_s"; air-refraction's readings
+        // "carry the true temperature_c column".
+        if self.effects.station_drift.is_some() && !self.record_time {
+            out.push(Invalid::new(
+                "record_time",
+                "station-drift needs `time_s` in the readings: `record_time` must be true",
+            ));
+        }
+        if self.effects.air_refraction.is_some() && !self.record_temperature {
+            out.push(Invalid::new(
+                "record_temperature",
+                "air-refraction's readings carry the true `temperature_c`: \
+                 `record_temperature` must be true",
+            ));
+        }
         out
     }
 
@@ -299,6 +315,37 @@ fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn invalid_fields(toml: &str) -> Vec<String> {
+        let toml = format!("layout = {{ kind = \"corner\" }}\n{toml}");
+        let stage: SimulateCampaignStage = toml::from_str(&toml).unwrap();
+        stage.validate().into_iter().map(|i| i.field).collect()
+    }
+
+    #[test]
+    fn effects_that_need_time_or_temperature_require_them_recorded() {
+        let fields = invalid_fields(
+            "record_time = false\nrecord_temperature = false\n\
+             [effects.station-drift]\nvelocity_um_per_min = [1.0, 0.0, 0.0]\n\
+             [effects.air-refraction]\namplitude_c = 0.5\n",
+        );
+        assert_eq!(fields, ["record_time", "record_temperature"]);
+    }
+
+    #[test]
+    fn a_non_finite_effect_parameter_is_named() {
+        let fields = invalid_fields(
+            "[effects.station-drift]\nvelocity_um_per_min = [1.0, nan, 0.0]\n\
+             [effects.encoder-harmonic]\norder = 3\namplitude_urad = 2.0\nphase_deg = inf\n",
+        );
+        assert_eq!(
+            fields,
+            [
+                "effects.encoder-harmonic.phase_deg",
+                "effects.station-drift.velocity_um_per_min"
+            ]
+        );
+    }
 
     #[test]
     fn campaign_tables_are_the_campaign_group() {

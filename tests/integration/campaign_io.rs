@@ -184,6 +184,11 @@ const BAD: &[(&str, &str, &str)] = &[
     ),
     ("name-missing", "campaign.toml:1:1", "missing field `name`"),
     (
+        "tracker-model-unknown",
+        "campaign.toml:6:9",
+        "the readings come from tracker model \"leica-at960\", but ltcal models only \"api-tracker3\"",
+    ),
+    (
         "tracker-model-missing",
         "campaign.toml:5:1",
         "missing field `model`",
@@ -202,16 +207,6 @@ const BAD: &[(&str, &str, &str)] = &[
         "toml-cut-mid-line",
         "campaign.toml:11:4",
         "unclosed table, expected `]`",
-    ),
-    (
-        "aim-columns-missing",
-        "targets.csv:1:1",
-        "targets.csv lacks the columns `aim_x_mm`, `aim_y_mm`, `aim_z_mm`, which campaign.toml's [smr] aim = \"aim-columns\" requires",
-    ),
-    (
-        "aim-columns-empty-cell",
-        "targets.csv:4:9",
-        "target `T03` has no aim point",
     ),
     (
         "reference-partial",
@@ -287,6 +282,47 @@ const BAD: &[(&str, &str, &str)] = &[
         "missing: a campaign needs campaign.toml, readings.csv and targets.csv",
     ),
 ];
+
+/// Regression: `[smr] aim = "aim-columns"` with the aim columns missing, or
+/// one aim cell empty, was rejected; campaign-format.md says a missing
+/// optional column and an empty cell both mean "not known".
+#[test]
+fn aim_columns_without_aim_points_leave_those_axes_unknown() {
+    let dir = root().join("tests/data/campaigns-with-unknowns");
+    let missing = read_ok(&dir.join("aim-columns-missing"));
+    assert_eq!(missing.meta.aim, campaign::Aim::AimColumns);
+    assert!(missing.targets.iter().all(|t| t.aim.is_none()));
+    let one_empty = read_ok(&dir.join("aim-columns-empty-cell"));
+    let known: Vec<&str> = one_empty
+        .targets
+        .iter()
+        .filter(|t| t.aim.is_some())
+        .map(|t| t.id.as_str())
+        .collect();
+    assert_eq!(known, ["T01", "T02", "T04", "T05", "T06"]);
+}
+
+/// Regression: a column unknown to the format, named twice in the header,
+/// was rejected as a duplicate; unknown columns are ignored, repeated or not.
+#[test]
+fn a_repeated_unknown_column_is_ignored() {
+    let tmp = tempfile::tempdir().unwrap();
+    let base = bad_dir().join("base");
+    for f in ["campaign.toml", "targets.csv", "gauge.csv"] {
+        std::fs::copy(base.join(f), tmp.path().join(f)).unwrap();
+    }
+    let text = std::fs::read_to_string(base.join("readings.csv")).unwrap();
+    let with_notes: String = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            let extra = if i == 0 { ",note,note" } else { ",a,b" };
+            format!("{l}{extra}\n")
+        })
+        .collect();
+    std::fs::write(tmp.path().join("readings.csv"), with_notes).unwrap();
+    assert_eq!(read_ok(tmp.path()), read_ok(&base));
+}
 
 fn read_ok(dir: &Path) -> Campaign {
     campaign::read(dir).unwrap_or_else(|e| panic!("{e}"))

@@ -28,6 +28,11 @@ fn layout() -> Layout {
 }
 
 fn simulate(effects: &Effects, noise: Noise) -> SimulatedCampaign {
+    simulate_accepting(effects, noise, 90.0)
+}
+
+/// With the stage's SMR acceptance `max_angle_deg`.
+fn simulate_accepting(effects: &Effects, noise: Noise, max_angle_deg: f64) -> SimulatedCampaign {
     let l = layout();
     simulate_campaign(&CampaignSpec {
         name: "effects".into(),
@@ -35,7 +40,7 @@ fn simulate(effects: &Effects, noise: Noise) -> SimulatedCampaign {
         errors: None,
         faces: &[Face::Front],
         aim: Aim::StationsCentroid,
-        max_angle_deg: 90.0,
+        max_angle_deg,
         noise,
         effects,
         gauge_u_mm: 0.0,
@@ -232,6 +237,71 @@ fn station_drift() {
     assert_close("el", r.el_deg.to_radians(), el, 1e-14);
     assert_close("d", r.d_mm, d, 1e-9);
     assert!(shift.norm() > 1e-3, "the drift should be visible: {shift}");
+}
+
+/// `incidence` with only an acceptance: the incidence angles of this layout
+/// are 4.3°–7.5°; 5.2° keeps S1–T01, S1–T03 and S2–T03 (4.5°, 4.3°, 4.9°).
+fn acceptance_only(max_angle_deg: f64) -> Incidence {
+    Incidence {
+        e_axial_um: 0.0,
+        e_h_um: 0.0,
+        e_v_um: 0.0,
+        max_angle_deg,
+    }
+}
+
+fn taken(s: &SimulatedCampaign) -> Vec<(String, String)> {
+    let r = &s.campaign.readings;
+    r.iter()
+        .map(|r| (r.station.clone(), r.target.clone()))
+        .collect()
+}
+
+/// Regression: with the `incidence` effect on, readings were cut at the
+/// stage's `max_angle_deg` even where the effect's own acceptance, which
+/// effects.md defines, was wider.
+#[test]
+fn the_incidence_effects_acceptance_decides_which_readings_are_taken() {
+    let narrow = Effects {
+        incidence: Some(acceptance_only(5.2)),
+        ..Effects::default()
+    };
+    let want = [("S1", "T01"), ("S1", "T03"), ("S2", "T03")];
+    let got = taken(&simulate_accepting(&narrow, Noise::default(), 90.0));
+    assert_eq!(got, want.map(|(a, b)| (a.to_string(), b.to_string())));
+    let wide = Effects {
+        incidence: Some(acceptance_only(90.0)),
+        ..Effects::default()
+    };
+    assert_eq!(
+        taken(&simulate_accepting(&wide, Noise::default(), 5.2)).len(),
+        6
+    );
+    // Without the effect, the stage's acceptance holds.
+    let plain = simulate_accepting(&Effects::default(), Noise::default(), 5.2);
+    assert_eq!(plain.campaign.readings.len(), 3);
+}
+
+/// Regression: station-drift's clock started at the station's first
+/// *attempted* reading; effects.md starts it at the first reading, and a
+/// reading beyond the SMR's acceptance is not one.
+#[test]
+fn station_drift_runs_from_the_first_reading_taken() {
+    let fx = Effects {
+        incidence: Some(acceptance_only(5.2)),
+        station_drift: Some(StationDrift {
+            station: Some("S2".into()),
+            velocity_um_per_min: [3000.0, -1200.0, 600.0],
+        }),
+        ..Effects::default()
+    };
+    let s = simulate(&fx, Noise::default());
+    // S2 tried T01 and T02 first; T03 is its first reading, so not moved.
+    let r = reading(&s, "S2", "T03");
+    let (az, el, d) = exact(&s, "S2", "T03", Vector3::zeros(), Vector3::zeros());
+    assert_close("az", r.az_deg.to_radians(), az, 1e-14);
+    assert_close("el", r.el_deg.to_radians(), el, 1e-14);
+    assert_close("d", r.d_mm, d, 1e-9);
 }
 
 #[test]
