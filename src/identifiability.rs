@@ -60,7 +60,7 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Result<Analysis> {
         j.clone()
     };
     let svd = r
-        .try_svd(false, true, f64::EPSILON, MAX_SVD_ITERS)
+        .try_svd(false, true, 5.0 * f64::EPSILON, MAX_SVD_ITERS)
         .ok_or_else(|| anyhow!("the singular value decomposition did not converge"))?;
     let v_t = svd.v_t.expect("right singular vectors were requested");
     let mut order: Vec<usize> = (0..svd.singular_values.len()).collect();

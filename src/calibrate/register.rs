@@ -44,7 +44,7 @@ pub fn fit(from: &[Vector3<f64>], to: &[Vector3<f64>]) -> Option<Rigid> {
         h += (a - ca) * (b - cb).transpose();
     }
     // Bounded sweeps: NaN coordinates must give `None`, not a hang.
-    let svd = h.try_svd(true, true, f64::EPSILON, 10_000)?;
+    let svd = h.try_svd(true, true, 5.0 * f64::EPSILON, 10_000)?;
     let (u, v_t) = (svd.u?, svd.v_t?);
     let sv = svd.singular_values;
     // Points on a line leave a rotation about it free.
