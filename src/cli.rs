@@ -71,6 +71,10 @@ enum Command {
         #[command(flatten)]
         p: PipelineArgs,
         stage: String,
+        /// For a stage that runs per sweep point: the point (default: the
+        /// first point that would run it, else point 0).
+        #[arg(long)]
+        point: Option<usize>,
         /// Print the explanation as JSON.
         #[arg(long)]
         json: bool,
@@ -373,9 +377,14 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
-        Command::Explain { p, stage, json } => {
+        Command::Explain {
+            p,
+            stage,
+            point,
+            json,
+        } => {
             let pipeline = load(&p)?;
-            let e = explain::explain(&pipeline, &store(&p, &pipeline), &stage)?;
+            let e = explain::explain(&pipeline, &store(&p, &pipeline), &stage, point)?;
             if json {
                 print_out(&format!("{}\n", serde_json::to_string_pretty(&e)?))?;
             } else {

@@ -225,6 +225,15 @@ fn unique_suffix() -> String {
 /// Writes `bytes` to `path` atomically: a temporary file beside it, synced,
 /// then renamed over it.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    replace_file(path, bytes, true)
+}
+
+/// Temporary file + rename, with the data flushed to disk first when
+/// `durable`: a killed process leaves the old file or the new one, never
+/// part of one. Without `durable` a power cut may leave an empty file — for
+/// records that only inform (`explain`'s last runs), which read an empty
+/// file as no record.
+fn replace_file(path: &Path, bytes: &[u8], durable: bool) -> Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
     fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let name = path
@@ -235,7 +244,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let write = || -> std::io::Result<()> {
         let mut f = fs::File::create(&tmp)?;
         f.write_all(bytes)?;
-        f.sync_all()?;
+        if durable {
+            f.sync_all()?;
+        }
         fs::rename(&tmp, path)
     };
     write().map_err(|e| {
@@ -406,18 +417,31 @@ impl Store {
         n
     }
 
-    fn last_path(&self, stage: &str) -> PathBuf {
-        self.root.join("last").join(format!("{stage}.json"))
+    /// `last/<stage>.json`, or `last/<stage>@<point>.json` for a stage at
+    /// a sweep point (stage names cannot contain `@`).
+    fn last_path(&self, stage: &str, point: Option<usize>) -> PathBuf {
+        let name = match point {
+            Some(i) => format!("{stage}@{i}.json"),
+            None => format!("{stage}.json"),
+        };
+        self.root.join("last").join(name)
     }
 
-    /// The key fields of the last successful run of a stage of this name.
-    pub fn last(&self, stage: &str) -> Option<KeyFields> {
-        let b = fs::read(self.last_path(stage)).ok()?;
+    /// The key fields of the last successful run of a stage of this name
+    /// (at this sweep point).
+    pub fn last(&self, stage: &str, point: Option<usize>) -> Option<KeyFields> {
+        let b = fs::read(self.last_path(stage, point)).ok()?;
         serde_json::from_slice(&b).ok()
     }
 
-    pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
-        write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
+    pub fn set_last(&self, stage: &str, point: Option<usize>, k: &KeyFields) -> Result<()> {
+        // One per stage and sweep point: flushing each to disk would cost a
+        // sweep seconds for a record that only informs.
+        replace_file(
+            &self.last_path(stage, point),
+            &serde_json::to_vec_pretty(k)?,
+            false,
+        )
     }
 }
 

@@ -2,6 +2,10 @@
 //! key fields against those of the last successful run of a stage of that
 //! name (`.ltcal/last/<stage>.json`), field by field.
 //!
+//! A stage that runs at every point of a sweep is explained at one point
+//! (`--point`, else the first point that would run it, else point 0),
+//! against the last run at that point.
+//!
 //! An input whose producer would run first has no content hash yet; its
 //! row says which stage it waits for, and every other field is still
 //! compared, so that a change of the stage's own settings shows even when an
@@ -9,9 +13,10 @@
 
 use super::cache::{KeyFields, Store, short};
 use super::plan::{self, Assessment};
-use super::resolve::Pipeline;
+use super::resolve::{Pipeline, SweepPoint};
 use super::{InputError, Problem};
 use anyhow::Result;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt;
@@ -41,27 +46,99 @@ pub struct Explanation {
     pub key: Option<String>,
     /// The key of the last successful run of this stage, if any.
     pub last_key: Option<String>,
+    /// For a stage that runs per sweep point: the point explained.
+    pub point: Option<PointInfo>,
     pub rows: Vec<Row>,
 }
 
-/// Explains one stage of the pipeline against its store.
-pub fn explain(p: &Pipeline, store: &Store, stage: &str) -> Result<Explanation> {
+/// The sweep point a per-point stage is explained at.
+#[derive(Clone, Debug, Serialize)]
+pub struct PointInfo {
+    pub index: usize,
+    pub points: usize,
+    /// Axis name → its value at the point.
+    pub values: BTreeMap<String, serde_json::Value>,
+    /// How many points would run the stage.
+    pub would_run: usize,
+}
+
+/// Explains one stage of the pipeline against its store; a stage that runs
+/// per sweep point at `point` (see the module doc when `None`).
+pub fn explain(
+    p: &Pipeline,
+    store: &Store,
+    stage: &str,
+    point: Option<usize>,
+) -> Result<Explanation> {
+    let wrong = |m: String| anyhow::Error::from(InputError(vec![Problem::Arg(m)]));
     if p.index(stage).is_none() {
         let names: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
-        return Err(InputError(vec![Problem::Arg(format!(
+        return Err(wrong(format!(
             "the pipeline has no stage `{stage}`; its stages are: {}",
             names.join(", ")
-        ))])
-        .into());
+        )));
     }
-    let a = plan::assess(p, store)
-        .into_iter()
-        .find(|a| a.item.stage == stage)
-        .expect("every stage is assessed");
-    let last = store.last(stage);
+    let per_point = p.sweep.as_ref().filter(|sw| {
+        sw.points
+            .first()
+            .is_some_and(|pt| pt.stages.iter().any(|s| s.name == stage))
+    });
+    let find = |assessed: Vec<Assessment>| {
+        assessed
+            .into_iter()
+            .find(|a| a.item.stage == stage)
+            .expect("every stage is assessed")
+    };
+    let (a, at) = match (per_point, point) {
+        (None, None) => (find(plan::assess(p, store)), None),
+        (None, Some(_)) => {
+            return Err(wrong(format!(
+                "`{stage}` does not run per sweep point: explain it without --point"
+            )));
+        }
+        (Some(sw), point) => {
+            let assessed: Vec<(&SweepPoint, Assessment)> = sw
+                .points
+                .par_iter()
+                .map(|pt| (pt, find(plan::assess_point(pt, store))))
+                .collect();
+            let would_run = assessed
+                .iter()
+                .filter(|(_, a)| a.item.status != "cached")
+                .count();
+            let chosen = match point {
+                Some(i) => assessed.get(i).ok_or_else(|| {
+                    wrong(format!(
+                        "--point {i}: the sweep has {} points, 0 to {}",
+                        sw.points.len(),
+                        sw.points.len() - 1
+                    ))
+                })?,
+                None => assessed
+                    .iter()
+                    .find(|(_, a)| a.item.status != "cached")
+                    .unwrap_or(&assessed[0]),
+            };
+            let (pt, a) = chosen.clone();
+            let info = PointInfo {
+                index: pt.index,
+                points: sw.points.len(),
+                values: sw
+                    .axes
+                    .iter()
+                    .zip(&pt.values)
+                    .map(|(axis, v)| (axis.name.clone(), v.clone()))
+                    .collect(),
+                would_run,
+            };
+            (a, Some(info))
+        }
+    };
+    let last = store.last(stage, at.as_ref().map(|i| i.index));
     Ok(Explanation {
         rows: rows(&a, last.as_ref()),
         last_key: last.as_ref().map(KeyFields::hash),
+        point: at,
         stage: a.item.stage,
         kind: a.item.kind,
         status: a.item.status,
@@ -71,6 +148,8 @@ pub fn explain(p: &Pipeline, store: &Store, stage: &str) -> Result<Explanation> 
 }
 
 fn rows(a: &Assessment, last: Option<&KeyFields>) -> Vec<Row> {
+    // Without a recorded run there is nothing to call a change.
+    let recorded = last.is_some();
     let last: BTreeMap<String, String> = last
         .map(|k| k.fields())
         .unwrap_or_default()
@@ -93,7 +172,7 @@ fn rows(a: &Assessment, last: Option<&KeyFields>) -> Vec<Row> {
         let value = waits_for.is_none().then_some(value);
         let last = last.get(&field).cloned();
         rows.push(Row {
-            changed: waits_for.is_none() && value != last,
+            changed: recorded && waits_for.is_none() && value != last,
             field,
             last,
             now: value,
@@ -123,6 +202,22 @@ impl fmt::Display for Explanation {
             (_, false) => format!("would run: {}", self.reason),
         };
         writeln!(f, "stage `{}` ({}): {verdict}", self.stage, self.kind)?;
+        if let Some(pt) = &self.point {
+            let values: Vec<String> = pt
+                .values
+                .iter()
+                .map(|(k, v)| format!("{k} = {v}"))
+                .collect();
+            writeln!(
+                f,
+                "at sweep point {} of {} ({}); {} of {} points would run it",
+                pt.index,
+                pt.points,
+                values.join(", "),
+                pt.would_run,
+                pt.points
+            )?;
+        }
         let key = |k: &Option<String>| k.as_deref().map_or("—".to_string(), |k| short(k).into());
         writeln!(
             f,
@@ -130,7 +225,12 @@ impl fmt::Display for Explanation {
             key(&self.key),
             key(&self.last_key)
         )?;
-        if self.status == "cached" && self.rows.iter().any(|r| r.changed) {
+        if self.last_key.is_none() {
+            writeln!(
+                f,
+                "(no earlier run of it is recorded here: nothing to compare with)"
+            )?;
+        } else if self.status == "cached" && self.rows.iter().any(|r| r.changed) {
             writeln!(
                 f,
                 "(an earlier run with the current settings is in the cache; the last run differed)"

@@ -4,7 +4,7 @@
 //! every stage whether it is cached or why it would run.
 
 use super::cache::{self, KeyFields, Store};
-use super::resolve::{Pipeline, Stage, Sweep};
+use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
 use super::sweep::{self, PSEUDO_STAGE};
 use crate::table;
 use rayon::prelude::*;
@@ -71,9 +71,9 @@ pub fn key_fields(stage: &Stage, input_hashes: BTreeMap<String, String>) -> KeyF
     }
 }
 
-/// Why a stage would run, given its key (if computable) and the store.
-pub fn reason(store: &Store, stage: &str, key: &KeyFields) -> String {
-    match store.last(stage) {
+/// Why a stage (at a sweep point) would run, given its key and the store.
+pub fn reason(store: &Store, stage: &str, point: Option<usize>, key: &KeyFields) -> String {
+    match store.last(stage, point) {
         None => "never run".to_string(),
         Some(old) if old == *key => "its cached result is missing".to_string(),
         Some(old) => {
@@ -121,7 +121,7 @@ pub fn plan(p: &Pipeline, store: &Store) -> Vec<PlanItem> {
 /// (cached when every point has it), then the stages after the sweep.
 pub fn assess(p: &Pipeline, store: &Store) -> Vec<Assessment> {
     match &p.sweep {
-        None => assess_stages(&p.stages, store, BTreeMap::new()),
+        None => assess_stages(&p.stages, store, BTreeMap::new(), None),
         Some(sw) => assess_sweep(p, sw, store),
     }
 }
@@ -133,7 +133,7 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
     let points: Vec<Vec<Assessment>> = sw
         .points
         .par_iter()
-        .map(|pt| assess_stages(&pt.stages, store, BTreeMap::new()))
+        .map(|pt| assess_point(pt, store))
         .collect();
     let mut out = Vec::new();
     if let Some(first) = points.first() {
@@ -169,7 +169,7 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
         .filter(|s| sw.after.contains(&s.name))
         .cloned()
         .collect();
-    out.extend(assess_stages(&after, store, known));
+    out.extend(assess_stages(&after, store, known, None));
     out
 }
 
@@ -201,9 +201,19 @@ fn gathered_hashes(
     Some(out)
 }
 
-/// `stages` assessed in execution order; `known` holds the tables of
-/// producers outside the list.
-fn assess_stages(stages: &[Stage], store: &Store, mut known: Known) -> Vec<Assessment> {
+/// The stages of one sweep point assessed against the store.
+pub fn assess_point(pt: &SweepPoint, store: &Store) -> Vec<Assessment> {
+    assess_stages(&pt.stages, store, BTreeMap::new(), Some(pt.index))
+}
+
+/// `stages` (at sweep point `point`) assessed in execution order; `known`
+/// holds the tables of producers outside the list.
+fn assess_stages(
+    stages: &[Stage],
+    store: &Store,
+    mut known: Known,
+    point: Option<usize>,
+) -> Vec<Assessment> {
     let graph = Graph::of(stages);
     let mut out = Vec::new();
     for i in graph.order() {
@@ -240,7 +250,7 @@ fn assess_stages(stages: &[Stage], store: &Store, mut known: Known) -> Vec<Asses
                     ("cached", String::new())
                 }
                 Some(Err(why)) => ("run", format!("its cached result is corrupt: {why}")),
-                None => ("run", reason(store, &s.name, &fields)),
+                None => ("run", reason(store, &s.name, point, &fields)),
             };
             (status, reason, Some(key))
         };

@@ -124,6 +124,8 @@ struct Runner<'a> {
     keep_going: bool,
     /// Copy tables and figures to `results/<pipeline>/<stage>/`.
     publish: bool,
+    /// The sweep point whose stages this runs.
+    point: Option<usize>,
     /// Print a line per stage.
     progress: bool,
     /// Run a level's stages in parallel. Off inside sweep points, which
@@ -144,6 +146,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         dir: &dir,
         keep_going: opts.keep_going,
         publish: true,
+        point: None,
         progress: opts.progress,
         parallel: true,
     };
@@ -320,7 +323,11 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
         .points
         .par_iter()
         .map(|pt| {
-            let out = execute_stages(&point_runner, &pt.stages, BTreeMap::new());
+            let runner = Runner {
+                point: Some(pt.index),
+                ..point_runner
+            };
+            let out = execute_stages(&runner, &pt.stages, BTreeMap::new());
             bar.inc(1);
             out
         })
@@ -473,7 +480,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             report.cache_problem = Some(why);
             reason
         }
-        Lookup::Miss => reason(store, &s.name, &kf),
+        Lookup::Miss => reason(store, &s.name, runner.point, &kf),
     };
     report.reason = why;
     let started = SystemTime::now();
@@ -537,10 +544,8 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         };
         store.put(&entry)?;
         // What `explain` compares with: the last run of a stage of this
-        // name. Sweep points share their stages' names; they keep none.
-        if runner.publish {
-            store.set_last(&s.name, &kf)?;
-        }
+        // name, at this sweep point.
+        store.set_last(&s.name, runner.point, &kf)?;
         publish(runner, &s.name, &entry)?;
         Ok(entry)
     })();

@@ -237,3 +237,53 @@ fn a_sweep_axis_naming_an_unknown_field_points_at_the_axis() {
     assert!(err.contains(&format!("badfield.toml:{line}:8")), "{err}");
     assert!(err.contains("sed"), "{err}");
 }
+
+#[test]
+fn explain_compares_a_sweep_point_with_its_last_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "explained", 4, 2);
+    run_pipeline(&file, dir.path(), &[]);
+    let (f, r) = (file.to_str().unwrap(), dir.path().to_str().unwrap());
+    let explain = |extra: &[&str]| {
+        let mut args = vec!["explain", f, "--results", r, "corner", "--json"];
+        args.extend(extra);
+        let out = ltcal(dir.path(), &args);
+        assert_code(&out, 0);
+        serde_json::from_str::<serde_json::Value>(&stdout(&out)).unwrap()
+    };
+    let e = explain(&["--point", "5"]);
+    assert_eq!(e["status"], "cached");
+    assert_eq!(e["point"]["index"], 5);
+    assert_eq!(e["point"]["points"], 8);
+    assert_eq!(e["point"]["would_run"], 0);
+    assert_eq!(e["point"]["values"]["sigma_angle_urad"], 0.75);
+    assert_eq!(e["key"], e["last_key"]);
+    assert!(
+        e["rows"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|r| r["changed"] == false)
+    );
+
+    // One setting changed: every point would run, and the field is named.
+    let e = explain(&["--set", "stages.corner.interval_s=30"]);
+    assert_eq!(e["status"], "run");
+    assert_eq!(e["point"]["index"], 0);
+    assert_eq!(e["point"]["would_run"], 8);
+    let changed: Vec<&str> = e["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["changed"] == true)
+        .map(|r| r["field"].as_str().unwrap())
+        .collect();
+    assert_eq!(changed, ["interval_s"]);
+
+    let out = ltcal(
+        dir.path(),
+        &["explain", f, "--results", r, "corner", "--point", "8"],
+    );
+    assert_code(&out, 2);
+    assert!(stderr(&out).contains("the sweep has 8 points, 0 to 7"));
+}
