@@ -82,6 +82,17 @@ pub struct Network {
 /// that give none (mm).
 pub const DEFAULT_REFERENCE_U_MM: f64 = 0.001;
 
+/// The uncertainty an exact value (`u_mm = 0`) is weighted with (mm): 1 nm,
+/// far below any tracker's noise, so the value is held, without the
+/// infinite weight a literal zero would give.
+pub const EXACT_U_MM: f64 = 1e-6;
+
+/// The standard uncertainty a stated `u_mm` is weighted with: the default
+/// when not known, at least [`EXACT_U_MM`] when stated as exact.
+fn weighting_u_mm(u_mm: Option<f64>) -> f64 {
+    u_mm.map_or(DEFAULT_REFERENCE_U_MM, |u| u.max(EXACT_U_MM))
+}
+
 impl Network {
     pub fn from_campaign(c: &Campaign) -> Result<Network> {
         let stations = c.stations();
@@ -130,10 +141,7 @@ impl Network {
                     b: index(&g.target_b)
                         .ok_or_else(|| anyhow!("gauge names unknown `{}`", g.target_b))?,
                     length_mm: g.distance_mm,
-                    u_mm: g
-                        .u_mm
-                        .filter(|u| *u > 0.0)
-                        .unwrap_or(DEFAULT_REFERENCE_U_MM),
+                    u_mm: weighting_u_mm(g.u_mm),
                 })
             })
             .collect::<Result<Vec<_>>>()?;
@@ -141,14 +149,7 @@ impl Network {
             .targets
             .iter()
             .map(|t| {
-                t.reference.map(|x| {
-                    (
-                        x,
-                        t.u_mm
-                            .filter(|u| *u > 0.0)
-                            .unwrap_or(DEFAULT_REFERENCE_U_MM),
-                    )
-                })
+                t.reference.map(|x| (x, weighting_u_mm(t.u_mm)))
             })
             .collect();
         if obs.is_empty() {
@@ -370,4 +371,18 @@ pub fn gauge_scale_ppm(net: &Network, params: &ErrorParams) -> Option<f64> {
         }
     }
     (n > 0).then(|| sum / n as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression: a stated `u_mm = 0` (an exact reference or gauge) was
+    /// weighted as if no uncertainty were given (1 µm).
+    #[test]
+    fn an_exact_value_is_held_and_an_unknown_one_gets_the_default() {
+        assert_eq!(weighting_u_mm(Some(0.0)), EXACT_U_MM);
+        assert_eq!(weighting_u_mm(None), DEFAULT_REFERENCE_U_MM);
+        assert_eq!(weighting_u_mm(Some(0.002)), 0.002);
+    }
 }
