@@ -144,6 +144,11 @@ pub struct TargetShift {
 pub struct Effects {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub incidence: Option<Incidence>,
+    /// effects.md's `noise` is given by the stage's own `noise` table (the
+    /// same field names), not here: kept only to say so where it was
+    /// written, rather than to call a known id an unknown field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise: Option<serde_json::Value>,
     #[serde(
         default,
         rename = "incidence-table9",
@@ -213,6 +218,15 @@ impl Effects {
     /// Settings that cannot work, as `(field, message)` relative to `effects`.
     pub fn check(&self) -> Vec<(String, String)> {
         let mut out = Vec::new();
+        if self.noise.is_some() {
+            out.push((
+                "noise".to_string(),
+                "reading noise is the stage's `noise` table, not an entry of `effects`: \
+                 write `noise = { sigma_angle_urad = …, sigma_range_um = …, sigma_range_ppm = … }` \
+                 in the stage"
+                    .to_string(),
+            ));
+        }
         let mut finite = |field: &str, v: f64| {
             if !v.is_finite() {
                 out.push((

@@ -148,9 +148,7 @@ impl Network {
         let references = c
             .targets
             .iter()
-            .map(|t| {
-                t.reference.map(|x| (x, weighting_u_mm(t.u_mm)))
-            })
+            .map(|t| t.reference.map(|x| (x, weighting_u_mm(t.u_mm))))
             .collect();
         if obs.is_empty() {
             bail!("the campaign has no readings");

@@ -348,6 +348,12 @@ mod tests {
     }
 
     #[test]
+    fn noise_under_effects_points_to_the_stages_noise_table() {
+        let fields = invalid_fields("[effects.noise]\nsigma_angle_urad = 1.0\n");
+        assert_eq!(fields, ["effects.noise"]);
+    }
+
+    #[test]
     fn campaign_tables_are_the_campaign_group() {
         assert_eq!(
             &SimulateCampaignStage::OUTPUTS[..4],
