@@ -437,7 +437,11 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
         Some((s, t)) => (s, Some(t)),
         None => (table, None),
     };
-    let (path, stage) = match (&pipeline.sweep, stage) {
+    let rerun = format!("`ltcal run {}`", p.pipeline.display());
+    let store = store(p, &pipeline);
+    // What the published file must hash to if it is the current result,
+    // or why there is no current result.
+    let (path, expected): (PathBuf, Result<String, String>) = match (&pipeline.sweep, stage) {
         (Some(sw), sweep::PSEUDO_STAGE) => {
             let names = sw.table_names();
             let Some(name) = name.filter(|n| names.iter().any(|g| g == n)) else {
@@ -446,9 +450,12 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
                     names.join(", ")
                 )));
             };
-            (dir.join(stage).join(format!("{name}.parquet")), None)
+            let expected = plan::gathered_now(sw, &store)
+                .and_then(|mut h| h.remove(name))
+                .ok_or_else(|| "some sweep points would run again".to_string());
+            (dir.join(stage).join(format!("{name}.parquet")), expected)
         }
-        _ => {
+        (sw, _) => {
             let Some(s) = pipeline.stages.iter().find(|s| s.name == stage) else {
                 let names: Vec<&str> = pipeline.stages.iter().map(|s| s.name.as_str()).collect();
                 return Err(wrong(format!(
@@ -456,6 +463,14 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
                     names.join(", ")
                 )));
             };
+            if let Some(sw) = sw.as_ref().filter(|sw| !sw.after.contains(&s.name)) {
+                return Err(wrong(format!(
+                    "`{stage}` runs at every sweep point, and a point's tables are not published \
+                     one by one; the sweep gathers {} (show one as `sweep.<stage>.<table>`; \
+                     [sweep] gather chooses which)",
+                    sw.table_names().join(", ")
+                )));
+            }
             let outputs = s.config.outputs();
             let name = name.unwrap_or(outputs[0]);
             if !outputs.contains(&name) {
@@ -464,13 +479,23 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
                     outputs.join(", ")
                 )));
             }
-            (
-                dir.join(stage).join(format!("{name}.parquet")),
-                Some((stage, name)),
-            )
+            let item = plan::plan(&pipeline, &store)
+                .into_iter()
+                .find(|i| i.stage == stage)
+                .expect("every stage is planned");
+            let manifest = item.key.as_deref().and_then(|k| store.check(k));
+            let expected = match (item.status.as_str(), manifest) {
+                ("cached", Some(Ok(m))) => m
+                    .tables
+                    .into_iter()
+                    .find(|t| t.name == name)
+                    .map(|t| t.hash)
+                    .ok_or_else(|| format!("`{stage}` would run again")),
+                _ => Err(format!("`{stage}` would run again ({})", item.reason)),
+            };
+            (dir.join(stage).join(format!("{name}.parquet")), expected)
         }
     };
-    let rerun = format!("`ltcal run {}`", p.pipeline.display());
     let bytes = match std::fs::read(&path) {
         Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -481,31 +506,14 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
         }
         Err(e) => bail!("reading {}: {e}", path.display()),
     };
-    if let Some((stage, name)) = stage {
-        let item = plan::plan(&pipeline, &store(p, &pipeline))
-            .into_iter()
-            .find(|i| i.stage == stage)
-            .expect("every stage is planned");
-        let manifest = item
-            .key
-            .as_deref()
-            .and_then(|k| store(p, &pipeline).check(k));
-        match (item.status.as_str(), manifest) {
-            ("cached", Some(Ok(m))) => {
-                let stored = m.tables.iter().find(|t| t.name == name).map(|t| &t.hash);
-                if stored != Some(&cache::hash_bytes(&bytes)) {
-                    bail!(
-                        "{} differs from the result it was published from (edited or damaged): \
-                         {rerun} restores it",
-                        path.display()
-                    );
-                }
-            }
-            _ => eprintln!(
-                "note: this table is from an earlier run; `{stage}` would run again ({}): run {rerun}",
-                item.reason
-            ),
-        }
+    match expected {
+        Ok(hash) if hash != cache::hash_bytes(&bytes) => bail!(
+            "{} differs from the result it was published from (edited or damaged): \
+             {rerun} restores it",
+            path.display()
+        ),
+        Ok(_) => {}
+        Err(why) => eprintln!("note: this table is from an earlier run; {why}: run {rerun}"),
     }
     let df = table::from_parquet_bytes(&bytes).with_context(|| {
         format!(

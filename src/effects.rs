@@ -258,13 +258,25 @@ impl Effects {
             }
         }
         if let Some(d) = &self.station_drift {
-            for v in d.velocity_um_per_min {
+            if let Some(&v) = d.velocity_um_per_min.iter().find(|v| !v.is_finite()) {
                 finite("station-drift.velocity_um_per_min", v);
             }
         }
         if let Some(t) = &self.target_shift {
-            for v in t.shift_um {
+            if let Some(&v) = t.shift_um.iter().find(|v| !v.is_finite()) {
                 finite("target-shift.shift_um", v);
+            }
+        }
+        if let Some(a) = self
+            .air_refraction
+            .as_ref()
+            .filter(|a| a.period_s.is_finite())
+        {
+            if a.period_s <= 0.0 {
+                out.push((
+                    "air-refraction.period_s".into(),
+                    format!("`period_s` must be > 0, got {}", a.period_s),
+                ));
             }
         }
         if let Some(i) = &self.incidence {
@@ -275,14 +287,6 @@ impl Effects {
                         "`max_angle_deg` must lie in (0, 90], got {}",
                         i.max_angle_deg
                     ),
-                ));
-            }
-        }
-        if let Some(a) = &self.air_refraction {
-            if a.period_s.is_nan() || a.period_s <= 0.0 {
-                out.push((
-                    "air-refraction.period_s".into(),
-                    format!("`period_s` must be > 0, got {}", a.period_s),
                 ));
             }
         }

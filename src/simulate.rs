@@ -108,8 +108,8 @@ pub struct CampaignSpec<'a> {
     pub errors: Option<&'a ErrorParams>,
     pub faces: &'a [Face],
     pub aim: Aim,
-    /// SMR acceptance: readings beyond it are not taken. The `incidence`
-    /// effect's own `max_angle_deg` replaces it when that effect is on.
+    /// SMR acceptance: readings beyond it are not taken (nor, with the
+    /// `incidence` effect, readings beyond that effect's `max_angle_deg`).
     pub max_angle_deg: f64,
     pub noise: Noise,
     pub effects: &'a Effects,
@@ -205,13 +205,15 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
     }
     let centroid: Vector3<f64> =
         poses.iter().map(|p| p.position).sum::<Vector3<f64>>() / poses.len().max(1) as f64;
-    // The SMR's acceptance: with the `incidence` effect on, its own
-    // `max_angle_deg` (effects.md: "a reading with α over max_angle_deg is
-    // not taken"), else the campaign's.
+    // The SMR's acceptance: the campaign's, and with the `incidence` effect
+    // on also the effect's own `max_angle_deg` (effects.md: "a reading with
+    // α over max_angle_deg is not taken") — both limits hold.
     let max_angle = fx
         .incidence
         .as_ref()
-        .map_or(spec.max_angle_deg, |i| i.max_angle_deg)
+        .map_or(spec.max_angle_deg, |i| {
+            i.max_angle_deg.min(spec.max_angle_deg)
+        })
         .to_radians();
     let mut noise_rng = random::stream(spec.seed, "noise");
     let mut time_rng = random::stream(spec.seed, "time");

@@ -434,6 +434,24 @@ impl Store {
         serde_json::from_slice(&b).ok()
     }
 
+    /// Forgets the last runs at sweep points `points` and beyond (a sweep
+    /// that shrank). Returns how many records were removed.
+    pub fn forget_points_from(&self, points: usize) -> usize {
+        let Ok(rd) = fs::read_dir(self.root.join("last")) else {
+            return 0;
+        };
+        rd.flatten()
+            .filter(|e| {
+                let name = e.file_name().to_string_lossy().into_owned();
+                name.strip_suffix(".json")
+                    .and_then(|n| n.rsplit_once('@'))
+                    .and_then(|(_, i)| i.parse::<usize>().ok())
+                    .is_some_and(|i| i >= points)
+            })
+            .filter(|e| fs::remove_file(e.path()).is_ok())
+            .count()
+    }
+
     pub fn set_last(&self, stage: &str, point: Option<usize>, k: &KeyFields) -> Result<()> {
         // One per stage and sweep point: flushing each to disk would cost a
         // sweep seconds for a record that only informs.

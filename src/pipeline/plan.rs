@@ -137,10 +137,16 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
         .collect();
     let mut out = Vec::new();
     if let Some(first) = points.first() {
-        for (k, a0) in first.iter().enumerate() {
+        for a0 in first {
+            // By name: an axis over a stage's inputs can order the stages
+            // of one point differently from another's.
             let stale: Vec<&Assessment> = points
                 .iter()
-                .filter_map(|pt| pt.get(k).filter(|a| a.item.status != "cached"))
+                .filter_map(|pt| {
+                    pt.iter()
+                        .find(|a| a.item.stage == a0.item.stage)
+                        .filter(|a| a.item.status != "cached")
+                })
                 .collect();
             let mut a = a0.clone();
             a.item.key = None;
@@ -171,6 +177,21 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
         .collect();
     out.extend(assess_stages(&after, store, known, None));
     out
+}
+
+/// The content hashes of the sweep's gathered tables as a run would gather
+/// them now, when every point is cached; `None` when some point would run
+/// (or an entry cannot be read).
+pub fn gathered_now(sw: &Sweep, store: &Store) -> Option<BTreeMap<String, String>> {
+    let points: Vec<Vec<Assessment>> = sw
+        .points
+        .par_iter()
+        .map(|pt| assess_point(pt, store))
+        .collect();
+    let cached = points.iter().flatten().all(|a| a.item.status == "cached");
+    cached
+        .then(|| gathered_hashes(sw, store, &points))
+        .flatten()
 }
 
 /// The content hashes of a fully cached sweep's gathered tables, gathered

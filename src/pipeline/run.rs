@@ -333,6 +333,7 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
         })
         .collect();
     bar.finish_and_clear();
+    runner.store.forget_points_from(sw.points.len());
     let mut counts = SweepReport {
         points: sw.points.len(),
         ..SweepReport::default()

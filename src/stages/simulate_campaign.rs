@@ -12,7 +12,7 @@
 //! faces = "front"                        # "front", "back" or "both"
 //! aim = "stations-centroid"              # or "aim-columns" (written to targets.csv)
 //! max_angle_deg = 30                     # SMR acceptance: readings beyond it are not taken
-//!                                        # (with the incidence effect, its own max_angle_deg)
+//!                                        # (the incidence effect's max_angle_deg also holds)
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0, sigma_range_ppm = 0.3 }
 //! seed = 1
 //! [stages.corner.effects.incidence]     # any effect of effects.md, by its id

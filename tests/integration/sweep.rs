@@ -287,3 +287,150 @@ fn explain_compares_a_sweep_point_with_its_last_run() {
     assert_code(&out, 2);
     assert!(stderr(&out).contains("the sweep has 8 points, 0 to 7"));
 }
+
+/// Regression: `plan` matched a sweep's stages across points by position,
+/// `show` served a gathered table without checking it, and `explain` was
+/// only seen to pick point 0.
+#[test]
+fn plan_explain_and_show_follow_a_sweep_that_grew() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path().to_str().unwrap();
+    let small = sweep_file(dir.path(), "grows", 4, 2);
+    run_pipeline(&small, dir.path(), &[]);
+    // One more noise level: points 8 and 9 are new, 0–7 cached.
+    let big = sweep_file(dir.path(), "grows", 5, 2);
+    let f = big.to_str().unwrap();
+    let out = ltcal(dir.path(), &["plan", f, "--results", r, "--json"]);
+    assert_code(&out, 0);
+    let plan: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    let corner = plan
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|i| i["stage"] == "corner")
+        .unwrap();
+    assert_eq!(corner["status"], "run");
+    let reason = corner["reason"].as_str().unwrap();
+    assert!(
+        reason.starts_with("2 of 10 sweep points would run it"),
+        "{reason}"
+    );
+
+    let out = ltcal(
+        dir.path(),
+        &["explain", f, "--results", r, "corner", "--json"],
+    );
+    assert_code(&out, 0);
+    let e: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    assert_eq!(e["point"]["index"], 8);
+    assert_eq!(e["point"]["would_run"], 2);
+
+    // The gathered table on disk is the 8-point one: shown with a note.
+    let out = ltcal(
+        dir.path(),
+        &["show", f, "--results", r, "sweep.evaluation.criteria"],
+    );
+    assert_code(&out, 0);
+    assert!(
+        stderr(&out)
+            .contains("this table is from an earlier run; some sweep points would run again")
+    );
+    assert_eq!(stdout(&out).lines().count(), 1 + 8 * 20);
+
+    // A stage that runs per point has no published table of its own.
+    let out = ltcal(dir.path(), &["show", f, "--results", r, "corner"]);
+    assert_code(&out, 2);
+    assert!(
+        stderr(&out).contains("`corner` runs at every sweep point"),
+        "{}",
+        stderr(&out)
+    );
+
+    // Current again: a gathered table changed by hand is refused.
+    run_pipeline(&big, dir.path(), &[]);
+    let gathered = dir.path().join("grows/sweep/evaluation.criteria.parquet");
+    let mut bytes = std::fs::read(&gathered).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x01;
+    std::fs::write(&gathered, bytes).unwrap();
+    let out = ltcal(
+        dir.path(),
+        &["show", f, "--results", r, "sweep.evaluation.criteria"],
+    );
+    assert_code(&out, 1);
+    assert!(stderr(&out).contains("differs from the result it was published from"));
+
+    // Shrunk back: the last runs recorded at points 8 and 9 are forgotten.
+    let last = dir.path().join("grows/.ltcal/last");
+    assert!(last.join("corner@9.json").exists());
+    run_pipeline(&sweep_file(dir.path(), "grows", 4, 2), dir.path(), &[]);
+    assert!(last.join("corner@7.json").exists());
+    assert!(!last.join("corner@8.json").exists() && !last.join("corner@9.json").exists());
+}
+
+/// Regression: with an axis over a stage's input, the stages of one point
+/// can run in another order than those of the next; `plan` matched them by
+/// position and reported one stage's status under another's name.
+#[test]
+fn plan_matches_a_sweeps_stages_by_name_when_an_axis_reorders_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("reorder.toml");
+    let text = |seed: u32| {
+        format!(
+            r#"
+[pipeline]
+name = "reorder"
+
+[stages.truth]
+kind = "inject"
+
+[stages.a]
+kind = "simulate_campaign"
+inputs = {{ errors = "truth" }}
+layout = {{ kind = "corner", stations = 3 }}
+
+[stages.cal_a]
+kind = "calibrate"
+inputs = {{ campaign = "a" }}
+objective = "bundle"
+
+[stages.z]
+kind = "simulate_campaign"
+inputs = {{ errors = "truth" }}
+layout = {{ kind = "corner", stations = 3 }}
+seed = {seed}
+
+[[sweep.axis]]
+path = "stages.z.inputs.errors"
+values = ["truth", "cal_a"]
+
+[sweep]
+gather = ["z.readings"]
+"#
+        )
+    };
+    std::fs::write(&file, text(5)).unwrap();
+    run_pipeline(&file, dir.path(), &[]);
+    std::fs::write(&file, text(6)).unwrap();
+    let (f, r) = (file.to_str().unwrap(), dir.path().to_str().unwrap());
+    let out = ltcal(dir.path(), &["plan", f, "--results", r, "--json"]);
+    assert_code(&out, 0);
+    let plan: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    let item = |stage: &str| {
+        plan.as_array()
+            .unwrap()
+            .iter()
+            .find(|i| i["stage"] == stage)
+            .unwrap()
+            .clone()
+    };
+    assert_eq!(item("cal_a")["status"], "cached");
+    let z = item("z");
+    assert!(
+        z["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("2 of 2 sweep points would run it"),
+        "{z}"
+    );
+}
