@@ -36,6 +36,7 @@ use std::collections::BTreeMap;
 use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Everything a stage's output depends on. Its hash is the cache key.
@@ -225,15 +226,6 @@ fn unique_suffix() -> String {
 /// Writes `bytes` to `path` atomically: a temporary file beside it, synced,
 /// then renamed over it.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    replace_file(path, bytes, true)
-}
-
-/// Temporary file + rename, with the data flushed to disk first when
-/// `durable`: a killed process leaves the old file or the new one, never
-/// part of one. Without `durable` a power cut may leave an empty file — for
-/// records that only inform (`explain`'s last runs), which read an empty
-/// file as no record.
-fn replace_file(path: &Path, bytes: &[u8], durable: bool) -> Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
     fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let name = path
@@ -244,9 +236,7 @@ fn replace_file(path: &Path, bytes: &[u8], durable: bool) -> Result<()> {
     let write = || -> std::io::Result<()> {
         let mut f = fs::File::create(&tmp)?;
         f.write_all(bytes)?;
-        if durable {
-            f.sync_all()?;
-        }
+        f.sync_all()?;
         fs::rename(&tmp, path)
     };
     write().map_err(|e| {
@@ -258,6 +248,8 @@ fn replace_file(path: &Path, bytes: &[u8], durable: bool) -> Result<()> {
 /// The cache of one pipeline.
 pub struct Store {
     root: PathBuf,
+    /// The sweep points' last runs, read on first use.
+    points: OnceLock<PointRecords>,
 }
 
 impl Store {
@@ -265,6 +257,7 @@ impl Store {
     pub fn new(pipeline_results: &Path) -> Store {
         Store {
             root: pipeline_results.join(".ltcal"),
+            points: OnceLock::new(),
         }
     }
 
@@ -417,51 +410,61 @@ impl Store {
         n
     }
 
-    /// `last/<stage>.json`, or `last/<stage>@<point>.json` for a stage at
-    /// a sweep point (stage names cannot contain `@`).
-    fn last_path(&self, stage: &str, point: Option<usize>) -> PathBuf {
-        let name = match point {
-            Some(i) => format!("{stage}@{i}.json"),
-            None => format!("{stage}.json"),
-        };
-        self.root.join("last").join(name)
+    fn last_path(&self, stage: &str) -> PathBuf {
+        self.root.join("last").join(format!("{stage}.json"))
+    }
+
+    /// One file for every sweep point's last runs: thousands of points'
+    /// records written as thousands of files would cost a sweep seconds of
+    /// file creation for records that only inform.
+    fn points_path(&self) -> PathBuf {
+        self.root.join("last").join("sweep-points.json")
+    }
+
+    fn read_points(&self) -> PointRecords {
+        fs::read(self.points_path())
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok())
+            .unwrap_or_default()
     }
 
     /// The key fields of the last successful run of a stage of this name
-    /// (at this sweep point).
+    /// (at this sweep point). Sweep points' records are read once per
+    /// `Store`: what the runs before this process left.
     pub fn last(&self, stage: &str, point: Option<usize>) -> Option<KeyFields> {
-        let b = fs::read(self.last_path(stage, point)).ok()?;
-        serde_json::from_slice(&b).ok()
+        match point {
+            Some(i) => self
+                .points
+                .get_or_init(|| self.read_points())
+                .get(&i)?
+                .get(stage)
+                .cloned(),
+            None => {
+                let b = fs::read(self.last_path(stage)).ok()?;
+                serde_json::from_slice(&b).ok()
+            }
+        }
     }
 
-    /// Forgets the last runs at sweep points `points` and beyond (a sweep
-    /// that shrank). Returns how many records were removed.
-    pub fn forget_points_from(&self, points: usize) -> usize {
-        let Ok(rd) = fs::read_dir(self.root.join("last")) else {
-            return 0;
-        };
-        rd.flatten()
-            .filter(|e| {
-                let name = e.file_name().to_string_lossy().into_owned();
-                name.strip_suffix(".json")
-                    .and_then(|n| n.rsplit_once('@'))
-                    .and_then(|(_, i)| i.parse::<usize>().ok())
-                    .is_some_and(|i| i >= points)
-            })
-            .filter(|e| fs::remove_file(e.path()).is_ok())
-            .count()
+    pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
+        write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
     }
 
-    pub fn set_last(&self, stage: &str, point: Option<usize>, k: &KeyFields) -> Result<()> {
-        // One per stage and sweep point: flushing each to disk would cost a
-        // sweep seconds for a record that only informs.
-        replace_file(
-            &self.last_path(stage, point),
-            &serde_json::to_vec_pretty(k)?,
-            false,
-        )
+    /// Records the stages that ran at sweep points, keeping the other
+    /// points' records and forgetting those of points `points` and beyond
+    /// (a sweep that shrank).
+    pub fn record_points(&self, points: usize, ran: PointRecords) -> Result<()> {
+        let mut all = self.read_points();
+        all.retain(|&i, _| i < points);
+        for (i, stages) in ran {
+            all.entry(i).or_default().extend(stages);
+        }
+        write_atomic(&self.points_path(), &serde_json::to_vec(&all)?)
     }
 }
+
+/// Sweep point → stage → the key fields of its last run there.
+pub type PointRecords = BTreeMap<usize, BTreeMap<String, KeyFields>>;
 
 /// Removes the temporary files [`write_atomic`] leaves when its process is
 /// killed between creating and renaming them, in `dir` and its immediate

@@ -12,7 +12,7 @@
 //! report says so (`cache_problem`), so that a damaged cache is visible
 //! rather than silently repaired.
 
-use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord};
+use super::cache::{self, Entry, FileRecord, Lookup, Manifest, PointRecords, Store, TableRecord};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
 use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
@@ -124,8 +124,9 @@ struct Runner<'a> {
     keep_going: bool,
     /// Copy tables and figures to `results/<pipeline>/<stage>/`.
     publish: bool,
-    /// The sweep point whose stages this runs.
-    point: Option<usize>,
+    /// The sweep point whose stages this runs, and where the runs at sweep
+    /// points are recorded for `explain`.
+    point: Option<(usize, &'a Mutex<PointRecords>)>,
     /// Print a line per stage.
     progress: bool,
     /// Run a level's stages in parallel. Off inside sweep points, which
@@ -299,6 +300,7 @@ fn execute_stages(
 /// one report per per-point stage (`ran` if any point ran it), the
 /// gathered tables as the producer `sweep`, and the sweep's counts.
 fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced, SweepReport)> {
+    let ran_at = Mutex::new(PointRecords::new());
     let point_runner = Runner {
         publish: false,
         progress: false,
@@ -324,7 +326,7 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
         .par_iter()
         .map(|pt| {
             let runner = Runner {
-                point: Some(pt.index),
+                point: Some((pt.index, &ran_at)),
                 ..point_runner
             };
             let out = execute_stages(&runner, &pt.stages, BTreeMap::new());
@@ -333,7 +335,8 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
         })
         .collect();
     bar.finish_and_clear();
-    runner.store.forget_points_from(sw.points.len());
+    let ran_at = ran_at.into_inner().unwrap_or_else(|e| e.into_inner());
+    runner.store.record_points(sw.points.len(), ran_at)?;
     let mut counts = SweepReport {
         points: sw.points.len(),
         ..SweepReport::default()
@@ -481,7 +484,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             report.cache_problem = Some(why);
             reason
         }
-        Lookup::Miss => reason(store, &s.name, runner.point, &kf),
+        Lookup::Miss => reason(store, &s.name, runner.point.map(|(i, _)| i), &kf),
     };
     report.reason = why;
     let started = SystemTime::now();
@@ -545,8 +548,17 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         };
         store.put(&entry)?;
         // What `explain` compares with: the last run of a stage of this
-        // name, at this sweep point.
-        store.set_last(&s.name, runner.point, &kf)?;
+        // name (at this sweep point).
+        match runner.point {
+            None => store.set_last(&s.name, &kf)?,
+            Some((i, ran_at)) => {
+                let mut ran_at = ran_at.lock().unwrap_or_else(|e| e.into_inner());
+                ran_at
+                    .entry(i)
+                    .or_default()
+                    .insert(s.name.clone(), kf.clone());
+            }
+        }
         publish(runner, &s.name, &entry)?;
         Ok(entry)
     })();
