@@ -452,7 +452,9 @@ impl Store {
 
     /// Records the stages that ran at sweep points, keeping the other
     /// points' records and forgetting those of points `points` and beyond
-    /// (a sweep that shrank).
+    /// (a sweep that shrank). Written once, when the sweep ends: a sweep
+    /// killed before records nothing of its run, and `explain` compares
+    /// with the run before it.
     pub fn record_points(&self, points: usize, ran: PointRecords) -> Result<()> {
         let mut all = self.read_points();
         all.retain(|&i, _| i < points);

@@ -470,10 +470,24 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             Ok(prod) => {
                 report.status = "cached".into();
                 fill(&mut report, &entry.manifest);
-                if let Err(e) = publish(runner, &s.name, &entry) {
-                    report.status = "failed".into();
-                    report.reason = format!("{e:#}");
-                    return (report, None);
+                match publish(runner, &s.name, &entry) {
+                    // The cached result is the stage's result: a published
+                    // copy that differs was edited or damaged since.
+                    Ok(replaced) => {
+                        for path in replaced {
+                            eprintln!(
+                                "note: restored {}: it differed from the cached result of `{}` \
+                                 (edited or damaged)",
+                                path.display(),
+                                s.name
+                            );
+                        }
+                    }
+                    Err(e) => {
+                        report.status = "failed".into();
+                        report.reason = format!("{e:#}");
+                        return (report, None);
+                    }
                 }
                 return (report, Some(prod));
             }
@@ -606,9 +620,12 @@ fn decode(entry: &Entry) -> Result<Produced> {
 
 /// Copies an entry's tables and files to `results/<pipeline>/<stage>/`,
 /// atomically, skipping files that are already identical.
-fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<()> {
+/// Copies an entry's tables and files to `results/<pipeline>/<stage>/`,
+/// writing only what differs; returns the existing files it replaced.
+fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<PathBuf>> {
+    let mut replaced = Vec::new();
     if !runner.publish {
-        return Ok(());
+        return Ok(replaced);
     }
     let out = runner.dir.join(stage);
     let items = entry
@@ -618,10 +635,14 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<()> {
         .chain(entry.files.iter().map(|(n, b)| (n.clone(), b)));
     for (name, bytes) in items {
         let path = out.join(name);
-        if std::fs::read(&path).is_ok_and(|old| old == *bytes) {
-            continue;
+        match std::fs::read(&path) {
+            Ok(old) if old == *bytes => continue,
+            Ok(_) => {
+                cache::write_atomic(&path, bytes)?;
+                replaced.push(path);
+            }
+            Err(_) => cache::write_atomic(&path, bytes)?,
         }
-        cache::write_atomic(&path, bytes)?;
     }
-    Ok(())
+    Ok(replaced)
 }

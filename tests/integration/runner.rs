@@ -804,4 +804,15 @@ fn show_prints_a_table_and_refuses_one_edited_after_publishing() {
         "{}",
         stderr(&out)
     );
+
+    // `run` puts the cached result back, and says so.
+    let out = synthetic("run", &r, &["-q"]);
+    assert_code(&out, 0);
+    assert!(
+        stderr(&out).contains("note: restored")
+            && stderr(&out).contains("differed from the cached result of `evaluate_sphere`"),
+        "{}",
+        stderr(&out)
+    );
+    assert_code(&synthetic("show", &r, &["evaluate_sphere.summary"]), 0);
 }
