@@ -163,7 +163,7 @@ fn load(p: &PipelineArgs) -> Result<pipeline::resolve::Pipeline> {
         .iter()
         .map(|s| Override::parse(s))
         .collect::<Result<Vec<_>>>()
-        .map_err(|e| InputError(vec![pipeline::Problem::Arg(e.to_string())]))?;
+        .map_err(|e| InputError::arg(e.to_string()))?;
     pipeline::load(&p.pipeline, &overrides)
 }
 
@@ -228,8 +228,7 @@ fn summarize(report: &run::RunReport) -> ExitCode {
 /// records or checks the `[snapshot]` tables.
 fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCode> {
     let pipeline = load(p)?;
-    let snap = snapshot::of(&pipeline)
-        .map_err(|e| InputError(vec![pipeline::Problem::Arg(e.to_string())]))?;
+    let snap = snapshot::of(&pipeline).map_err(|e| InputError::arg(e.to_string()))?;
     let report = run::run(
         &pipeline,
         &run::RunOptions {
@@ -293,10 +292,9 @@ fn diagnose_command(
         ..Default::default()
     };
     if let Some(bad) = stage.validate().first() {
-        return Err(InputError(vec![pipeline::Problem::Arg(bad.message.clone())]).into());
+        return Err(InputError::arg(bad.message.clone()));
     }
-    let c = crate::campaign::read(campaign)
-        .map_err(|e| InputError(vec![pipeline::Problem::Arg(e.to_string())]))?;
+    let c = crate::campaign::read(campaign).map_err(|e| InputError::arg(e.to_string()))?;
     let d = stage.diagnose(&c)?;
     let output = stages::diagnose::outputs(&d)?;
     for (name, df) in &output.tables {
@@ -432,7 +430,6 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
 fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
     let pipeline = load(p)?;
     let dir = run::pipeline_dir(&p.results, &pipeline);
-    let wrong = |m: String| anyhow::Error::from(InputError(vec![pipeline::Problem::Arg(m)]));
     let (stage, name) = match table.split_once('.') {
         Some((s, t)) => (s, Some(t)),
         None => (table, None),
@@ -445,7 +442,7 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
         (Some(sw), sweep::PSEUDO_STAGE) => {
             let names = sw.table_names();
             let Some(name) = name.filter(|n| names.iter().any(|g| g == n)) else {
-                return Err(wrong(format!(
+                return Err(InputError::arg(format!(
                     "the sweep gathers {}: show one as `sweep.<stage>.<table>`",
                     names.join(", ")
                 )));
@@ -456,15 +453,9 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
             (dir.join(stage).join(format!("{name}.parquet")), expected)
         }
         (sw, _) => {
-            let Some(s) = pipeline.stages.iter().find(|s| s.name == stage) else {
-                let names: Vec<&str> = pipeline.stages.iter().map(|s| s.name.as_str()).collect();
-                return Err(wrong(format!(
-                    "the pipeline has no stage `{stage}`; its stages are: {}",
-                    names.join(", ")
-                )));
-            };
+            let s = pipeline.stage(stage)?;
             if let Some(sw) = sw.as_ref().filter(|sw| !sw.after.contains(&s.name)) {
-                return Err(wrong(format!(
+                return Err(InputError::arg(format!(
                     "`{stage}` runs at every sweep point, and a point's tables are not published \
                      one by one; the sweep gathers {} (show one as `sweep.<stage>.<table>`; \
                      [sweep] gather chooses which)",
@@ -474,7 +465,7 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
             let outputs = s.config.outputs();
             let name = name.unwrap_or(outputs[0]);
             if !outputs.contains(&name) {
-                return Err(wrong(format!(
+                return Err(InputError::arg(format!(
                     "stage `{stage}` has no table `{name}`; its tables are: {}",
                     outputs.join(", ")
                 )));

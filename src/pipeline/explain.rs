@@ -11,12 +11,11 @@
 //! compared, so that a change of the stage's own settings shows even when an
 //! upstream change makes it rerun anyway.
 
+use super::InputError;
 use super::cache::{KeyFields, Store, short};
 use super::plan::{self, Assessment};
 use super::resolve::{Pipeline, SweepPoint};
-use super::{InputError, Problem};
 use anyhow::Result;
-use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt;
@@ -70,14 +69,7 @@ pub fn explain(
     stage: &str,
     point: Option<usize>,
 ) -> Result<Explanation> {
-    let wrong = |m: String| anyhow::Error::from(InputError(vec![Problem::Arg(m)]));
-    if p.index(stage).is_none() {
-        let names: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
-        return Err(wrong(format!(
-            "the pipeline has no stage `{stage}`; its stages are: {}",
-            names.join(", ")
-        )));
-    }
+    p.stage(stage)?;
     let per_point = p.sweep.as_ref().filter(|sw| {
         sw.points
             .first()
@@ -92,15 +84,16 @@ pub fn explain(
     let (a, at) = match (per_point, point) {
         (None, None) => (find(plan::assess(p, store)), None),
         (None, Some(_)) => {
-            return Err(wrong(format!(
+            return Err(InputError::arg(format!(
                 "`{stage}` does not run per sweep point: explain it without --point"
             )));
         }
         (Some(sw), point) => {
             let assessed: Vec<(&SweepPoint, Assessment)> = sw
                 .points
-                .par_iter()
-                .map(|pt| (pt, find(plan::assess_point(pt, store))))
+                .iter()
+                .zip(plan::assess_points(sw, store))
+                .map(|(pt, a)| (pt, find(a)))
                 .collect();
             let would_run = assessed
                 .iter()
@@ -108,7 +101,7 @@ pub fn explain(
                 .count();
             let chosen = match point {
                 Some(i) => assessed.get(i).ok_or_else(|| {
-                    wrong(format!(
+                    InputError::arg(format!(
                         "--point {i}: the sweep has {} points, 0 to {}",
                         sw.points.len(),
                         sw.points.len() - 1

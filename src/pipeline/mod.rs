@@ -68,6 +68,13 @@ impl fmt::Display for InputError {
 
 impl std::error::Error for InputError {}
 
+impl InputError {
+    /// One mistake in the command line's arguments.
+    pub fn arg(message: impl Into<String>) -> anyhow::Error {
+        InputError(vec![Problem::Arg(message.into())]).into()
+    }
+}
+
 /// Reads, parses and resolves a pipeline file.
 pub fn load(path: &Path, overrides: &[Override]) -> anyhow::Result<Pipeline> {
     let src = Source::read(path)?;

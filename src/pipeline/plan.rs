@@ -4,7 +4,7 @@
 //! every stage whether it is cached or why it would run.
 
 use super::cache::{self, KeyFields, Store};
-use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
+use super::resolve::{Pipeline, Stage, Sweep};
 use super::sweep::{self, PSEUDO_STAGE};
 use crate::table;
 use rayon::prelude::*;
@@ -130,11 +130,7 @@ pub fn assess(p: &Pipeline, store: &Store) -> Vec<Assessment> {
 type Known = BTreeMap<String, BTreeMap<String, String>>;
 
 fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
-    let points: Vec<Vec<Assessment>> = sw
-        .points
-        .par_iter()
-        .map(|pt| assess_point(pt, store))
-        .collect();
+    let points = assess_points(sw, store);
     let mut out = Vec::new();
     if let Some(first) = points.first() {
         for a0 in first {
@@ -183,11 +179,7 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
 /// them now, when every point is cached; `None` when some point would run
 /// (or an entry cannot be read).
 pub fn gathered_now(sw: &Sweep, store: &Store) -> Option<BTreeMap<String, String>> {
-    let points: Vec<Vec<Assessment>> = sw
-        .points
-        .par_iter()
-        .map(|pt| assess_point(pt, store))
-        .collect();
+    let points = assess_points(sw, store);
     let cached = points.iter().flatten().all(|a| a.item.status == "cached");
     cached
         .then(|| gathered_hashes(sw, store, &points))
@@ -222,9 +214,13 @@ fn gathered_hashes(
     Some(out)
 }
 
-/// The stages of one sweep point assessed against the store.
-pub fn assess_point(pt: &SweepPoint, store: &Store) -> Vec<Assessment> {
-    assess_stages(&pt.stages, store, BTreeMap::new(), Some(pt.index))
+/// The stages of every sweep point assessed against the store, points in
+/// parallel.
+pub fn assess_points(sw: &Sweep, store: &Store) -> Vec<Vec<Assessment>> {
+    sw.points
+        .par_iter()
+        .map(|pt| assess_stages(&pt.stages, store, BTreeMap::new(), Some(pt.index)))
+        .collect()
 }
 
 /// `stages` (at sweep point `point`) assessed in execution order; `known`

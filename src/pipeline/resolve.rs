@@ -215,6 +215,17 @@ impl Pipeline {
     pub fn index(&self, name: &str) -> Option<usize> {
         self.stages.iter().position(|s| s.name == name)
     }
+
+    /// The stage a user named, or their mistake with the stages there are.
+    pub fn stage(&self, name: &str) -> Result<&Stage> {
+        self.stages.iter().find(|s| s.name == name).ok_or_else(|| {
+            let names: Vec<&str> = self.stages.iter().map(|s| s.name.as_str()).collect();
+            super::InputError::arg(format!(
+                "the pipeline has no stage `{name}`; its stages are: {}",
+                names.join(", ")
+            ))
+        })
+    }
 }
 
 /// Resolves a parsed file with overrides.
