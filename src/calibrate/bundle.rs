@@ -25,6 +25,7 @@
 //! positions a gauge couples.
 
 use super::register::{Rigid, align};
+use super::sparse::{self, BlockJacobian, Normal};
 use super::{Calibration, FitSummary, Network, Norm, Settings, gauge_scale_ppm};
 use crate::error_model::{ErrorParams, Links};
 use crate::identifiability::{self, Analysis, Combination};
@@ -108,129 +109,26 @@ impl Layout {
     }
 }
 
-/// The reduced system of [`BlockNormal::reduce`]: `S`, `b` and each
-/// eliminated point's damped `H_XX⁻¹`.
-type Reduced = (DMatrix<f64>, DVector<f64>, Vec<Matrix3<f64>>);
+/// The bundle's normal equations, as the solver sees them.
+pub struct BundleNormal(Normal);
 
-/// Normal equations with the reflector positions as 3 × 3 diagonal blocks.
-#[derive(Clone, Debug)]
-pub struct BlockNormal {
-    n_a: usize,
-    h_aa: DMatrix<f64>,
-    /// Per eliminated point: `(offset, H_AX (n_a × 3), H_XX)`.
-    points: Vec<(usize, DMatrix<f64>, Matrix3<f64>)>,
-    g: DVector<f64>,
-}
-
-impl BlockNormal {
-    fn new(n_a: usize, n: usize, layout: &Layout) -> BlockNormal {
-        let points = layout
-            .point
-            .iter()
-            .filter_map(|p| match p {
-                Some((off, false)) => Some((*off, DMatrix::zeros(n_a, 3), Matrix3::zeros())),
-                _ => None,
-            })
-            .collect();
-        BlockNormal {
-            n_a,
-            h_aa: DMatrix::zeros(n_a, n_a),
-            points,
-            g: DVector::zeros(n),
-        }
-    }
-
-    /// Adds one residual block `r` (k rows) with its non-zero Jacobian
-    /// blocks `(offset, k × w matrix)`.
-    fn add(
-        &mut self,
-        r: &[f64],
-        blocks: &[(usize, DMatrix<f64>)],
-        point_index: &BTreeMap<usize, usize>,
-    ) {
-        let n_a = self.n_a;
-        for (oi, ji) in blocks {
-            let jtr = ji.tr_mul(&DVector::from_column_slice(r));
-            for (k, v) in jtr.iter().enumerate() {
-                self.g[oi + k] += v;
-            }
-            for (oj, jj) in blocks {
-                let h = ji.tr_mul(jj);
-                match (*oi < n_a, *oj < n_a) {
-                    (true, true) => {
-                        let mut v = self.h_aa.view_mut((*oi, *oj), (h.nrows(), h.ncols()));
-                        v += &h;
-                    }
-                    (true, false) => {
-                        let p = &mut self.points[point_index[oj]].1;
-                        let mut v = p.view_mut((*oi, 0), (h.nrows(), 3));
-                        v += &h;
-                    }
-                    (false, false) => {
-                        let p = &mut self.points[point_index[oi]].2;
-                        *p += Matrix3::from_iterator(h.iter().copied());
-                    }
-                    (false, true) => {} // the transpose of (true, false)
-                }
-            }
-        }
-    }
-
-    /// `S = H_AA − Σ H_AX·H_XX⁻¹·H_XA` and `b = g_A − Σ H_AX·H_XX⁻¹·g_X`,
-    /// with the diagonal damped by `1 + λ`.
-    fn reduce(&self, lambda: f64) -> Option<Reduced> {
-        let mut s = self.h_aa.clone();
-        for i in 0..self.n_a {
-            s[(i, i)] += lambda * self.h_aa[(i, i)].max(1e-300);
-        }
-        let mut b = self.g.rows(0, self.n_a).into_owned();
-        let mut inverses = Vec::with_capacity(self.points.len());
-        for (off, hax, hxx) in &self.points {
-            let mut d = *hxx;
-            for i in 0..3 {
-                d[(i, i)] += lambda * hxx[(i, i)].max(1e-300);
-            }
-            let inv = d.try_inverse()?;
-            let w = hax * inv; // n_a × 3
-            s -= &w * hax.transpose();
-            b -= &w * self.g.fixed_rows::<3>(*off);
-            inverses.push(inv);
-        }
-        Some((s, b, inverses))
-    }
-}
-
-impl NormalEquations for BlockNormal {
+impl NormalEquations for BundleNormal {
     fn gradient(&self) -> &DVector<f64> {
-        &self.g
+        self.0.gradient()
     }
 
     fn damped_step(&self, lambda: f64) -> Option<DVector<f64>> {
-        let (s, b, inverses) = self.reduce(lambda)?;
-        let da = scaled_solve(&s, &(-b))?;
-        let mut step = DVector::zeros(self.g.len());
-        step.rows_mut(0, self.n_a).copy_from(&da);
-        for ((off, hax, _), inv) in self.points.iter().zip(&inverses) {
-            let rhs = -(self.g.fixed_rows::<3>(*off) + hax.tr_mul(&da));
-            step.fixed_rows_mut::<3>(*off).copy_from(&(inv * rhs));
-        }
-        Some(step)
+        Some(-self.0.factor(lambda)?.solve(self.0.gradient()))
     }
 
     fn jacobian_norm2(&self, d: &DVector<f64>) -> f64 {
-        let da = d.rows(0, self.n_a);
-        let mut q = da.dot(&(&self.h_aa * da));
-        for (off, hax, hxx) in &self.points {
-            let dx = d.fixed_rows::<3>(*off);
-            q += 2.0 * da.dot(&(hax * dx)) + dx.dot(&(hxx * dx));
-        }
-        q
+        self.0.quadratic(d)
     }
 }
 
-impl LmJacobian for BlockNormal {
-    type Normal = BlockNormal;
-    fn normal_equations(self, _: &DVector<f64>) -> BlockNormal {
+impl LmJacobian for BundleNormal {
+    type Normal = BundleNormal;
+    fn normal_equations(self, _: &DVector<f64>) -> BundleNormal {
         self
     }
 }
@@ -249,8 +147,6 @@ struct Bundle<'a> {
     weights: &'a [Matrix3<f64>],
     /// Reference coordinates used as observations (when they fix the frame).
     use_references: bool,
-    /// Offset of each eliminated point among `BlockNormal::points`.
-    point_index: BTreeMap<usize, usize>,
 }
 
 impl<'a> Bundle<'a> {
@@ -279,27 +175,32 @@ impl<'a> Bundle<'a> {
         Vector3::new(x[o], x[o + 1], x[o + 2])
     }
 
-    /// Visits every residual block: `(residuals, Jacobian blocks)` when
-    /// `jac`, residuals alone otherwise. With `design`, the Jacobian is that
-    /// of a consistent network — each reading's predicted point taken equal
-    /// to its corrected one — so that the model's exact redundancies with
-    /// the poses show as exact zeros, whatever the current misfit.
+    /// Visits every residual block in order — each reading's three rows,
+    /// then each gauge length, then each reference coordinate — as
+    /// `(rows, residuals, parts)` with the parts `(first column, rows ×
+    /// width values, row-major)` when `jac`, none otherwise. With `design`,
+    /// the Jacobian is that of a consistent network — each reading's
+    /// predicted point taken equal to its corrected one — so that the
+    /// model's exact redundancies with the poses show as exact zeros,
+    /// whatever the current misfit.
     fn visit(
         &self,
         x: &DVector<f64>,
         jac: bool,
         design: bool,
-        mut f: impl FnMut(&[f64], &[(usize, DMatrix<f64>)]),
+        mut f: impl FnMut(usize, &[f64], &[(usize, &[f64])]),
     ) {
         let params = self.params(x);
         let eval = params.evaluator();
         let mut cols = Vec::new();
         let nz = self.layout.n_z;
+        let nf = self.free_index.len();
+        let mut jz = vec![0.0; 3 * nz];
+        let mut jfree = vec![Vector3::zeros(); nf];
         for (i, o) in self.net.obs.iter().enumerate() {
             let (r_s, c, w) = self.pose(x, o.station);
             let xt = self.point(x, o.target);
             let y = r_s.inverse() * (xt - c);
-            let v = self.poses0[o.station].rotation.inverse() * (xt - c);
             // The design network reads exactly the predicted point: the
             // joints that reach `y` with the current parameters.
             let design_q = design
@@ -316,31 +217,47 @@ impl<'a> Bundle<'a> {
                 eval.point(q, links)
             };
             let r = m * (p - y);
-            let mut blocks = Vec::new();
-            if jac {
-                if nz > 0 {
-                    // 3 × n_free, then onto the basis.
-                    let mut jp = DMatrix::zeros(3, self.free_index.len());
-                    for (k, &ci) in self.free_index.iter().enumerate() {
-                        jp.set_column(k, &(m * cols[ci]));
-                    }
-                    blocks.push((0, jp * self.basis));
-                }
-                if let Some(so) = self.layout.station[o.station] {
-                    // ∂y/∂ω = Exp(−ω)·[v]×·J_r(−ω); ∂y/∂c = −R_sᵀ.
-                    let dy_dw =
-                        Rotation3::new(-w).matrix() * v.cross_matrix() * right_jacobian(&(-w));
-                    let mut jb = DMatrix::zeros(3, 6);
-                    jb.view_mut((0, 0), (3, 3)).copy_from(&(-m * dy_dw));
-                    jb.view_mut((0, 3), (3, 3))
-                        .copy_from(&(m * r_s.inverse().matrix()));
-                    blocks.push((so, jb));
-                }
-                let (po, _) = self.layout.point[o.target].expect("seen");
-                let jx = -m * r_s.inverse().matrix();
-                blocks.push((po, DMatrix::from_iterator(3, 3, jx.iter().copied())));
+            if !jac {
+                f(3, r.as_slice(), &[]);
+                continue;
             }
-            f(r.as_slice(), &blocks);
+            // Error-parameter coordinates: 3 × n_free, then onto the basis.
+            for (k, &ci) in self.free_index.iter().enumerate() {
+                jfree[k] = m * cols[ci];
+            }
+            for row in 0..3 {
+                for c in 0..nz {
+                    jz[row * nz + c] = (0..nf).map(|k| jfree[k][row] * self.basis[(k, c)]).sum();
+                }
+            }
+            let mut station = [0.0; 18];
+            let rt = r_s.inverse();
+            let rt = rt.matrix();
+            if self.layout.station[o.station].is_some() {
+                // ∂y/∂ω = Exp(−ω)·[v]×·J_r(−ω); ∂y/∂c = −R_sᵀ.
+                let v = self.poses0[o.station].rotation.inverse() * (xt - c);
+                let dy_dw = Rotation3::new(-w).matrix() * v.cross_matrix() * right_jacobian(&(-w));
+                let a = -m * dy_dw;
+                let b = m * rt;
+                for row in 0..3 {
+                    for k in 0..3 {
+                        station[row * 6 + k] = a[(row, k)];
+                        station[row * 6 + 3 + k] = b[(row, k)];
+                    }
+                }
+            }
+            let jx = -m * rt;
+            let point = row_major(&jx);
+            let (po, _) = self.layout.point[o.target].expect("seen");
+            let mut parts: Vec<(usize, &[f64])> = Vec::with_capacity(3);
+            if nz > 0 {
+                parts.push((0, &jz));
+            }
+            if let Some(so) = self.layout.station[o.station] {
+                parts.push((so, &station));
+            }
+            parts.push((po, &point));
+            f(3, r.as_slice(), &parts);
         }
         for g in &self.net.gauge {
             let (Some((oa, _)), Some((ob, _))) = (self.layout.point[g.a], self.layout.point[g.b])
@@ -350,13 +267,13 @@ impl<'a> Bundle<'a> {
             let d = self.point(x, g.a) - self.point(x, g.b);
             let len = d.norm();
             let r = [(len - g.length_mm) / g.u_mm];
-            let mut blocks = Vec::new();
             if jac {
-                let u = d.transpose() / (len * g.u_mm);
-                blocks.push((oa, DMatrix::from_row_slice(1, 3, u.as_slice())));
-                blocks.push((ob, DMatrix::from_row_slice(1, 3, (-u).as_slice())));
+                let u = d / (len * g.u_mm);
+                let (ua, ub) = ([u.x, u.y, u.z], [-u.x, -u.y, -u.z]);
+                f(1, &r, &[(oa, &ua), (ob, &ub)]);
+            } else {
+                f(1, &r, &[]);
             }
-            f(&r, &blocks);
         }
         if self.use_references {
             for (t, rf) in self.net.references.iter().enumerate() {
@@ -364,47 +281,48 @@ impl<'a> Bundle<'a> {
                     continue;
                 };
                 let r = (self.point(x, t) - xr) / *u;
-                let blocks = if jac {
-                    vec![(o, DMatrix::identity(3, 3) / *u)]
+                if jac {
+                    let id = row_major(&(Matrix3::identity() / *u));
+                    f(3, r.as_slice(), &[(o, &id)]);
                 } else {
-                    Vec::new()
-                };
-                f(r.as_slice(), &blocks);
+                    f(3, r.as_slice(), &[]);
+                }
             }
         }
     }
 
-    /// The whole Jacobian, densely, of the network at `x` (`design`: of the
-    /// consistent network, see [`Self::visit`]).
-    fn dense_jacobian(&self, x: &DVector<f64>, design: bool) -> DMatrix<f64> {
-        let mut rows: Vec<Vec<f64>> = Vec::new();
-        self.visit(x, true, design, |r, blocks| {
-            for k in 0..r.len() {
-                let mut row = vec![0.0; self.layout.n];
-                for (off, b) in blocks {
-                    for c in 0..b.ncols() {
-                        row[off + c] = b[(k, c)];
-                    }
-                }
-                rows.push(row);
-            }
+    /// The Jacobian, as its blocks, and the residuals of the network at `x`
+    /// (`design`: of the consistent network, see [`Self::visit`]).
+    fn jacobian_at(&self, x: &DVector<f64>, design: bool) -> (BlockJacobian, DVector<f64>) {
+        let mut j = BlockJacobian::new(self.layout.n_a, self.layout.n);
+        let mut r = Vec::new();
+        self.visit(x, true, design, |rows, res, parts| {
+            j.push(rows, parts);
+            r.extend_from_slice(res);
         });
-        DMatrix::from_fn(rows.len(), self.layout.n, |i, j| rows[i][j])
+        (j, DVector::from_vec(r))
     }
 
     fn residuals(&self, x: &DVector<f64>) -> DVector<f64> {
         let mut out = Vec::new();
-        self.visit(x, false, false, |r, _| out.extend_from_slice(r));
+        self.visit(x, false, false, |_, r, _| out.extend_from_slice(r));
         DVector::from_vec(out)
     }
+}
 
-    fn normal(&self, x: &DVector<f64>) -> BlockNormal {
-        let mut n = BlockNormal::new(self.layout.n_a, self.layout.n, self.layout);
-        self.visit(x, true, false, |r, blocks| {
-            n.add(r, blocks, &self.point_index)
-        });
-        n
-    }
+/// A 3 × 3 matrix's entries, row by row.
+fn row_major(m: &Matrix3<f64>) -> [f64; 9] {
+    [
+        m[(0, 0)],
+        m[(0, 1)],
+        m[(0, 2)],
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+    ]
 }
 
 impl Operator for Bundle<'_> {
@@ -417,77 +335,11 @@ impl Operator for Bundle<'_> {
 
 impl Jacobian for Bundle<'_> {
     type Param = DVector<f64>;
-    type Jacobian = BlockNormal;
-    fn jacobian(&self, x: &DVector<f64>) -> Result<BlockNormal, ArgminError> {
-        Ok(self.normal(x))
+    type Jacobian = BundleNormal;
+    fn jacobian(&self, x: &DVector<f64>) -> Result<BundleNormal, ArgminError> {
+        let (j, r) = self.jacobian_at(x, false);
+        Ok(BundleNormal(Normal::assemble(&j, Some(&r), |_| true)))
     }
-}
-
-fn point_index(layout: &Layout) -> BTreeMap<usize, usize> {
-    layout
-        .point
-        .iter()
-        .filter_map(|p| match p {
-            Some((off, false)) => Some(*off),
-            _ => None,
-        })
-        .enumerate()
-        .map(|(i, off)| (off, i))
-        .collect()
-}
-
-/// The unknowns mix mm, rad and µm-level parameters, so the normal matrix
-/// spans many decades; equilibrating it (`D^{-1/2}·S·D^{-1/2}`, D its
-/// diagonal) before the Cholesky factorisation keeps the solve accurate.
-fn equilibrate(s: &DMatrix<f64>) -> (DMatrix<f64>, DVector<f64>) {
-    let d = s.diagonal().map(|v| 1.0 / v.abs().max(1e-300).sqrt());
-    let mut e = s.clone();
-    for i in 0..e.nrows() {
-        for j in 0..e.ncols() {
-            e[(i, j)] *= d[i] * d[j];
-        }
-    }
-    (e, d)
-}
-
-fn scaled_solve(s: &DMatrix<f64>, b: &DVector<f64>) -> Option<DVector<f64>> {
-    let (e, d) = equilibrate(s);
-    let y = e.cholesky()?.solve(&b.component_mul(&d));
-    Some(y.component_mul(&d))
-}
-
-fn scaled_inverse(s: &DMatrix<f64>) -> Option<DMatrix<f64>> {
-    let (e, d) = equilibrate(s);
-    let mut inv = e.cholesky()?.inverse();
-    for i in 0..inv.nrows() {
-        for j in 0..inv.ncols() {
-            inv[(i, j)] *= d[i] * d[j];
-        }
-    }
-    Some(inv)
-}
-
-/// The first `k` columns of `j` with the span of the other columns removed:
-/// what is left of the error parameters' effect once poses and positions
-/// absorb all they can. Computed by QR of the (equilibrated) nuisance
-/// columns, never by squaring `j`: the exact redundancies of the model must
-/// come out at round-off level to be told from weak but real directions.
-fn project_out(j: &DMatrix<f64>, k: usize) -> Result<DMatrix<f64>> {
-    let n = j.ncols();
-    let jp = j.columns(0, k).into_owned();
-    if k == n {
-        return Ok(jp);
-    }
-    let mut jx = j.columns(k, n - k).into_owned();
-    for mut c in jx.column_iter_mut() {
-        let norm = c.norm();
-        if norm > 0.0 {
-            c /= norm;
-        }
-    }
-
-    let q = jx.qr().q();
-    Ok(&jp - &q * (q.transpose() * &jp))
 }
 
 /// What the analysis and the fit share: the free coefficients, the frame,
@@ -557,7 +409,6 @@ impl Setup {
             poses0: &self.poses0,
             weights: &self.weights,
             use_references: self.use_references,
-            point_index: point_index(layout),
         }
     }
 }
@@ -576,6 +427,12 @@ pub fn analyse(
     analyse_setup(net, start, &setup, rank_tol)
 }
 
+/// The projection of the error-parameter columns never forms the whole
+/// Jacobian: poses and positions (the nuisance) are factorised block-sparse
+/// and projected out of the few parameter columns by the corrected
+/// semi-normal equations ([`sparse::project_out`]), which leaves exact
+/// redundancies at round-off level as a QR factorisation would. The result
+/// has as many columns as free coefficients, so its SVD is cheap.
 fn analyse_setup(
     net: &Network,
     start: &ErrorParams,
@@ -586,8 +443,33 @@ fn analyse_setup(
     let identity = DMatrix::identity(n, n);
     let layout = setup.layout(net, n);
     let probe = setup.problem(net, start, &identity, &layout);
-    let j = probe.dense_jacobian(&setup.initial(&layout), true);
-    let analysis = identifiability::analyse(&project_out(&j, n)?, rank_tol)?;
+    let (j, _) = probe.jacobian_at(&setup.initial(&layout), true);
+    let (nuisance, jz) = j.split_leading(n);
+    if !j.is_finite() {
+        bail!(
+            "the Jacobian has a non-finite entry: the data are degenerate \
+             (e.g. a reading or gauge length that divides by zero)"
+        );
+    }
+    let projected = if nuisance.ncols() == 0 {
+        jz
+    } else {
+        let f = Normal::assemble(&nuisance, None, |_| true)
+            .factor(0.0)
+            .ok_or_else(|| {
+                anyhow!(
+                    "station poses and reflector positions are not determined by the readings \
+                     (singular normal matrix): check that every station sees at least 3 \
+                     reflectors not on a line"
+                )
+            })?;
+        let mut p = jz.clone();
+        for (mut c, col) in p.column_iter_mut().zip(jz.column_iter()) {
+            c.copy_from(&sparse::project_out(&nuisance, &f, &col.into_owned()));
+        }
+        p
+    };
+    let analysis = identifiability::analyse(&projected, rank_tol)?;
     let names: Vec<String> = setup
         .free_index
         .iter()
@@ -600,10 +482,10 @@ fn analyse_setup(
 /// The linearised problem at a bundle adjustment's solution, for tests of
 /// added effects: the Jacobian of all residuals (readings first, three rows
 /// each in units of σ; then gauge and reference rows) with respect to every
-/// unknown, and the residuals.
+/// unknown, as its blocks, and the residuals.
 #[derive(Clone, Debug)]
 pub struct Linearisation {
-    pub jacobian: DMatrix<f64>,
+    pub jacobian: BlockJacobian,
     pub residuals: DVector<f64>,
 }
 
@@ -631,7 +513,7 @@ pub fn calibrate(
     let problem = setup.problem(net, start, &basis, &layout);
     let x = fit.x;
     let params = problem.params(&x);
-    let r = problem.residuals(&x);
+    let (jacobian, r) = problem.jacobian_at(&x, false);
     let m = r.len();
     let chi2 = r.norm_squared();
     let dof = m.saturating_sub(layout.n).max(1);
@@ -641,13 +523,10 @@ pub fn calibrate(
     // Covariance with the a-priori noise, inflated when the fit says the
     // noise was understated.
     let var_factor = (chi2 / dof as f64).max(1.0);
-    let normal = problem.normal(&x);
-    let (s_a, _, inverses) = normal
-        .reduce(0.0)
+    let factor = Normal::assemble(&jacobian, None, |_| true)
+        .factor(0.0)
         .ok_or_else(|| anyhow!("singular normal matrix at the solution"))?;
-    let cov_a = scaled_inverse(&s_a)
-        .map(|c| c * var_factor)
-        .ok_or_else(|| anyhow!("singular normal matrix at the solution"))?;
+    let cov_a = factor.dense_covariance() * var_factor;
     let mut std = vec![None; free.len()];
     let nz = layout.n_z;
     if nz > 0 {
@@ -670,19 +549,15 @@ pub fn calibrate(
         .collect();
     let mut points = BTreeMap::new();
     let mut point_std = BTreeMap::new();
-    let idx = point_index(&layout);
     for (t, off) in layout.point.iter().enumerate() {
         let Some((o, dense)) = off else { continue };
         points.insert(t, problem.point(&x, t));
         let var = if *dense {
             (0..3).map(|k| cov_a[(o + k, o + k)]).sum::<f64>()
         } else {
-            let i = idx[o];
-            let (_, hax, _) = &normal.points[i];
-            let inv = &inverses[i];
-            let w = inv * hax.transpose();
-            let cov = inv * var_factor + &w * &cov_a * w.transpose();
-            cov.trace()
+            factor
+                .point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
+                .trace()
         };
         point_std.insert(t, (var / 3.0).max(0.0).sqrt());
     }
@@ -696,12 +571,9 @@ pub fn calibrate(
         })
         .collect();
     let residuals = super::reading_residuals(net, &params, &poses, &points);
-    let linearisation = Linearisation {
-        jacobian: problem.dense_jacobian(&x, false),
-        residuals: r.clone(),
-    };
     let rms = |r: &DVector<f64>| (r.norm_squared() / m as f64).sqrt();
     let mean_abs = |r: &DVector<f64>| r.iter().map(|v| v.abs()).sum::<f64>() / m as f64;
+    let (rms_after, mean_abs_after) = (rms(&r), mean_abs(&r));
     Ok(Calibration {
         free: free.to_vec(),
         std,
@@ -721,9 +593,9 @@ pub fn calibrate(
             iterations: fit.iterations,
             stop: fit.reason.into(),
             rms_before: rms(&r0),
-            rms_after: rms(&r),
+            rms_after,
             mean_abs_before: mean_abs(&r0),
-            mean_abs_after: mean_abs(&r),
+            mean_abs_after,
             chi2: Some(chi2),
             dof: Some(dof),
             chi2_p,
@@ -732,7 +604,10 @@ pub fn calibrate(
         analysis,
         params,
         residuals,
-        linearisation: Some(linearisation),
+        linearisation: Some(Linearisation {
+            jacobian,
+            residuals: r,
+        }),
     })
 }
 

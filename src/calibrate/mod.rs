@@ -22,6 +22,7 @@
 pub mod bundle;
 pub mod distances;
 pub mod register;
+pub mod sparse;
 
 use crate::campaign::Campaign;
 use crate::error_model::{ErrorParams, Links};

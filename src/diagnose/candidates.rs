@@ -8,8 +8,9 @@
 //! station by `s` moves it by `W·J⁻¹·R_sᵀ·s`. Effects whose inputs the
 //! campaign lacks are skipped, with the reason.
 
+use super::linear::Signature;
 use crate::effects::{IncidenceAngles, incidence_angles, table9_delta_d_um};
-use nalgebra::{DMatrix, Matrix3, Vector3};
+use nalgebra::{Matrix3, Vector3};
 
 /// What the candidates need to know about one reading.
 #[derive(Clone, Debug)]
@@ -39,8 +40,8 @@ pub struct Candidate {
     pub effect: &'static str,
     /// `all`, a station or reflector id, or an axis.
     pub place: String,
-    /// Signature columns, one per parameter (rows: the model's rows).
-    pub columns: DMatrix<f64>,
+    /// Signature columns, one per parameter, on the readings it affects.
+    pub columns: Signature,
     /// The magnitude reported from the fitted parameters, and its unit.
     pub magnitude: fn(&[f64]) -> f64,
     pub unit: &'static str,
@@ -58,17 +59,6 @@ pub struct Skipped {
     pub reason: String,
 }
 
-/// Signature builder over the model's rows.
-struct Sig {
-    rows: usize,
-}
-
-impl Sig {
-    fn columns(&self, k: usize) -> DMatrix<f64> {
-        DMatrix::zeros(self.rows, k)
-    }
-}
-
 fn norm(b: &[f64]) -> f64 {
     b.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
@@ -77,16 +67,16 @@ fn first(b: &[f64]) -> f64 {
 }
 
 /// Adds `w_d·value` to reading i's range row of column `col`.
-fn put_d(c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
-    c[(3 * i + 2, col)] += value_mm / r.sigma.z;
+fn put_d(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
+    c.add(i, 2, col, value_mm / r.sigma.z);
 }
 
 /// Adds a point displacement `s_mm` (campaign frame, per unit of the
 /// column's parameter) to reading i.
-fn put_point(c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo, col: usize, s_mm: Vector3<f64>) {
+fn put_point(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, s_mm: Vector3<f64>) {
     let dq = r.jinv * (r.rotation.transpose() * s_mm);
     for a in 0..3 {
-        c[(3 * i + a, col)] += dq[a] / r.sigma[a];
+        c.add(i, a, col, dq[a] / r.sigma[a]);
     }
 }
 
@@ -94,13 +84,11 @@ fn put_point(c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo, col: usize, s_mm: 
 /// index; `station_order`: stations in the order they measured.
 pub fn build(
     readings: &[ReadingInfo],
-    rows: usize,
     stations: &[String],
     targets: &[String],
     station_order: &[usize],
     enabled: &dyn Fn(&str) -> bool,
 ) -> (Vec<Candidate>, Vec<Skipped>) {
-    let sig = Sig { rows };
     let mut out = Vec::new();
     let mut skipped = Vec::new();
     let skip = |effect: &'static str, reason: &str, skipped: &mut Vec<Skipped>| {
@@ -125,7 +113,7 @@ pub fn build(
     };
     if enabled("incidence") {
         if has_incidence {
-            let mut c = sig.columns(3);
+            let mut c = Signature::new(3);
             for (i, r) in readings.iter().enumerate() {
                 let Some(a) = r.incidence else { continue };
                 put_d(&mut c, i, r, 0, 1e-3 * (1.0 - a.alpha.cos()));
@@ -151,7 +139,7 @@ pub fn build(
     }
     if enabled("incidence-table9") {
         if has_incidence {
-            let mut c = sig.columns(1);
+            let mut c = Signature::new(1);
             for (i, r) in readings.iter().enumerate() {
                 let Some(a) = r.incidence else { continue };
                 if let Some(um) = table9_delta_d_um(a.alpha_v, a.alpha_h) {
@@ -180,7 +168,7 @@ pub fn build(
     if enabled("range-scale") {
         // One ppm column per station that `col` maps to a column.
         let scale = |n: usize, col: &dyn Fn(usize) -> Option<usize>| {
-            let mut c = sig.columns(n);
+            let mut c = Signature::new(n);
             for (i, r) in readings.iter().enumerate() {
                 if let Some(k) = col(r.station) {
                     put_d(&mut c, i, r, k, 1e-6 * r.d);
@@ -215,7 +203,7 @@ pub fn build(
         if readings.iter().all(|r| r.temperature_c.is_some()) {
             let mean = readings.iter().filter_map(|r| r.temperature_c).sum::<f64>()
                 / readings.len() as f64;
-            let mut c = sig.columns(2);
+            let mut c = Signature::new(2);
             for (i, r) in readings.iter().enumerate() {
                 let t = r.temperature_c.expect("checked");
                 put_d(&mut c, i, r, 0, 1e-6 * (t - mean) * r.d);
@@ -243,12 +231,12 @@ pub fn build(
     if enabled("encoder-harmonic") {
         for (axis, a) in [("az", 0usize), ("el", 1usize)] {
             for order in 2..=4u32 {
-                let mut c = sig.columns(2);
+                let mut c = Signature::new(2);
                 for (i, r) in readings.iter().enumerate() {
                     let angle = if a == 0 { r.az } else { r.el };
                     let k = order as f64 * angle;
-                    c[(3 * i + a, 0)] = 1e-6 * k.sin() / r.sigma[a];
-                    c[(3 * i + a, 1)] = 1e-6 * k.cos() / r.sigma[a];
+                    c.add(i, a, 0, 1e-6 * k.sin() / r.sigma[a]);
+                    c.add(i, a, 1, 1e-6 * k.cos() / r.sigma[a]);
                 }
                 out.push(Candidate {
                     effect: "encoder-harmonic",
@@ -266,7 +254,7 @@ pub fn build(
     // station-drift: each station, and one velocity for all.
     if enabled("station-drift") {
         if readings.iter().all(|r| r.since_station_s.is_some()) {
-            let drift = |c: &mut DMatrix<f64>, i: usize, r: &ReadingInfo| {
+            let drift = |c: &mut Signature, i: usize, r: &ReadingInfo| {
                 let minutes = r.since_station_s.expect("checked") / 60.0;
                 for a in 0..3 {
                     let mut s = Vector3::zeros();
@@ -276,7 +264,7 @@ pub fn build(
                 }
             };
             for (s, id) in stations.iter().enumerate() {
-                let mut c = sig.columns(3);
+                let mut c = Signature::new(3);
                 for (i, r) in readings.iter().enumerate().filter(|(_, r)| r.station == s) {
                     drift(&mut c, i, r);
                 }
@@ -290,7 +278,7 @@ pub fn build(
                     detail: String::new(),
                 });
             }
-            let mut c = sig.columns(3);
+            let mut c = Signature::new(3);
             for (i, r) in readings.iter().enumerate() {
                 drift(&mut c, i, r);
             }
@@ -315,15 +303,25 @@ pub fn build(
     // target-shift: each reflector, from each station but the first.
     if enabled("target-shift") {
         let n_from = station_order.len().saturating_sub(1);
+        // Each reflector's readings, ascending: a candidate visits its own.
+        let mut of_target: Vec<Vec<usize>> = vec![Vec::new(); targets.len()];
+        for (i, r) in readings.iter().enumerate() {
+            of_target[r.target].push(i);
+        }
+        // Each station's place in the measuring order.
+        let mut rank = vec![usize::MAX; stations.len()];
+        for (k, &s) in station_order.iter().enumerate() {
+            rank[s] = k;
+        }
         for (t, id) in targets.iter().enumerate() {
-            if !readings.iter().any(|r| r.target == t) {
+            if of_target[t].is_empty() {
                 continue;
             }
             for k in 1..station_order.len() {
-                let after: Vec<usize> = station_order[k..].to_vec();
-                let mut c = sig.columns(3);
-                for (i, r) in readings.iter().enumerate() {
-                    if r.target == t && after.contains(&r.station) {
+                let mut c = Signature::new(3);
+                for &i in &of_target[t] {
+                    let r = &readings[i];
+                    if rank[r.station] >= k {
                         for a in 0..3 {
                             let mut s = Vector3::zeros();
                             s[a] = 1e-3;

@@ -18,66 +18,227 @@
 //! Held-out residuals are reported in µm: each reading's residual in
 //! (az, el, d), times its σ, mapped to the point through the reading
 //! Jacobian.
+//!
+//! Everything stays block-sparse ([`crate::calibrate::sparse`]): `J` is
+//! never formed, the full and each fold's normal matrix are factorised once
+//! through their Schur complement, and a candidate — whose columns touch
+//! only the readings it affects — costs time in proportion to those
+//! readings and to the square of the dense part (error parameters and
+//! poses), not to the size of the network:
+//!
+//! ```text
+//! CᵀP⊥C = CᵀC − uᵀN⁻¹u,  u = JᵀC  (sparse: the affected readings' blocks)
+//! uᵀN⁻¹u = Σₓ uₓᵀH_XX⁻¹uₓ + vᵀS⁻¹v,  v = u_A − Σₓ H_AX·H_XX⁻¹·uₓ
+//! ```
+//!
+//! A fold's held-out residuals with a candidate added are the base model's
+//! (`a_i`, computed once per fold) moved by the change of the base fit,
+//! `K_i·δ_A` (`K_i = J_iA − J_iX·H_XX⁻¹·H_XA`: reading i's response to the
+//! dense part once its reflector re-adjusts), plus terms on the affected
+//! readings alone; the sum of squares over all held-out readings is a
+//! quadratic form in `δ_A` whose matrix is accumulated once per fold.
 
+use crate::calibrate::sparse::{BlockJacobian, Factor, Normal, project_out};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
-/// A thin orthonormal basis of a matrix's column space and its
-/// pseudo-inverse, by QR then SVD of the triangular factor (rank-revealing
-/// without squaring the matrix).
-struct Basis {
-    /// m × rank, orthonormal.
-    u: DMatrix<f64>,
-    /// n × rank: `V·S⁻¹`, so that `J⁺ = pinv·Uᵀ`.
-    pinv: DMatrix<f64>,
+/// A candidate's signature: `k` columns over the model's rows, non-zero
+/// only on the readings it affects (never on gauge or reference rows).
+#[derive(Clone, Debug)]
+pub struct Signature {
+    k: usize,
+    /// Affected readings, ascending.
+    readings: Vec<usize>,
+    /// Per affected reading, its 3 × k block, row-major.
+    values: Vec<f64>,
 }
 
-impl Basis {
-    fn new(j: &DMatrix<f64>) -> Basis {
-        let n = j.ncols();
-        let qr = j.clone().qr();
-        let q = qr.q();
-        let r = qr.r();
-        let svd = r.svd(true, true);
-        let (ur, vt) = (svd.u.expect("requested"), svd.v_t.expect("requested"));
-        let smax = svd.singular_values.max();
-        let keep: Vec<usize> = (0..svd.singular_values.len())
-            .filter(|&i| svd.singular_values[i] > 1e-10 * smax)
-            .collect();
-        let u = &q * ur.select_columns(&keep);
-        let mut pinv = DMatrix::zeros(n, keep.len());
-        for (c, &i) in keep.iter().enumerate() {
-            pinv.set_column(c, &(vt.row(i).transpose() / svd.singular_values[i]));
+impl Signature {
+    /// `k` empty columns.
+    pub fn new(k: usize) -> Signature {
+        Signature {
+            k,
+            readings: Vec::new(),
+            values: Vec::new(),
         }
-        Basis { u, pinv }
     }
 
-    /// `x − U·Uᵀ·x`.
-    fn residual(&self, x: &DMatrix<f64>) -> DMatrix<f64> {
-        x - &self.u * (self.u.transpose() * x)
+    /// Number of columns (the effect's parameters).
+    pub fn ncols(&self) -> usize {
+        self.k
     }
 
-    /// The coefficients `J⁺·x`.
-    fn coefficients(&self, x: &DMatrix<f64>) -> DMatrix<f64> {
-        &self.pinv * (self.u.transpose() * x)
+    /// Adds `v` to row `axis` (0 az, 1 el, 2 d) of reading `i`, column
+    /// `col`. Readings must be visited in non-decreasing order.
+    pub fn add(&mut self, i: usize, axis: usize, col: usize, v: f64) {
+        if self.readings.last() != Some(&i) {
+            debug_assert!(self.readings.last().is_none_or(|&l| l < i));
+            self.readings.push(i);
+            self.values.extend(std::iter::repeat_n(0.0, 3 * self.k));
+        }
+        let at = self.values.len() - 3 * self.k;
+        self.values[at + axis * self.k + col] += v;
     }
+
+    /// Reading `i`'s block (3 × k, row-major) and the reading.
+    fn blocks(&self) -> impl Iterator<Item = (usize, &[f64])> {
+        self.readings
+            .iter()
+            .zip(self.values.chunks(3 * self.k))
+            .map(|(&i, v)| (i, v))
+    }
+
+    /// The largest squared column norm over the readings `keep` admits.
+    fn column_scale(&self, keep: impl Fn(usize) -> bool) -> f64 {
+        let mut n2 = vec![0.0; self.k];
+        for (i, v) in self.blocks() {
+            if keep(i) {
+                for (e, x) in v.iter().enumerate() {
+                    n2[e % self.k] += x * x;
+                }
+            }
+        }
+        n2.into_iter().fold(0.0, f64::max)
+    }
+
+    /// A dense `rows × k` copy, for tests against the definition.
+    #[cfg(test)]
+    fn dense(&self, rows: usize) -> DMatrix<f64> {
+        let mut c = DMatrix::zeros(rows, self.k);
+        for (i, v) in self.blocks() {
+            for a in 0..3 {
+                for col in 0..self.k {
+                    c[(3 * i + a, col)] = v[a * self.k + col];
+                }
+            }
+        }
+        c
+    }
+}
+
+/// `JᵀC`, `CᵀC` and `Cᵀx` over the affected readings `keep` admits: the
+/// dense part of `JᵀC` (n_a × k), its eliminated positions' parts, and the
+/// two small products.
+struct Products {
+    u_a: DMatrix<f64>,
+    u_x: Vec<(usize, DMatrix<f64>)>,
+    ctc: DMatrix<f64>,
+    ctx: DVector<f64>,
+}
+
+fn products(
+    j: &BlockJacobian,
+    c: &Signature,
+    x: &DVector<f64>,
+    keep: impl Fn(usize) -> bool,
+) -> Products {
+    let k = c.k;
+    let n_a = j.n_a();
+    let mut u_a = DMatrix::zeros(n_a, k);
+    let mut u_x: Vec<(usize, DMatrix<f64>)> = Vec::new();
+    let mut ctc = DMatrix::zeros(k, k);
+    let mut ctx = DVector::zeros(k);
+    for (i, v) in c.blocks() {
+        if !keep(i) {
+            continue;
+        }
+        let ci = DMatrix::from_row_slice(3, k, v);
+        ctc += ci.tr_mul(&ci);
+        ctx += ci.tr_mul(&x.fixed_rows::<3>(3 * i));
+        for (col, w, part) in j.dense_parts(i) {
+            let ji = DMatrix::from_row_slice(3, w, part);
+            let mut view = u_a.view_mut((col, 0), (w, k));
+            view += ji.tr_mul(&ci);
+        }
+        if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
+            let add = DMatrix::from_row_slice(3, 3, part).tr_mul(&ci);
+            match u_x.iter_mut().find(|(q, _)| *q == p) {
+                Some((_, m)) => *m += add,
+                None => u_x.push((p, add)),
+            }
+        }
+    }
+    Products { u_a, u_x, ctc, ctx }
+}
+
+impl Products {
+    /// `CᵀP⊥C = CᵀC − uᵀN⁻¹u` and `v = u_A − Σ W·uₓ` (for later solves).
+    fn projected_gram(&self, f: &Factor) -> (DMatrix<f64>, DMatrix<f64>) {
+        let v = f.reduce_sparse(&self.u_a, &self.u_x);
+        let mut q = v.tr_mul(&f.solve_schur_columns(&v));
+        for (p, ux) in &self.u_x {
+            q += ux.tr_mul(&(f.point_inverse(*p) * ux));
+        }
+        (&self.ctc - q, v)
+    }
+}
+
+/// Least squares by the normal equations of a few projected columns, with a
+/// ridge of 1e-10 of the columns' size before projection: what the base
+/// model absorbs entirely (to round-off) gets β = 0, not a huge β fitting
+/// round-off.
+fn lstsq(gram: &DMatrix<f64>, rhs: &DVector<f64>, scale: f64) -> DVector<f64> {
+    let mut a = gram.clone();
+    for i in 0..a.nrows() {
+        a[(i, i)] += 1e-10 * scale.max(1e-300);
+    }
+    a.cholesky()
+        .map(|c| c.solve(rhs))
+        .unwrap_or_else(|| DVector::zeros(gram.nrows()))
+}
+
+/// `N⁻¹·Jᵀ·x` over the blocks `keep` admits, refined once from the
+/// unsquared residual (see [`crate::calibrate::sparse`]).
+fn solve_ls(
+    j: &BlockJacobian,
+    f: &Factor,
+    x: &DVector<f64>,
+    keep: &dyn Fn(usize) -> bool,
+) -> DVector<f64> {
+    let jt = |r: &DVector<f64>| {
+        let mut out = DVector::zeros(j.ncols());
+        for b in 0..j.blocks() {
+            if keep(b) {
+                let (row, rows) = j.block_rows(b);
+                j.block_tr_mul(b, &r.as_slice()[row..row + rows], out.as_mut_slice());
+            }
+        }
+        out
+    };
+    let mut y = f.solve(&jt(x));
+    let res = x - j.mul(&y);
+    y += f.solve(&jt(&res));
+    y
 }
 
 struct Fold {
-    train: Vec<usize>,
-    /// Held-out readings (indices into the reading list).
+    /// Held-out readings (indices into the reading list, ascending).
     test: Vec<usize>,
-    basis: Basis,
+    factor: Factor,
+    /// `r − J·y_f` with `y_f` the base fit to the training rows of the
+    /// model's residuals: training residuals on training rows, the
+    /// held-out residuals `a_i` on test rows.
+    res: DVector<f64>,
+    /// `Σ_test K_iᵀ·L_iᵀL_i·K_i`, `Σ_test K_iᵀ·L_iᵀL_i·a_i`, `Σ_test ‖L_i·a_i‖²`
+    /// with `L_i` reading i's map to µm.
+    g_k: DMatrix<f64>,
+    h_k: DVector<f64>,
+    base_sum: f64,
 }
 
 /// The base model linearised at its solution, with its cross-validation
 /// folds prepared.
 pub struct LinearModel {
-    j: DMatrix<f64>,
+    j: BlockJacobian,
     r: DVector<f64>,
-    full: Basis,
+    /// `P⊥·r` over all data.
+    r_perp: DVector<f64>,
+    full: Factor,
+    fold_of: Vec<usize>,
     folds: Vec<Fold>,
-    /// Per reading: `J_nom·diag(σ)` (mm per unit of σ), for µm.
-    to_mm: Vec<Matrix3<f64>>,
+    /// Per eliminated position: the readings that see it.
+    readings_of_point: Vec<Vec<usize>>,
+    /// Per reading: `1e3·J_nom·diag(σ)` (µm per unit of σ).
+    to_um: Vec<Matrix3<f64>>,
     dof: usize,
 }
 
@@ -88,38 +249,86 @@ pub struct Fit {
     pub delta_chi2: f64,
 }
 
+/// The model was not determined enough to test anything.
+#[derive(Debug, thiserror::Error)]
+#[error("the base adjustment's normal matrix is singular{0}")]
+pub struct Singular(&'static str);
+
 impl LinearModel {
     /// `j`, `r`: the base Jacobian and residuals (readings' three rows each
-    /// first, then other observations). `fold_of[i]`: the fold of reading
-    /// `i`. `to_mm[i]`: reading i's `J_nom·diag(σ)`.
+    /// first, one block per reading, then other observations). `fold_of[i]`:
+    /// the fold of reading `i`. `to_mm[i]`: reading i's `J_nom·diag(σ)`.
     pub fn new(
-        j: DMatrix<f64>,
+        j: BlockJacobian,
         r: DVector<f64>,
         fold_of: &[usize],
         n_folds: usize,
         to_mm: Vec<Matrix3<f64>>,
-    ) -> LinearModel {
+    ) -> Result<LinearModel, Singular> {
         let n_read = fold_of.len();
-        let full = Basis::new(&j);
+        let full = Normal::assemble(&j, None, |_| true)
+            .factor(0.0)
+            .ok_or(Singular(""))?;
+        let r_perp = project_out(&j, &full, &r);
+        let to_um: Vec<Matrix3<f64>> = to_mm.into_iter().map(|m| m * 1e3).collect();
+        let mut readings_of_point = vec![Vec::new(); j.points()];
+        for i in 0..n_read {
+            if let Some(p) = j.block_point(i) {
+                readings_of_point[p].push(i);
+            }
+        }
         let folds = (0..n_folds)
             .map(|f| {
+                let train = |b: usize| b >= n_read || fold_of[b] != f;
                 let test: Vec<usize> = (0..n_read).filter(|&i| fold_of[i] == f).collect();
-                let train: Vec<usize> = (0..j.nrows())
-                    .filter(|&row| row >= 3 * n_read || fold_of[row / 3] != f)
-                    .collect();
-                let basis = Basis::new(&j.select_rows(&train));
-                Fold { train, test, basis }
+                let factor = Normal::assemble(&j, None, train)
+                    .factor(0.0)
+                    .ok_or(Singular(" on a cross-validation fold"))?;
+                let y = solve_ls(&j, &factor, &r, &train);
+                let res = &r - j.mul(&y);
+                let n_a = j.n_a();
+                let mut g_k = DMatrix::zeros(n_a, n_a);
+                let mut h_k = DVector::zeros(n_a);
+                let mut base_sum = 0.0;
+                let mut kr = DMatrix::zeros(3, n_a);
+                let mut nz = Vec::new();
+                for &i in &test {
+                    let l = to_um[i];
+                    let a = l * Vector3::new(res[3 * i], res[3 * i + 1], res[3 * i + 2]);
+                    base_sum += a.norm_squared();
+                    k_rows(&j, &factor, i, &mut kr, &mut nz);
+                    let lk = l * kr.select_columns(&nz);
+                    let lkt_lk = lk.tr_mul(&lk);
+                    let lkt_a = lk.tr_mul(&a);
+                    for (x, &cx) in nz.iter().enumerate() {
+                        h_k[cx] += lkt_a[x];
+                        for (y, &cy) in nz.iter().enumerate() {
+                            g_k[(cx, cy)] += lkt_lk[(x, y)];
+                        }
+                    }
+                }
+                Ok(Fold {
+                    test,
+                    factor,
+                    res,
+                    g_k,
+                    h_k,
+                    base_sum,
+                })
             })
-            .collect();
-        let dof = j.nrows().saturating_sub(full.u.ncols()).max(1);
-        LinearModel {
+            .collect::<Result<Vec<_>, Singular>>()?;
+        let dof = j.nrows().saturating_sub(j.ncols()).max(1);
+        Ok(LinearModel {
             j,
             r,
+            r_perp,
             full,
+            fold_of: fold_of.to_vec(),
             folds,
-            to_mm,
+            readings_of_point,
+            to_um,
             dof,
-        }
+        })
     }
 
     pub fn rows(&self) -> usize {
@@ -134,134 +343,317 @@ impl LinearModel {
         self.dof
     }
 
-    /// The fit of `c` (rows × k) to the residuals over all data.
-    pub fn fit(&self, c: &DMatrix<f64>) -> Fit {
-        let cp = self.full.residual(c);
-        let beta = lstsq(&cp, &self.r, column_scale(c));
-        let delta_chi2 = (&cp * &beta).norm_squared();
+    pub fn residuals(&self) -> &DVector<f64> {
+        &self.r
+    }
+
+    /// The fit of `c` to the residuals over all data.
+    pub fn fit(&self, c: &Signature) -> Fit {
+        let pr = products(&self.j, c, &self.r_perp, |_| true);
+        let (gram, _) = pr.projected_gram(&self.full);
+        let beta = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
+        let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
         Fit {
             beta: beta.iter().copied().collect(),
             delta_chi2,
         }
     }
 
-    /// Root mean square of the held-out residuals in µm, with `c` added to
-    /// the model (`None`: the base model), for the residual vector `r`.
-    pub fn cv_rms_um(&self, c: Option<&DMatrix<f64>>, r: &DVector<f64>) -> f64 {
-        let mut sum = 0.0;
-        let mut n = 0usize;
-        for f in &self.folds {
-            let rt =
-                DMatrix::from_column_slice(f.train.len(), 1, r.select_rows(&f.train).as_slice());
-            let (beta_c, base_target) = match c {
-                Some(c) => {
-                    let ct = c.select_rows(&f.train);
-                    let cp = f.basis.residual(&ct);
-                    let rp = f.basis.residual(&rt);
-                    let bc = lstsq(&cp, &rp.column(0).into_owned(), column_scale(&ct));
-                    let fitted = &ct * &bc;
-                    let target =
-                        &rt - DMatrix::from_column_slice(fitted.len(), 1, fitted.as_slice());
-                    (Some(bc), target)
-                }
-                None => (None, rt),
-            };
-            let beta_b = f.basis.coefficients(&base_target);
-            for &i in &f.test {
-                let rows = [3 * i, 3 * i + 1, 3 * i + 2];
-                let jt = self.j.select_rows(&rows);
-                let mut pred = &jt * &beta_b;
-                if let (Some(c), Some(bc)) = (c, &beta_c) {
-                    pred += c.select_rows(&rows) * bc;
-                }
-                let res = Vector3::new(
-                    r[rows[0]] - pred[0],
-                    r[rows[1]] - pred[1],
-                    r[rows[2]] - pred[2],
-                );
-                sum += (self.to_mm[i] * res).norm_squared() * 1e6;
-                n += 1;
-            }
-        }
-        (sum / n.max(1) as f64).sqrt()
+    /// Root mean square of the held-out residuals in µm of the base model
+    /// (for the model's own residuals).
+    pub fn cv_rms_um_base(&self) -> f64 {
+        let sum: f64 = self.folds.iter().map(|f| f.base_sum).sum();
+        (sum / self.fold_of.len().max(1) as f64).sqrt()
     }
 
-    pub fn residuals(&self) -> &DVector<f64> {
-        &self.r
+    /// Root mean square of the held-out residuals in µm with `c` added to
+    /// the model, for the model's own residuals.
+    pub fn cv_rms_um(&self, c: &Signature) -> f64 {
+        let mut sum = 0.0;
+        for (fi, f) in self.folds.iter().enumerate() {
+            let train = |i: usize| self.fold_of[i] != fi;
+            let pr = products(&self.j, c, &f.res, train);
+            let (gram, v) = pr.projected_gram(&f.factor);
+            let bc = lstsq(&gram, &pr.ctx, c.column_scale(train));
+            // The base fit moves by −δ, δ = N_f⁻¹·u·β_c.
+            let d_a = f.factor.solve_schur(&(&v * &bc));
+            let mut part = f.base_sum + 2.0 * d_a.dot(&f.h_k) + d_a.dot(&(&f.g_k * &d_a));
+            // Held-out readings where more than K_i·δ_A changes: those the
+            // candidate touches, and those of reflectors whose fit it moves.
+            let mut extra: Vec<usize> = c.readings.iter().copied().filter(|&i| !train(i)).collect();
+            let mut w_x: Vec<(usize, Vector3<f64>)> = Vec::new();
+            for (p, ux) in &pr.u_x {
+                let w = ux * &bc;
+                w_x.push((*p, Vector3::new(w[0], w[1], w[2])));
+                extra.extend(self.readings_of_point[*p].iter().filter(|&&i| !train(i)));
+            }
+            extra.sort_unstable();
+            extra.dedup();
+            let c_rows: Vec<(usize, &[f64])> = c.blocks().collect();
+            for i in extra {
+                let a = Vector3::new(f.res[3 * i], f.res[3 * i + 1], f.res[3 * i + 2]);
+                let kd = k_times(&self.j, &f.factor, i, &d_a);
+                let mut s = Vector3::zeros();
+                if let (Some(p), Some(jx)) = (self.j.block_point(i), self.j.point_part(i))
+                    && let Some((_, w)) = w_x.iter().find(|(q, _)| *q == p)
+                {
+                    s += crate::calibrate::sparse::part3_mul(jx, &(f.factor.point_inverse(p) * w));
+                }
+                if let Ok(at) = c_rows.binary_search_by_key(&i, |(r, _)| *r) {
+                    let ci = DMatrix::from_row_slice(3, c.k, c_rows[at].1);
+                    let cb = ci * &bc;
+                    s -= Vector3::new(cb[0], cb[1], cb[2]);
+                }
+                let l = self.to_um[i];
+                let base = l * (a + kd);
+                part += (base + l * s).norm_squared() - base.norm_squared();
+            }
+            sum += part;
+        }
+        (sum.max(0.0) / self.fold_of.len().max(1) as f64).sqrt()
+    }
+
+    /// Root mean square of the held-out residuals in µm of the base model
+    /// for any residual vector `r` (refitting each fold).
+    fn cv_rms_um_of(&self, r: &DVector<f64>) -> f64 {
+        let mut sum = 0.0;
+        let n_read = self.fold_of.len();
+        for (fi, f) in self.folds.iter().enumerate() {
+            let train = |b: usize| b >= n_read || self.fold_of[b] != fi;
+            let y = solve_ls(&self.j, &f.factor, r, &train);
+            for &i in &f.test {
+                let mut pred = [0.0; 3];
+                self.j.block_mul(i, y.as_slice(), &mut pred);
+                let res = Vector3::new(
+                    r[3 * i] - pred[0],
+                    r[3 * i + 1] - pred[1],
+                    r[3 * i + 2] - pred[2],
+                );
+                sum += (self.to_um[i] * res).norm_squared();
+            }
+        }
+        (sum / n_read.max(1) as f64).sqrt()
     }
 
     /// The held-out RMS (µm) that noise alone leaves in this geometry:
     /// the mean over `draws` of the base model's cross-validated RMS for
     /// noise `ε ~ N(0, I)` in units of σ, its base fit removed.
     pub fn noise_floor_um(&self, draws: &[DVector<f64>]) -> f64 {
+        use rayon::prelude::*;
         if draws.is_empty() {
             return 0.0;
         }
-        let sum: f64 = draws
-            .iter()
-            .map(|e| {
-                let em = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
-                let res = self.full.residual(&em).column(0).into_owned();
-                self.cv_rms_um(None, &res)
-            })
-            .sum();
-        sum / draws.len() as f64
+        // Summed in draw order whatever the threads: the same number on any machine.
+        let each: Vec<f64> = draws
+            .par_iter()
+            .map(|e| self.cv_rms_um_of(&project_out(&self.j, &self.full, e)))
+            .collect();
+        each.iter().sum::<f64>() / draws.len() as f64
     }
+}
+
+/// Reading i's `K_i = J_iA − J_iX·H_XX⁻¹·H_XA` on the fold's factor, into
+/// `out` (3 × n_a, zero outside `nz`), and its non-zero columns `nz`.
+fn k_rows(j: &BlockJacobian, f: &Factor, i: usize, out: &mut DMatrix<f64>, nz: &mut Vec<usize>) {
+    for &c in nz.iter() {
+        for a in 0..3 {
+            out[(a, c)] = 0.0;
+        }
+    }
+    nz.clear();
+    for (col, w, part) in j.dense_parts(i) {
+        for c in 0..w {
+            for a in 0..3 {
+                out[(a, col + c)] += part[a * w + c];
+            }
+            nz.push(col + c);
+        }
+    }
+    if let (Some(p), Some(jx)) = (j.block_point(i), j.point_part(i)) {
+        // H_XX⁻¹·H_XA = Wᵀ on the position's columns.
+        let (cols, w) = f.point_coupling(p);
+        let jx = Matrix3::from_row_slice(jx);
+        let t = jx * w.transpose(); // 3 × cols
+        for (k, &c) in cols.iter().enumerate() {
+            for a in 0..3 {
+                out[(a, c)] -= t[(a, k)];
+            }
+            nz.push(c);
+        }
+    }
+    nz.sort_unstable();
+    nz.dedup();
+}
+
+/// `K_i·δ_A` without forming `K_i`.
+fn k_times(j: &BlockJacobian, f: &Factor, i: usize, d_a: &DVector<f64>) -> Vector3<f64> {
+    let mut out = [0.0; 3];
+    for (col, w, part) in j.dense_parts(i) {
+        for a in 0..3 {
+            out[a] += (0..w).map(|c| part[a * w + c] * d_a[col + c]).sum::<f64>();
+        }
+    }
+    let mut v = Vector3::from(out);
+    if let (Some(p), Some(jx)) = (j.block_point(i), j.point_part(i)) {
+        let (cols, w) = f.point_coupling(p);
+        let mut wd = Vector3::zeros();
+        for (k, &c) in cols.iter().enumerate() {
+            for a in 0..3 {
+                wd[a] += w[(k, a)] * d_a[c];
+            }
+        }
+        v -= crate::calibrate::sparse::part3_mul(jx, &wd);
+    }
+    v
 }
 
 /// `‖(I − J·J⁺)·x‖²`: the part of `x` no combination of `j`'s columns
-/// reproduces.
-pub fn unabsorbed_norm2(j: &DMatrix<f64>, x: &DVector<f64>) -> f64 {
-    let b = Basis::new(j);
-    let xm = DMatrix::from_column_slice(x.len(), 1, x.as_slice());
-    b.residual(&xm).norm_squared()
-}
-
-/// The largest squared column norm of a signature before projection.
-fn column_scale(c: &DMatrix<f64>) -> f64 {
-    c.column_iter()
-        .map(|x| x.norm_squared())
-        .fold(0.0, f64::max)
-}
-
-/// Least squares by the normal equations of a few projected columns, with a
-/// ridge of 1e-10 of the columns' size before projection: what the base
-/// model absorbs entirely (to round-off) gets β = 0, not a huge β fitting
-/// round-off.
-fn lstsq(a: &DMatrix<f64>, b: &DVector<f64>, scale: f64) -> DVector<f64> {
-    let mut ata = a.tr_mul(a);
-    for i in 0..ata.nrows() {
-        ata[(i, i)] += 1e-10 * scale.max(1e-300);
-    }
-    ata.cholesky()
-        .map(|c| c.solve(&a.tr_mul(b)))
-        .unwrap_or_else(|| DVector::zeros(a.ncols()))
+/// reproduces (zero when `j`'s normal matrix is singular: nothing to test).
+pub fn unabsorbed_norm2(j: &BlockJacobian, x: &DVector<f64>) -> f64 {
+    Normal::assemble(j, None, |_| true)
+        .factor(0.0)
+        .map(|f| project_out(j, &f, x).norm_squared())
+        .unwrap_or(0.0)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// A small network: 2 dense unknowns (an offset per axis pair), 6
+    /// reflectors seen by 3 readings each, 3 rows per reading.
+    fn network() -> (BlockJacobian, DMatrix<f64>) {
+        let (n_a, n_pts) = (2, 6);
+        let n = n_a + 3 * n_pts;
+        let mut j = BlockJacobian::new(n_a, n);
+        let mut rows = Vec::new();
+        let mut s = 0.61_f64;
+        let mut next = || {
+            s = (s * 9301.0 + 49297.0) % 233280.0;
+            s / 233280.0 - 0.5
+        };
+        for i in 0..3 * n_pts {
+            let p = i % n_pts;
+            let a: Vec<f64> = (0..6).map(|_| next()).collect();
+            let x: Vec<f64> = (0..9)
+                .map(|k| next() + if k % 4 == 0 { 1.5 } else { 0.0 })
+                .collect();
+            j.push(3, &[(0, &a), (n_a + 3 * p, &x)]);
+            for k in 0..3 {
+                let mut row = vec![0.0; n];
+                row[0] = a[2 * k];
+                row[1] = a[2 * k + 1];
+                for c in 0..3 {
+                    row[n_a + 3 * p + c] = x[3 * k + c];
+                }
+                rows.push(row);
+            }
+        }
+        let jd = DMatrix::from_fn(rows.len(), n, |i, k| rows[i][k]);
+        (j, jd)
+    }
+
+    fn projector(j: &DMatrix<f64>) -> DMatrix<f64> {
+        let q = j.clone().qr().q();
+        DMatrix::identity(j.nrows(), j.nrows()) - &q * q.transpose()
+    }
+
+    /// The definition, densely: cross-validated RMS with `c` added.
+    fn dense_cv(
+        jd: &DMatrix<f64>,
+        r: &DVector<f64>,
+        c: Option<&DMatrix<f64>>,
+        fold_of: &[usize],
+        n_folds: usize,
+    ) -> f64 {
+        let mut sum = 0.0;
+        for f in 0..n_folds {
+            let train: Vec<usize> = (0..jd.nrows())
+                .filter(|&row| fold_of[row / 3] != f)
+                .collect();
+            let jt = jd.select_rows(&train);
+            let p = projector(&jt);
+            let rt = r.select_rows(&train);
+            let (bc, target) = match c {
+                Some(c) => {
+                    let ct = c.select_rows(&train);
+                    let cp = &p * &ct;
+                    let scale = ct
+                        .column_iter()
+                        .map(|x| x.norm_squared())
+                        .fold(0.0, f64::max);
+                    let bc = lstsq(&cp.tr_mul(&cp), &cp.tr_mul(&(&p * &rt)), scale);
+                    let target = &rt - &ct * &bc;
+                    (Some(bc), target)
+                }
+                None => (None, rt),
+            };
+            let beta_b = jt.clone().svd(true, true).solve(&target, 1e-12).unwrap();
+            for i in (0..fold_of.len()).filter(|&i| fold_of[i] == f) {
+                let rows = [3 * i, 3 * i + 1, 3 * i + 2];
+                let mut pred = jd.select_rows(&rows) * &beta_b;
+                if let (Some(c), Some(bc)) = (c, &bc) {
+                    pred += c.select_rows(&rows) * bc;
+                }
+                sum += (r.select_rows(&rows) - pred).norm_squared() * 1e6;
+            }
+        }
+        (sum / fold_of.len() as f64).sqrt()
+    }
+
     /// A signature the base model cannot absorb is found exactly; one it
-    /// can absorb adds nothing.
+    /// can absorb adds nothing; the sparse cross-validation equals the
+    /// dense definition.
     #[test]
-    fn projects_out_what_the_base_absorbs() {
-        let m = 30;
-        let j = DMatrix::from_fn(m, 2, |i, k| if k == 0 { 1.0 } else { i as f64 });
-        let c_new = DMatrix::from_fn(m, 1, |i, _| ((i * i) % 7) as f64);
-        let c_absorbed = DMatrix::from_fn(m, 1, |i, _| 2.0 + 3.0 * i as f64);
-        // Residuals: 0.5 of the new signature, made orthogonal to J.
-        let full = Basis::new(&j);
-        let r = full.residual(&(&c_new * 0.5)).column(0).into_owned();
-        let fold_of: Vec<usize> = (0..m / 3).map(|i| i % 2).collect();
-        let lm = LinearModel::new(j, r, &fold_of, 2, vec![Matrix3::identity(); m / 3]);
+    fn projects_out_what_the_base_absorbs_and_matches_the_dense_definition() {
+        let (j, jd) = network();
+        let m = j.nrows();
+        let n_read = m / 3;
+        let mut c_new = Signature::new(1);
+        for i in 0..n_read {
+            for a in 0..3 {
+                c_new.add(i, a, 0, ((i * 3 + a) * (i + a) % 7) as f64 - 3.0);
+            }
+        }
+        // Absorbed: a combination of the model's own columns.
+        let beta = DVector::from_fn(j.ncols(), |i, _| i as f64 * 0.1);
+        let jb = &jd * beta;
+        let mut c_abs = Signature::new(1);
+        for i in 0..n_read {
+            for a in 0..3 {
+                c_abs.add(i, a, 0, jb[3 * i + a]);
+            }
+        }
+        let p = projector(&jd);
+        let r = &p * (c_new.dense(m) * 0.5).column(0);
+        let fold_of: Vec<usize> = (0..n_read).map(|i| (i / 6 + i) % 3).collect();
+        let lm =
+            LinearModel::new(j, r.clone(), &fold_of, 3, vec![Matrix3::identity(); n_read]).unwrap();
         let f = lm.fit(&c_new);
         assert!((f.beta[0] - 0.5).abs() < 1e-9, "{f:?}");
         assert!((f.delta_chi2 - lm.chi2()).abs() < 1e-9 * lm.chi2());
-        let g = lm.fit(&c_absorbed);
+        let g = lm.fit(&c_abs);
         assert!(g.delta_chi2 < 1e-12 * lm.chi2(), "{g:?}");
-        // The true signature predicts held-out readings perfectly.
-        assert!(lm.cv_rms_um(Some(&c_new), lm.residuals()) < 1e-6);
-        assert!(lm.cv_rms_um(None, lm.residuals()) > 1.0);
+        // The true signature predicts held-out readings perfectly: to the
+        // round-off of the sum of squares, √ε of the base residual, since
+        // the candidate's held-out sum is the base sum plus its change.
+        assert!(lm.cv_rms_um(&c_new) < 1e-7 * lm.cv_rms_um_base());
+        assert!(lm.cv_rms_um_base() > 1.0);
+        // Against the definition, for the base model and a partial signature.
+        let base = dense_cv(&jd, &r, None, &fold_of, 3);
+        assert!(
+            (lm.cv_rms_um_base() - base).abs() < 1e-9 * base,
+            "{} vs {base}",
+            lm.cv_rms_um_base()
+        );
+        let mut c_part = Signature::new(2);
+        for i in (0..n_read).filter(|i| i % 4 == 1) {
+            c_part.add(i, 2, 0, 1.0 + i as f64);
+            c_part.add(i, 0, 1, (i as f64).sin());
+        }
+        let want = dense_cv(&jd, &r, Some(&c_part.dense(m)), &fold_of, 3);
+        let got = lm.cv_rms_um(&c_part);
+        assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
+        assert!((lm.cv_rms_um_of(&r) - base).abs() < 1e-9 * base);
     }
 }

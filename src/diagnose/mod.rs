@@ -261,7 +261,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         .iter()
         .map(|o| nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma))
         .collect();
-    let lm = LinearModel::new(lin.jacobian, lin.residuals, &fold_of, folds, to_mm);
+    let lm = LinearModel::new(lin.jacobian, lin.residuals, &fold_of, folds, to_mm)?;
     let chi2 = lm.chi2();
     let dof = cal.fit.dof.unwrap_or(lm.dof());
     let chi2_p = cal.fit.chi2_p.unwrap_or(1.0);
@@ -272,19 +272,12 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         .map(|_| DVector::from_fn(lm.rows(), |_, _| random::normal(&mut mc)))
         .collect();
     let floor = lm.noise_floor_um(&draws);
-    let rms_before = lm.cv_rms_um(None, lm.residuals());
+    let rms_before = lm.cv_rms_um_base();
 
     // Which: every candidate, its alternatives resolved by χ².
     let order_st = station_order(c, &stations);
     let enabled = |id: &str| s.effects.is_empty() || s.effects.iter().any(|e| e == id);
-    let (cands, skipped) = candidates::build(
-        &infos,
-        lm.rows(),
-        &stations,
-        &net.targets,
-        &order_st,
-        &enabled,
-    );
+    let (cands, skipped) = candidates::build(&infos, &stations, &net.targets, &order_st, &enabled);
     let fits: Vec<linear::Fit> = cands.par_iter().map(|c| lm.fit(&c.columns)).collect();
     let mut best: Vec<(usize, f64)> = Vec::new();
     for (i, (c, f)) in cands.iter().zip(&fits).enumerate() {
@@ -313,7 +306,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
                 .unwrap_or(1.0);
             let p_corrected = (p * tried as f64).min(1.0);
             let delta_bic = fit.delta_chi2 - k as f64 * m.ln();
-            let rms_after = lm.cv_rms_um(Some(&cand.columns), lm.residuals());
+            let rms_after = lm.cv_rms_um(&cand.columns);
             let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
             let (gb, ga) = (rms_before - floor, rms_after - floor);
             Row {
