@@ -8,6 +8,12 @@
 //! * `cmm-table` — Section 5.2: 17 reflectors on a CMM table on stands of
 //!   several heights, all with reference coordinates; 5 stations around it.
 //! * `hall` — a larger hall: reflectors on the walls of a 20 m × 14 m hall.
+//! * `network` — a large-scale metrology network (an assembly hall, 60 m ×
+//!   30 m × 12 m): reflectors on the walls at four heights, on the floor, on
+//!   the ceiling and on free-standing monuments, `per_level` per wall level
+//!   (5.5 × `per_level` in all: 1 100 at the most), and stations on a grid
+//!   over the floor — the size of network users bring from halls and
+//!   tunnels, and the benches' series.
 //!
 //! The campaign frame has z up; the corner is at the origin with its walls
 //! in the planes x = 0 and y = 0 and the floor at z = 0.
@@ -23,6 +29,7 @@ pub enum Kind {
     Corner,
     CmmTable,
     Hall,
+    Network,
 }
 
 /// A reflector level of the corner layout.
@@ -151,12 +158,11 @@ pub struct Layout {
 }
 
 /// `T01 … T24` for reflectors; `S1 … S5` for stations (as the example
-/// campaigns name them).
+/// campaigns name them); reflector ids as wide as the largest.
 fn ids(prefix: &str, n: usize) -> Vec<String> {
     let w = match (prefix, n) {
         ("S", _) => 1,
-        (_, n) if n >= 100 => 3,
-        _ => 2,
+        _ => n.to_string().len().max(2),
     };
     (1..=n).map(|i| format!("{prefix}{i:0w$}")).collect()
 }
@@ -166,6 +172,7 @@ pub fn build(spec: &Spec) -> Layout {
         Kind::Corner => corner(spec),
         Kind::CmmTable => cmm_table(spec),
         Kind::Hall => hall(spec),
+        Kind::Network => network(spec),
     }
 }
 
@@ -314,6 +321,83 @@ fn hall(spec: &Spec) -> Layout {
         spec.stations,
         spec.tracker_height_mm,
     );
+    let gauge = gauge_of(&targets);
+    Layout {
+        targets,
+        stations,
+        gauge,
+        references: false,
+    }
+}
+
+/// The `network` layout (see the module doc). Walls at four heights, then
+/// floor, ceiling and monuments, each spread evenly; stations on two or
+/// three rows along the hall.
+fn network(spec: &Spec) -> Layout {
+    let (lx, ly, lz) = (60_000.0, 30_000.0, 12_000.0);
+    let n = spec.per_level;
+    let mut pts = Vec::new();
+    // Walls: walk the perimeter, levels interleaved.
+    let perimeter = 2.0 * (lx + ly);
+    for (l, z) in [800.0, spec.tracker_height_mm, 5000.0, 9000.0]
+        .iter()
+        .enumerate()
+    {
+        for k in 0..n {
+            let s = (k as f64 + 0.5 + l as f64 / 4.0) / n as f64 * perimeter;
+            pts.push(if s < lx {
+                Vector3::new(s, 0.0, *z)
+            } else if s < lx + ly {
+                Vector3::new(lx, s - lx, *z)
+            } else if s < 2.0 * lx + ly {
+                Vector3::new(2.0 * lx + ly - s, ly, *z)
+            } else {
+                Vector3::new(0.0, perimeter - s, *z)
+            });
+        }
+    }
+    // Floor and ceiling: a grid inset from the walls, n / 2 each.
+    let grid = |count: usize, z: f64, pts: &mut Vec<Vector3<f64>>| {
+        let cols = ((count as f64 * 2.0).sqrt().ceil() as usize).max(1);
+        let rows = count.div_ceil(cols).max(1);
+        for k in 0..count {
+            let (i, j) = (k % cols, k / cols);
+            pts.push(Vector3::new(
+                lx * (0.1 + 0.8 * (i as f64 + 0.5) / cols as f64),
+                ly * (0.1 + 0.8 * (j as f64 + 0.5) / rows as f64),
+                z,
+            ));
+        }
+    };
+    grid(n / 2, 0.0, &mut pts);
+    grid(n / 2, lz, &mut pts);
+    // Monuments: pillars with five reflectors each, 0.5 … 4.5 m high.
+    let monuments = (n / 2).div_ceil(5);
+    for k in 0..n / 2 {
+        let m = k / 5;
+        let a = 2.0 * PI * (m as f64 + 0.5) / monuments.max(1) as f64;
+        let base = Vector3::new(
+            lx / 2.0 + 0.3 * lx * a.cos(),
+            ly / 2.0 + 0.3 * ly * a.sin(),
+            0.0,
+        );
+        pts.push(base + Vector3::new(0.0, 0.0, 500.0 + 1000.0 * (k % 5) as f64));
+    }
+    let targets: Vec<(String, Vector3<f64>)> = ids("T", pts.len()).into_iter().zip(pts).collect();
+    // Stations: rows along the hall, staggered so that no three are on a line.
+    let rows = if spec.stations >= 12 { 3 } else { 2 };
+    let per_row = spec.stations.div_ceil(rows);
+    let stations = ids("S", spec.stations)
+        .into_iter()
+        .enumerate()
+        .map(|(k, id)| {
+            let (row, i) = (k / per_row, k % per_row);
+            let x = lx * (0.15 + 0.7 * (i as f64 + 0.5) / per_row as f64);
+            let y =
+                ly * (0.3 + 0.4 * row as f64 / (rows - 1) as f64) + 700.0 * ((k % 3) as f64 - 1.0);
+            (id, Vector3::new(x, y, spec.tracker_height_mm))
+        })
+        .collect();
     let gauge = gauge_of(&targets);
     Layout {
         targets,

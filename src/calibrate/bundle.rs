@@ -614,6 +614,152 @@ pub fn calibrate(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::campaign::Aim;
+    use crate::effects::Effects;
+    use crate::error_model::ErrorModel;
+    use crate::kinematics::Face;
+    use crate::layout::{self, Kind, Spec};
+    use crate::simulate::{CampaignSpec, Noise, simulate_campaign};
+
+    fn corner_network() -> Network {
+        let layout = layout::build(&Spec::new(Kind::Corner));
+        let sim = simulate_campaign(&CampaignSpec {
+            name: "corner".into(),
+            layout: &layout,
+            errors: Some(&ErrorParams::table2()),
+            faces: &[Face::Front, Face::Back],
+            aim: Aim::StationsCentroid,
+            max_angle_deg: 30.0,
+            noise: Noise {
+                sigma_angle_urad: 1.0,
+                sigma_range_um: 2.0,
+                sigma_range_ppm: 0.3,
+            },
+            effects: &Effects::default(),
+            gauge_u_mm: 0.0005,
+            reference_u_mm: 0.002,
+            level_urad: 1000.0,
+            interval_s: 20.0,
+            record_time: true,
+            record_temperature: true,
+            seed: 3,
+        })
+        .unwrap();
+        Network::from_campaign(&sim.campaign).unwrap()
+    }
+
+    /// The bundle with the whole Jacobian formed densely: the reference the
+    /// block-sparse path is checked against.
+    struct Dense<'a>(Bundle<'a>);
+
+    impl Operator for Dense<'_> {
+        type Param = DVector<f64>;
+        type Output = DVector<f64>;
+        fn apply(&self, x: &DVector<f64>) -> Result<DVector<f64>, ArgminError> {
+            Ok(self.0.residuals(x))
+        }
+    }
+
+    impl Jacobian for Dense<'_> {
+        type Param = DVector<f64>;
+        type Jacobian = DMatrix<f64>;
+        fn jacobian(&self, x: &DVector<f64>) -> Result<DMatrix<f64>, ArgminError> {
+            Ok(self.0.jacobian_at(x, false).0.to_dense())
+        }
+    }
+
+    /// The error-parameter columns with the span of the others removed, by
+    /// QR of the whole dense Jacobian (the method before the sparse core).
+    fn dense_projection(j: &DMatrix<f64>, k: usize) -> DMatrix<f64> {
+        let jp = j.columns(0, k).into_owned();
+        let q = j.columns(k, j.ncols() - k).into_owned().qr().q();
+        &jp - &q * (q.transpose() * &jp)
+    }
+
+    #[test]
+    fn sparse_analysis_and_fit_match_a_dense_reference() {
+        let net = corner_network();
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let free = [true; 18];
+        let setup = Setup::new(&net, &start, &free).unwrap();
+        let tol = crate::identifiability::DEFAULT_REL_TOL;
+        let (a, combinations) = analyse_setup(&net, &start, &setup, tol).unwrap();
+        let identity = DMatrix::identity(18, 18);
+        let layout = setup.layout(&net, 18);
+        let probe = setup.problem(&net, &start, &identity, &layout);
+        let (j, _) = probe.jacobian_at(&setup.initial(&layout), true);
+        let reference =
+            identifiability::analyse(&dense_projection(&j.to_dense(), 18), tol).unwrap();
+        assert_eq!(a.rank, reference.rank);
+        assert_eq!(a.rank, 7, "the corner determines 7 combinations");
+        for (s, r) in a
+            .singular_values
+            .iter()
+            .zip(&reference.singular_values)
+            .take(a.rank)
+        {
+            assert!((s / r - 1.0).abs() < 1e-9, "{s} vs {r}");
+        }
+        // The undetermined directions sit at round-off in both.
+        let smax = a.singular_values[0];
+        assert!(
+            a.singular_values[a.rank..]
+                .iter()
+                .all(|s| *s < 1e-12 * smax),
+            "{:?}",
+            a.singular_values
+        );
+        let names: Vec<String> = start.coefs().iter().map(|c| c.symbol()).collect();
+        let want: Vec<String> = identifiability::describe_null_space(&reference.null_basis, &names)
+            .iter()
+            .map(|c| c.sentence())
+            .collect();
+        let got: Vec<String> = combinations.iter().map(|c| c.sentence()).collect();
+        assert_eq!(got, want);
+
+        // The fit: Levenberg–Marquardt on the dense Jacobian from the same start.
+        let settings = Settings {
+            objective: crate::calibrate::Objective::Bundle,
+            norm: Norm::L2,
+            rank_tol: tol,
+            max_iters: 100,
+        };
+        let cal = calibrate(&net, &start, &free, &settings).unwrap();
+        let basis = a.row_basis.clone();
+        let layout = setup.layout(&net, basis.ncols());
+        let dense = Dense(setup.problem(&net, &start, &basis, &layout));
+        let fit = LevenbergMarquardt::new()
+            .with_initial_lambda(1e-4)
+            .and_then(|lm| lm.minimize(dense, setup.initial(&layout), 100))
+            .unwrap();
+        let problem = setup.problem(&net, &start, &basis, &layout);
+        let params = problem.params(&fit.x);
+        let scale = params.values().iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (p, q) in cal.params.values().iter().zip(params.values()) {
+            assert!((p - q).abs() < 1e-9 * scale, "{p} vs {q}");
+        }
+        // Standard uncertainties from the dense inverse of JᵀJ.
+        let (jac, r) = problem.jacobian_at(&fit.x, false);
+        let jd = jac.to_dense();
+        let dof = (r.len() - layout.n) as f64;
+        let v = (r.norm_squared() / dof).max(1.0);
+        let cov = (jd.transpose() * &jd).try_inverse().unwrap() * v;
+        let cov_p = &basis * cov.view((0, 0), (basis.ncols(), basis.ncols())) * basis.transpose();
+        for (k, s) in cal.std.iter().enumerate() {
+            let want = cov_p[(k, k)].max(0.0).sqrt();
+            let got = s.unwrap();
+            assert!(
+                (got - want).abs() <= 1e-6 * want.max(1e-12),
+                "{k}: {got} vs {want}"
+            );
+        }
+        // Each reflector's 3 × 3 block from the Schur blocks.
+        for (t, sd) in &cal.point_std {
+            let (o, _) = layout.point[*t].unwrap();
+            let want = ((0..3).map(|k| cov[(o + k, o + k)]).sum::<f64>() / 3.0).sqrt();
+            assert!((sd / want - 1.0).abs() < 1e-6, "{t}: {sd} vs {want}");
+        }
+    }
 
     #[test]
     fn right_jacobian_matches_finite_differences() {

@@ -243,6 +243,22 @@ impl BlockJacobian {
         (rest, lead)
     }
 
+    /// The whole matrix, densely: for tests against a dense reference only.
+    #[cfg(test)]
+    pub fn to_dense(&self) -> DMatrix<f64> {
+        let mut d = DMatrix::zeros(self.m, self.n);
+        for blk in &self.blocks {
+            for (col, w, v) in self.parts_of(blk) {
+                for r in 0..blk.rows {
+                    for c in 0..w {
+                        d[(blk.row + r, col + c)] += v[r * w + c];
+                    }
+                }
+            }
+        }
+        d
+    }
+
     /// Block `b`'s part on the eliminated position: `rows × 3`, row-major.
     pub fn point_part(&self, b: usize) -> Option<&[f64]> {
         let blk = &self.blocks[b];
@@ -256,6 +272,15 @@ impl BlockJacobian {
         let blk = &self.blocks[b];
         self.parts_of(blk).filter(|(c, _, _)| *c < self.n_a)
     }
+}
+
+/// Where a block's local column lands in the normal equations: a dense
+/// column (and its place among the block's position's columns), or one of
+/// the position's three.
+#[derive(Clone, Copy, Debug)]
+enum Dest {
+    Dense(usize, Option<usize>),
+    Point(usize),
 }
 
 /// One eliminated position's share of the normal equations.
@@ -316,6 +341,10 @@ impl Normal {
             .collect();
         let mut h_aa = DMatrix::zeros(n_a, n_a);
         let mut g = DVector::zeros(j.n);
+        // Per block: its parts side by side (rows × w, row-major), where
+        // each local column goes, and the upper triangle of its JᵀJ.
+        let mut local: Vec<f64> = Vec::new();
+        let mut dest: Vec<Dest> = Vec::new();
         for (b, blk) in j.blocks.iter().enumerate() {
             if !keep(b) {
                 continue;
@@ -324,41 +353,54 @@ impl Normal {
             if let Some(r) = r {
                 j.block_tr_mul(b, &r.as_slice()[blk.row..blk.row + rows], g.as_mut_slice());
             }
-            for (ci, wi, vi) in j.parts_of(blk) {
-                for (cj, wj, vj) in j.parts_of(blk) {
-                    // Σ_k vi[k, a]·vj[k, c]
-                    let dot = |a: usize, c: usize| -> f64 {
-                        (0..rows).map(|k| vi[k * wi + a] * vj[k * wj + c]).sum()
-                    };
-                    match (ci < n_a, cj < n_a) {
-                        (true, true) => {
-                            for a in 0..wi {
-                                for c in 0..wj {
-                                    h_aa[(ci + a, cj + c)] += dot(a, c);
-                                }
+            dest.clear();
+            let point = j.block_point(b);
+            for (col, w, _) in j.parts_of(blk) {
+                if col < n_a {
+                    let first =
+                        point.map(|p| points[p].cols.binary_search(&col).expect("collected above"));
+                    dest.extend((0..w).map(|c| Dest::Dense(col + c, first.map(|f| f + c))));
+                } else {
+                    dest.extend((0..3).map(Dest::Point));
+                }
+            }
+            let w = dest.len();
+            local.clear();
+            local.resize(rows * w, 0.0);
+            let mut at = 0;
+            for (_, pw, v) in j.parts_of(blk) {
+                for k in 0..rows {
+                    local[k * w + at..k * w + at + pw].copy_from_slice(&v[k * pw..(k + 1) * pw]);
+                }
+                at += pw;
+            }
+            for a in 0..w {
+                for c in a..w {
+                    let mut h = 0.0;
+                    for k in 0..rows {
+                        h += local[k * w + a] * local[k * w + c];
+                    }
+                    match (dest[a], dest[c]) {
+                        (Dest::Dense(ga, _), Dest::Dense(gc, _)) => {
+                            h_aa[(ga, gc)] += h;
+                            if ga != gc {
+                                h_aa[(gc, ga)] += h;
                             }
                         }
-                        (true, false) => {
-                            let pb = &mut points[(cj - n_a) / 3];
-                            let first = pb.cols.binary_search(&ci).expect("collected above");
-                            for a in 0..wi {
-                                for c in 0..3 {
-                                    pb.h_ax[(first + a, c)] += dot(a, c);
-                                }
+                        (Dest::Dense(_, Some(la)), Dest::Point(pc)) => {
+                            points[point.expect("a point column")].h_ax[(la, pc)] += h;
+                        }
+                        (Dest::Point(pa), Dest::Dense(_, Some(lc))) => {
+                            points[point.expect("a point column")].h_ax[(lc, pa)] += h;
+                        }
+                        (Dest::Point(pa), Dest::Point(pc)) => {
+                            let hx = &mut points[point.expect("a point column")].h_xx;
+                            hx[(pa, pc)] += h;
+                            if pa != pc {
+                                hx[(pc, pa)] += h;
                             }
                         }
-                        (false, false) if ci == cj => {
-                            let pb = &mut points[(ci - n_a) / 3];
-                            for a in 0..3 {
-                                for c in 0..3 {
-                                    pb.h_xx[(a, c)] += dot(a, c);
-                                }
-                            }
-                        }
-                        // The transpose of (true, false); two eliminated
-                        // positions never share a block (the layout puts
-                        // gauge-coupled positions in the dense part).
-                        _ => {}
+                        _ => unreachable!("a dense column beside a point has its local place"),
                     }
                 }
             }

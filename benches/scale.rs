@@ -1,0 +1,107 @@
+//! How the bundle adjustment and the diagnosis grow with the network:
+//! `calibrate_scale` and `diagnose_scale` over the `network` layout from
+//! 33 to 1 100 reflectors and 8 to 20 stations, one face and two. Each
+//! case's id is `<reflectors>x<stations>x<faces>f/<readings>`, so the
+//! medians can be read against the readings (the README's log–log slope
+//! comes from these medians).
+//!
+//!     cargo bench --bench scale
+
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use ltcal::calibrate::{Network, Norm, Objective, Settings, calibrate};
+use ltcal::campaign::{Aim, Campaign};
+use ltcal::diagnose::{self, diagnose};
+use ltcal::effects::Effects;
+use ltcal::error_model::{ErrorModel, ErrorParams};
+use ltcal::kinematics::Face;
+use ltcal::layout::{self, Kind, Spec};
+use ltcal::simulate::{CampaignSpec, Noise, simulate_campaign};
+use std::hint::black_box;
+use std::time::Duration;
+
+/// `(wall reflectors per level, stations, faces)`: 33, 110, 330, 605 and
+/// 1 100 reflectors.
+const SERIES: [(usize, usize, usize); 6] = [
+    (6, 8, 1),
+    (20, 8, 1),
+    (60, 8, 1),
+    (110, 8, 1),
+    (200, 16, 2),
+    (200, 20, 2),
+];
+
+/// A simulated campaign of the `network` layout with the paper's Table 2
+/// errors and typical indoor noise.
+fn campaign(per_level: usize, stations: usize, faces: usize) -> Campaign {
+    let mut spec = Spec::new(Kind::Network);
+    spec.per_level = per_level;
+    spec.stations = stations;
+    let layout = layout::build(&spec);
+    simulate_campaign(&CampaignSpec {
+        name: "network".into(),
+        layout: &layout,
+        errors: Some(&ErrorParams::table2()),
+        faces: &[Face::Front, Face::Back][..faces],
+        aim: Aim::StationsCentroid,
+        max_angle_deg: 30.0,
+        noise: Noise {
+            sigma_angle_urad: 1.0,
+            sigma_range_um: 2.0,
+            sigma_range_ppm: 0.3,
+        },
+        effects: &Effects::default(),
+        gauge_u_mm: 0.0005,
+        reference_u_mm: 0.002,
+        level_urad: 1000.0,
+        interval_s: 20.0,
+        record_time: true,
+        record_temperature: true,
+        seed: 11,
+    })
+    .expect("the network layout simulates")
+    .campaign
+}
+
+fn id(c: &Campaign, stations: usize, faces: usize) -> BenchmarkId {
+    BenchmarkId::new(
+        format!("{}x{stations}x{faces}f", c.targets.len()),
+        c.readings.len(),
+    )
+}
+
+fn calibrate_scale(c: &mut Criterion) {
+    let mut g = c.benchmark_group("calibrate_scale");
+    g.sample_size(10).measurement_time(Duration::from_secs(4));
+    let start = ErrorParams::zero(&ErrorModel::constant());
+    let settings = Settings {
+        objective: Objective::Bundle,
+        norm: Norm::L2,
+        rank_tol: 1e-9,
+        max_iters: 100,
+    };
+    for (per_level, stations, faces) in SERIES {
+        let camp = campaign(per_level, stations, faces);
+        let net = Network::from_campaign(&camp).unwrap();
+        g.bench_function(id(&camp, stations, faces), |b| {
+            b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &settings).unwrap())
+        });
+    }
+    g.finish();
+}
+
+/// The whole diagnosis as `ltcal diagnose` runs it: the bundle adjustment,
+/// every candidate, 5-fold cross-validation and 100 Monte Carlo draws.
+fn diagnose_scale(c: &mut Criterion) {
+    let mut g = c.benchmark_group("diagnose_scale");
+    g.sample_size(10).measurement_time(Duration::from_secs(10));
+    for (per_level, stations, faces) in SERIES {
+        let camp = campaign(per_level, stations, faces);
+        g.bench_function(id(&camp, stations, faces), |b| {
+            b.iter(|| diagnose(black_box(&camp), &diagnose::Settings::default()).unwrap())
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, calibrate_scale, diagnose_scale);
+criterion_main!(benches);
