@@ -47,8 +47,8 @@ enum Command {
         /// Run every stage whose inputs exist even after a failure.
         #[arg(long)]
         keep_going: bool,
-        /// Worker threads (default: all cores).
-        #[arg(short = 'j', long)]
+        /// Worker threads, 1 to 1024 (default: all cores).
+        #[arg(short = 'j', long, value_parser = thread_count())]
         threads: Option<usize>,
         /// No per-stage lines.
         #[arg(short, long)]
@@ -130,6 +130,15 @@ enum Command {
     },
     /// List the stage kinds.
     Kinds,
+}
+
+/// The most worker threads `-j` accepts: far beyond any machine's cores,
+/// and few enough that creating them costs no noticeable time (a hundred
+/// thousand took minutes).
+const MAX_THREADS: u64 = 1024;
+
+fn thread_count() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::new().range(1..=MAX_THREADS)
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -334,7 +343,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let pipeline = load(&p)?;
             if let Some(n) = threads {
                 rayon::ThreadPoolBuilder::new()
-                    .num_threads(n.max(1))
+                    .num_threads(n)
                     .build_global()
                     .context("setting the number of threads")?;
             }

@@ -6,6 +6,7 @@
 pub mod calibrate;
 pub mod campaign;
 pub mod cli;
+pub mod code;
 pub mod criteria;
 pub mod diagnose;
 pub mod effects;
@@ -28,6 +29,10 @@ pub mod table;
 
 /// The version that enters every cache key.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// The fingerprint of the code this binary was built from (see [`code`]),
+/// which enters every cache key next to [`VERSION`].
+pub const CODE_FINGERPRINT: &str = env!("LTCAL_CODE_FINGERPRINT");
 
 /// Runs the command line; see [`cli`].
 pub fn run() -> std::process::ExitCode {

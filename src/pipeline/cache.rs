@@ -1,8 +1,8 @@
 //! The content-addressed stage cache under `results/<pipeline>/.ltcal/`.
 //!
 //! A stage's outputs are stored under the hash of its [`KeyFields`] — its
-//! kind, its fully resolved settings, the content hashes of its input tables
-//! and the ltcal version. An entry is a directory holding the tables
+//! kind, its fully resolved settings, the content hashes of its input tables,
+//! the ltcal version and the fingerprint of the code ([`crate::code`]). An entry is a directory holding the tables
 //! (Parquet), the files (figures) and `manifest.json`, which records each
 //! file's content hash and is written last. Entries are built in a temporary
 //! directory and published with one `rename`, so a reader — this process,
@@ -43,6 +43,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct KeyFields {
     pub ltcal_version: String,
+    /// [`crate::CODE_FINGERPRINT`] of the build that computed it. Records
+    /// written before it existed read as empty: a change, and said so.
+    #[serde(default)]
+    pub code: String,
     pub kind: String,
     /// The fully resolved settings, as JSON (object keys sorted).
     pub params: serde_json::Value,
@@ -57,9 +61,10 @@ impl KeyFields {
         blake3::hash(&bytes).to_hex().to_string()
     }
 
-    /// What differs from an earlier key, field by field, in words.
+    /// What differs from an earlier key, field by field, in words; a change
+    /// of the code first.
     pub fn diff(&self, old: &KeyFields) -> Vec<String> {
-        let mut out = Vec::new();
+        let mut out: Vec<String> = self.code_change(old).into_iter().collect();
         if self.ltcal_version != old.ltcal_version {
             out.push(format!(
                 "ltcal version: {} → {}",
@@ -91,12 +96,28 @@ impl KeyFields {
 }
 
 impl KeyFields {
+    /// `the code changed (<old> → <new>)`, shortened, when it did.
+    pub fn code_change(&self, old: &KeyFields) -> Option<String> {
+        (self.code != old.code).then(|| {
+            format!(
+                "the code changed ({} → {})",
+                short_or_unrecorded(&old.code),
+                short_or_unrecorded(&self.code)
+            )
+        })
+    }
+
     /// Every field as `(name, value)`, named as [`KeyFields::diff`] names
-    /// them: `ltcal version`, `kind`, each setting by its dotted path (arrays
-    /// whole), `input `<slot>`` with the input's short content hash.
+    /// them: `ltcal version`, `code` (short), `kind`, each setting by its
+    /// dotted path (arrays whole), `input `<slot>`` with the input's short
+    /// content hash.
     pub fn fields(&self) -> Vec<(String, String)> {
         let mut out = vec![
             ("ltcal version".to_string(), self.ltcal_version.clone()),
+            (
+                "code".to_string(),
+                short_or_unrecorded(&self.code).to_string(),
+            ),
             ("kind".to_string(), self.kind.clone()),
         ];
         json_leaves("", &self.params, &mut out);
@@ -126,6 +147,11 @@ fn json_leaves(path: &str, v: &serde_json::Value, out: &mut Vec<(String, String)
 /// The first 12 characters of a hash, for people.
 pub fn short(h: &str) -> &str {
     &h[..h.len().min(12)]
+}
+
+/// [`short`], or `unrecorded` for a code fingerprint a record lacks.
+fn short_or_unrecorded(h: &str) -> &str {
+    if h.is_empty() { "unrecorded" } else { short(h) }
 }
 
 fn json_diff(path: &str, old: &serde_json::Value, new: &serde_json::Value, out: &mut Vec<String>) {
@@ -173,7 +199,8 @@ pub struct FileRecord {
 /// Provenance of an entry; written last, so its presence means the entry is
 /// complete. Everything a reader needs to know where a result came from:
 /// the stage that made it, its key fields (kind, resolved settings, the
-/// content hash of every input table, the ltcal version), when it ran, and
+/// content hash of every input table, the ltcal version, the code
+/// fingerprint), when it ran, and
 /// each table's rows and content hash (blake3 of its Parquet bytes, which
 /// depend on the table alone: see [`crate::table::to_parquet_bytes`]).
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -552,6 +579,7 @@ mod tests {
     fn key_fields(seed: u64) -> KeyFields {
         KeyFields {
             ltcal_version: "0.1.0".into(),
+            code: "c0de".into(),
             kind: "measure".into(),
             params: serde_json::json!({"seed": seed, "noise": {"sigma_angle_urad": 1.0}}),
             inputs: BTreeMap::from([("points".to_string(), "abc".to_string())]),
@@ -589,6 +617,20 @@ mod tests {
         assert_eq!(d[0], "seed: 1 → 2");
         assert!(d[1].starts_with("input `points`: content changed"));
         assert_ne!(a.hash(), b.hash());
+    }
+
+    #[test]
+    fn the_code_fingerprint_is_in_the_key_and_a_record_without_one_reads_as_a_code_change() {
+        let a = key_fields(1);
+        let mut b = a.clone();
+        b.code = "0123456789abcdef".into();
+        assert_ne!(a.hash(), b.hash());
+        assert_eq!(b.diff(&a), ["the code changed (c0de → 0123456789ab)"]);
+        // A record from before the fingerprint existed.
+        let mut old = serde_json::to_value(&a).unwrap();
+        old.as_object_mut().unwrap().remove("code");
+        let old: KeyFields = serde_json::from_value(old).unwrap();
+        assert_eq!(a.diff(&old), ["the code changed (unrecorded → c0de)"]);
     }
 
     #[test]

@@ -77,8 +77,52 @@ impl InputError {
 
 /// Reads, parses and resolves a pipeline file.
 pub fn load(path: &Path, overrides: &[Override]) -> anyhow::Result<Pipeline> {
-    let src = Source::read(path)?;
+    let src = read(path).map_err(|p| InputError(vec![p]))?;
     load_source(&src, overrides)
+}
+
+/// The largest pipeline file read: real ones are a few kilobytes.
+pub const MAX_FILE_BYTES: u64 = 1 << 20;
+
+/// A pipeline file's text. Anything that is not one — missing, a folder, a
+/// FIFO or device (which would block or never end), too large, not UTF-8 —
+/// is the user's input being wrong, named with the file (and the line and
+/// column of the first byte that is not UTF-8).
+fn read(path: &Path) -> Result<Source, Problem> {
+    use std::io::Read as _;
+    let wrong = |m: &dyn fmt::Display| Problem::Arg(format!("{}: {m}", path.display()));
+    let meta = std::fs::metadata(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => wrong(&"no such pipeline file"),
+        _ => wrong(&format_args!("cannot be read: {e}")),
+    })?;
+    if meta.is_dir() {
+        return Err(wrong(&"a folder, not a pipeline file"));
+    }
+    if !meta.is_file() {
+        return Err(wrong(&"not a regular file (a FIFO or device is not read)"));
+    }
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(|e| wrong(&format_args!("cannot be read: {e}")))?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(wrong(&format_args!(
+            "larger than {} MiB: not a pipeline file",
+            MAX_FILE_BYTES >> 20
+        )));
+    }
+    String::from_utf8(bytes)
+        .map(|text| Source::new(path, text))
+        .map_err(|e| {
+            // The text up to the bad byte is intact, so its position is
+            // exact; the byte itself shows as one replacement character.
+            let at = e.utf8_error().valid_up_to();
+            let src = Source::new(path, String::from_utf8_lossy(e.as_bytes()).into_owned());
+            Problem::At(src.error(
+                at..at + char::REPLACEMENT_CHARACTER.len_utf8(),
+                "not UTF-8 text: a pipeline file is TOML, which is UTF-8",
+            ))
+        })
 }
 
 pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipeline> {

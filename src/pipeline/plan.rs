@@ -65,6 +65,7 @@ impl Graph {
 pub fn key_fields(stage: &Stage, input_hashes: BTreeMap<String, String>) -> KeyFields {
     KeyFields {
         ltcal_version: crate::VERSION.to_string(),
+        code: crate::CODE_FINGERPRINT.to_string(),
         kind: stage.config.kind().to_string(),
         params: stage.config.to_json(),
         inputs: input_hashes,
@@ -78,10 +79,15 @@ pub fn reason(store: &Store, stage: &str, point: Option<usize>, key: &KeyFields)
         Some(old) if old == *key => "its cached result is missing".to_string(),
         Some(old) => {
             let d = key.diff(&old);
-            if d.is_empty() {
-                "its cached result is missing".to_string()
-            } else {
-                format!("changed: {}", d.join("; "))
+            // A change of the code is no setting the user changed: said
+            // first, in its own words (`diff` puts it first).
+            match (key.code_change(&old), d.split_first()) {
+                (_, None) => "its cached result is missing".to_string(),
+                (Some(code), Some((_, []))) => code,
+                (Some(code), Some((_, rest))) => {
+                    format!("{code}; changed: {}", rest.join("; "))
+                }
+                (None, Some(_)) => format!("changed: {}", d.join("; ")),
             }
         }
     }
@@ -249,9 +255,16 @@ fn assess_stages(
         }
         let fields = key_fields(s, hashes);
         let (status, reason, key) = if !pending.is_empty() {
-            let stages: BTreeSet<String> = pending.values().map(|s| format!("`{s}`")).collect();
-            let stages: Vec<String> = stages.into_iter().collect();
-            let reason = format!("its input stage {} will run", stages.join(", "));
+            // New code reruns the stage whatever its inputs turn out to be:
+            // the root cause, rather than the stage it waits for.
+            let code = store
+                .last(&s.name, point)
+                .and_then(|old| fields.code_change(&old));
+            let reason = code.unwrap_or_else(|| {
+                let stages: BTreeSet<String> = pending.values().map(|s| format!("`{s}`")).collect();
+                let stages: Vec<String> = stages.into_iter().collect();
+                format!("its input stage {} will run", stages.join(", "))
+            });
             ("run", reason, None)
         } else {
             let key = fields.hash();

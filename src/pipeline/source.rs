@@ -3,7 +3,7 @@
 
 use std::fmt;
 use std::ops::Range;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
 /// A file the user wrote, kept whole so that any later error can quote it.
@@ -19,12 +19,6 @@ impl Source {
             path: path.into(),
             text: text.into(),
         }
-    }
-
-    pub fn read(path: &Path) -> anyhow::Result<Source> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
-        Ok(Source::new(path, text))
     }
 
     /// 1-based line and column (in characters) of a byte offset.

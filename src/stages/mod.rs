@@ -9,6 +9,7 @@
 pub mod blind_check;
 pub mod calibrate;
 pub mod correct;
+pub mod counts;
 pub mod diagnose;
 pub mod evaluate;
 pub mod evaluate_campaign;
@@ -197,8 +198,16 @@ macro_rules! stage_kinds {
             pub fn resolve(&mut self) {
                 match self { $(StageConfig::$variant(c) => c.resolve()),* }
             }
+            /// The kind's own checks, then the bound on every count
+            /// ([`counts`]) the kind has not already refused.
             pub fn validate(&self) -> Vec<Invalid> {
-                match self { $(StageConfig::$variant(c) => c.validate()),* }
+                let mut out = match self { $(StageConfig::$variant(c) => c.validate()),* };
+                let more: Vec<Invalid> = counts::check(&self.to_json())
+                    .into_iter()
+                    .filter(|c| !out.iter().any(|o| o.field == c.field))
+                    .collect();
+                out.extend(more);
+                out
             }
             pub fn run(&self, ctx: &Context, inputs: &StageInputs) -> Result<StageOutput> {
                 match self { $(StageConfig::$variant(c) => c.run(ctx, inputs)),* }

@@ -200,6 +200,7 @@ fn the_manifest_records_the_provenance_of_every_table() {
     assert_eq!(m.stage, "measure_sphere_noisy");
     assert_eq!(m.key_fields.kind, "measure");
     assert_eq!(m.key_fields.ltcal_version, ltcal::VERSION);
+    assert_eq!(m.key_fields.code, ltcal::CODE_FINGERPRINT);
     assert_eq!(m.key_fields.params["seed"], 1);
     assert_eq!(m.key_fields.params["noise"]["sigma_angle_urad"], 1.0);
     assert_eq!(m.key_fields.hash(), m.key);
@@ -226,6 +227,129 @@ fn the_manifest_records_the_provenance_of_every_table() {
     let start = humantime::parse_rfc3339(&m.started).unwrap();
     let end = humantime::parse_rfc3339(&m.finished).unwrap();
     assert!(start <= end, "{} > {}", m.started, m.finished);
+}
+
+/// Turns a results folder into what a build from other code (fingerprint
+/// `code`) would have left: every cache entry's and every last-run
+/// record's key fields carry `code`, each entry under its key from them.
+/// The stale build computed `identify_sphere_table3` differently: its
+/// first table, cached and published, holds other (valid) bytes. Returns
+/// that table's published path and the bytes this build computes for it.
+fn as_if_built_from(results: &Path, code: &str) -> (std::path::PathBuf, Vec<u8>) {
+    let stale_stage = "identify_sphere_table3";
+    let stale_key = key_of(results, stale_stage);
+    // What the stale build computed: another stage's table of the same name.
+    let donor = cache_dir(results).join(key_of(results, "identify_sphere"));
+    let donor_m: Manifest =
+        serde_json::from_slice(&std::fs::read(donor.join("manifest.json")).unwrap()).unwrap();
+    let other = std::fs::read(donor.join(format!("{}.parquet", donor_m.tables[0].name))).unwrap();
+    let mut fresh = None;
+    let entries: Vec<_> = std::fs::read_dir(cache_dir(results))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    for dir in entries {
+        let mpath = dir.join("manifest.json");
+        let mut m: Manifest = serde_json::from_slice(&std::fs::read(&mpath).unwrap()).unwrap();
+        if m.key == stale_key {
+            let t = &mut m.tables[0];
+            assert_eq!(t.name, donor_m.tables[0].name);
+            let name = format!("{}.parquet", t.name);
+            let published = results.join(PIPELINE).join(stale_stage).join(&name);
+            fresh = Some((published.clone(), std::fs::read(dir.join(&name)).unwrap()));
+            assert_ne!(fresh.as_ref().unwrap().1, other);
+            std::fs::write(dir.join(&name), &other).unwrap();
+            std::fs::write(&published, &other).unwrap();
+            t.hash = ltcal::pipeline::cache::hash_bytes(&other);
+            t.rows = donor_m.tables[0].rows;
+        }
+        m.key_fields.code = code.to_string();
+        m.key = m.key_fields.hash();
+        std::fs::write(&mpath, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+        std::fs::rename(&dir, cache_dir(results).join(&m.key)).unwrap();
+    }
+    let last = results.join(PIPELINE).join(".ltcal").join("last");
+    for e in std::fs::read_dir(last).unwrap().flatten() {
+        let mut k: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(e.path()).unwrap()).unwrap();
+        k["code"] = code.into();
+        std::fs::write(e.path(), serde_json::to_vec(&k).unwrap()).unwrap();
+    }
+    fresh.expect("the stale stage has an entry")
+}
+
+#[test]
+fn a_code_change_invalidates_every_cached_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    let results = dir.path().join("results");
+    run_ok(&results);
+    let old = "0123456789abcdef".repeat(4);
+    let (published_table, fresh) = as_if_built_from(&results, &old);
+    assert_every_entry_verifies(&results);
+    let r = results.to_string_lossy().into_owned();
+    let f = file();
+    let because = format!(
+        "the code changed (0123456789ab → {})",
+        &ltcal::CODE_FINGERPRINT[..12]
+    );
+
+    // `plan`: every stage would run, each because of the code.
+    let out = ltcal(dir.path(), &["plan", &f, "--results", &r, "--json"]);
+    assert_code(&out, 0);
+    let items: Vec<serde_json::Value> = serde_json::from_str(&stdout(&out)).unwrap();
+    assert_eq!(items.len(), 25);
+    for i in &items {
+        assert_eq!(i["status"], "run", "{i}");
+        assert_eq!(i["reason"], because.as_str(), "{i}");
+    }
+    assert_code(
+        &ltcal(dir.path(), &["plan", &f, "--results", &r, "--check"]),
+        1,
+    );
+
+    // `explain` says so, and marks the one field that differs.
+    let out = ltcal(
+        dir.path(),
+        &["explain", &f, "--results", &r, "identify_sphere_table3"],
+    );
+    assert_code(&out, 0);
+    let text = stdout(&out);
+    assert!(text.contains(&format!("would run: {because}")), "{text}");
+    let changed: Vec<&str> = text
+        .lines()
+        .filter(|l| l.trim_start().starts_with('*'))
+        .collect();
+    assert_eq!(changed.len(), 1, "{text}");
+    assert!(
+        changed[0].contains("code") && changed[0].contains("0123456789ab"),
+        "{text}"
+    );
+
+    // `run` reruns everything and publishes what this code computes, not
+    // the stale table.
+    run_ok(&results);
+    let st = stages(&run_json(&results, PIPELINE));
+    assert!(
+        st.values()
+            .all(|s| s["status"] == "ran" && s["reason"] == because.as_str()),
+        "{st:?}"
+    );
+    assert_eq!(std::fs::read(&published_table).unwrap(), fresh);
+    assert_code(
+        &ltcal(dir.path(), &["plan", &f, "--results", &r, "--check"]),
+        0,
+    );
+}
+
+/// The compiled-in fingerprint is that of the sources in this checkout: what
+/// `build.rs` hashes is what `cargo test` built from.
+#[test]
+fn the_built_in_code_fingerprint_is_the_hash_of_the_sources_built() {
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    assert_eq!(
+        ltcal::code::fingerprint(&root).unwrap(),
+        ltcal::CODE_FINGERPRINT
+    );
 }
 
 /// The published results of a clean run, and how long it took.

@@ -120,3 +120,99 @@ fn bad_override_names_the_set_argument() {
     );
     assert!(!results.exists());
 }
+
+/// `ltcal <args>` in `dir`: (exit code, stderr).
+fn ltcal_in(dir: &Path, args: &[&str]) -> (i32, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// `plan`, not `run`: on a build without the bound, `run` would attempt
+/// the allocation this test is about.
+#[test]
+fn every_count_setting_has_an_upper_bound_checked_at_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(
+        d.join("bad.toml"),
+        "[stages.b]\nkind = \"blind_check\"\nmc_draws = 1_000_000_000\n",
+    )
+    .unwrap();
+    let (code, err) = ltcal_in(d, &["plan", "bad.toml"]);
+    assert_eq!(code, 2, "{err}");
+    assert_located(
+        &err,
+        "3:12",
+        "stage `b`: `mc_draws` must be at most 100000 (ltcal's bound on any count), got 1000000000",
+    );
+    // Through `--set`, the override is named; a fitting stage's iterations.
+    std::fs::write(d.join("ok.toml"), "[stages.b]\nkind = \"blind_check\"\n").unwrap();
+    let (code, err) = ltcal_in(d, &["plan", "ok.toml", "--set", "stages.b.mc_draws=100001"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("stages.b.mc_draws=100001"), "{err}");
+    assert!(err.contains("`mc_draws` must be at most 100000"), "{err}");
+    std::fs::write(
+        d.join("fit.toml"),
+        "[stages.m]\nkind = \"mesh\"\nshape = \"plane\"\n\n[stages.i]\nkind = \"identify\"\n\
+         max_iters = 10_000_000_000\ninputs = { readings = \"m\" }\n",
+    )
+    .unwrap();
+    let (code, err) = ltcal_in(d, &["plan", "fit.toml"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("fit.toml:7:13"), "{err}");
+    assert!(err.contains("`max_iters` must be at most 100000"), "{err}");
+}
+
+#[test]
+fn threads_beyond_1024_are_refused_by_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("p.toml"),
+        "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n",
+    )
+    .unwrap();
+    for j in ["100000", "1025", "0"] {
+        let started = std::time::Instant::now();
+        let (code, err) = ltcal_in(dir.path(), &["run", "p.toml", "-j", j]);
+        assert_eq!(code, 2, "-j {j}: {err}");
+        assert!(err.contains(&format!("invalid value '{j}'")), "{err}");
+        assert!(err.contains("1..=1024"), "{err}");
+        assert!(started.elapsed().as_secs() < 10);
+        assert!(!dir.path().join("results").exists());
+    }
+}
+
+#[test]
+fn a_pipeline_file_that_is_not_utf8_missing_or_a_folder_exits_2_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(
+        d.join("latin1.toml"),
+        b"[stages.a]\nkind = \"mesh\" # caf\xe9\n",
+    )
+    .unwrap();
+    std::fs::create_dir(d.join("folder.toml")).unwrap();
+    let cases = [
+        ("latin1.toml", "latin1.toml:2:20"),
+        ("latin1.toml", "not UTF-8 text"),
+        ("missing.toml", "missing.toml: no such pipeline file"),
+        ("folder.toml", "folder.toml: a folder, not a pipeline file"),
+        // A device never ends: it is not read at all.
+        ("/dev/zero", "/dev/zero: not a regular file"),
+    ];
+    for cmd in ["run", "plan"] {
+        for (file, says) in cases {
+            let (code, err) = ltcal_in(d, &[cmd, file]);
+            assert_eq!(code, 2, "{cmd} {file}: {err}");
+            assert!(err.contains(says), "{cmd} {file}: no `{says}` in:\n{err}");
+        }
+    }
+    assert!(!d.join("results").exists());
+}

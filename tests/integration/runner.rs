@@ -314,6 +314,7 @@ fn typed_key(
         c.resolve();
         let key = KeyFields {
             ltcal_version: ltcal::VERSION.into(),
+            code: ltcal::CODE_FINGERPRINT.into(),
             kind: kind.clone(),
             params: c.to_json(),
             inputs: BTreeMap::new(),
@@ -465,15 +466,17 @@ fn changing_any_resolved_setting_of_any_stage_kind_changes_the_key() {
             covered[kind]
         );
     }
-    // The other key fields: version, kind and each input's content.
+    // The other key fields: version, code, kind and each input's content.
     let k = KeyFields {
         ltcal_version: "0.1.0".into(),
+        code: "c0de".into(),
         kind: "measure".into(),
         params: serde_json::json!({"seed": 1}),
         inputs: BTreeMap::from([("points".into(), "a".into()), ("errors".into(), "b".into())]),
     };
-    let mut variants = vec![k.clone(), k.clone(), k.clone(), k.clone()];
+    let mut variants = vec![k.clone(); 5];
     variants[0].ltcal_version = "0.1.1".into();
+    variants[4].code = "c0de2".into();
     variants[1].kind = "identify".into();
     variants[2].inputs.insert("points".into(), "c".into());
     variants[3].inputs.remove("errors");
@@ -712,7 +715,9 @@ fn explain_compares_the_key_with_the_last_run_field_by_field() {
     assert_eq!(e["status"], "cached");
     assert_eq!(e["key"], e["last_key"]);
     let rows = e["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 4, "version, kind and two inputs: {rows:?}");
+    assert_eq!(rows.len(), 5, "version, code, kind, two inputs: {rows:?}");
+    assert_eq!(rows[1]["field"], "code");
+    assert_eq!(rows[1]["now"], &ltcal::CODE_FINGERPRINT[..12]);
     assert!(rows.iter().all(|r| r["changed"] == false));
 
     // A misspelt stage is the user's input error (exit 2), like a bad flag.
