@@ -121,33 +121,46 @@ pub fn align(
     if placed.iter().any(|p| !p) {
         return None;
     }
-    // Refine: alternate mean positions and per-station fits.
-    for _ in 0..100 {
-        let mut sum: BTreeMap<usize, (Vector3<f64>, usize)> = BTreeMap::new();
-        for (s, o) in obs.iter().enumerate() {
+    // Refine: alternate mean positions and per-station fits. The maps are
+    // laid out as vectors indexed by target once: the loop runs up to 100
+    // times over every observation, and each pass must stay linear.
+    let n_t = obs
+        .iter()
+        .flat_map(|o| o.keys())
+        .chain(anchor.into_iter().flat_map(|a| a.keys()))
+        .max()
+        .map_or(0, |k| k + 1);
+    let lists: Vec<Vec<(usize, Vector3<f64>)>> = obs
+        .iter()
+        .map(|o| o.iter().map(|(k, x)| (*k, *x)).collect())
+        .collect();
+    let means = |poses: &[Rigid]| {
+        let mut sum = vec![(Vector3::zeros(), 0usize); n_t];
+        for (s, o) in lists.iter().enumerate() {
             for (k, x) in o {
-                let e = sum.entry(*k).or_insert((Vector3::zeros(), 0));
-                e.0 += poses[s].apply(x);
-                e.1 += 1;
+                sum[*k].0 += poses[s].apply(x);
+                sum[*k].1 += 1;
             }
         }
-        let mut new_points: BTreeMap<usize, Vector3<f64>> = sum
+        sum
+    };
+    for _ in 0..100 {
+        let mut new_points: Vec<Vector3<f64>> = means(&poses)
             .into_iter()
-            .map(|(k, (v, n))| (k, v / n as f64))
+            .map(|(v, n)| v / n.max(1) as f64)
             .collect();
         if let Some(a) = anchor {
             for (k, v) in a {
-                new_points.insert(*k, *v);
+                new_points[*k] = *v;
             }
         }
         let mut moved = 0.0f64;
-        for (s, o) in obs.iter().enumerate() {
+        for (s, o) in lists.iter().enumerate() {
             if anchor.is_none() && s == 0 {
                 continue;
             }
-            let keys: Vec<usize> = o.keys().copied().collect();
-            let from: Vec<Vector3<f64>> = keys.iter().map(|k| o[k]).collect();
-            let to: Vec<Vector3<f64>> = keys.iter().map(|k| new_points[k]).collect();
+            let from: Vec<Vector3<f64>> = o.iter().map(|(_, x)| *x).collect();
+            let to: Vec<Vector3<f64>> = o.iter().map(|(k, _)| new_points[*k]).collect();
             if let Some(p) = fit(&from, &to) {
                 moved = moved.max((p.translation - poses[s].translation).norm());
                 poses[s] = p;
@@ -159,16 +172,10 @@ pub fn align(
     }
     // Final means with the final poses (anchored targets keep their mean too:
     // the criterion compares observations, not the anchor).
-    let mut sum: BTreeMap<usize, (Vector3<f64>, usize)> = BTreeMap::new();
-    for (s, o) in obs.iter().enumerate() {
-        for (k, x) in o {
-            let e = sum.entry(*k).or_insert((Vector3::zeros(), 0));
-            e.0 += poses[s].apply(x);
-            e.1 += 1;
-        }
-    }
-    let points = sum
+    let points = means(&poses)
         .into_iter()
+        .enumerate()
+        .filter(|(_, (_, n))| *n > 0)
         .map(|(k, (v, n))| (k, v / n as f64))
         .collect();
     Some(Alignment { poses, points })

@@ -26,7 +26,7 @@
 //! readings.
 //!
 //! Projections (`x − J·N⁻¹·Jᵀx`: what the model cannot absorb) use the
-//! corrected semi-normal equations — the solve refined twice from the
+//! corrected semi-normal equations — the solve corrected once from the
 //! unsquared residual (Å. Björck, *Numerical methods for least squares
 //! problems*, 1996, §6.6.5) — so an exact redundancy of the model comes out
 //! at the round-off level of `J`, as a QR factorisation would give, not at
@@ -612,7 +612,8 @@ impl Factor {
 /// reproduces, by the corrected semi-normal equations (see the module doc).
 pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f64> {
     let mut r = x.clone();
-    for _ in 0..3 {
+    // The solve, then one correction from the unsquared residual.
+    for _ in 0..2 {
         let y = f.solve(&j.tr_mul(&r));
         r -= j.mul(&y);
     }
