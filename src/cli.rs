@@ -299,16 +299,13 @@ fn diagnose_command(
     let output = stages::diagnose::outputs(&d)?;
     for (name, df) in &output.tables {
         let path = out.join(format!("{name}.parquet"));
-        pipeline::cache::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
+        crate::fs::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
         if name == "where" {
-            pipeline::cache::write_atomic(
-                &out.join("where.csv"),
-                &crate::diagnose::output::csv(df)?,
-            )?;
+            crate::fs::write_atomic(&out.join("where.csv"), &crate::diagnose::output::csv(df)?)?;
         }
     }
     for (name, bytes) in &output.files {
-        pipeline::cache::write_atomic(&out.join(name), bytes)?;
+        crate::fs::write_atomic(&out.join(name), bytes)?;
     }
     println!("{}", crate::diagnose::output::verdict(&d));
     eprintln!(

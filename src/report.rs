@@ -11,7 +11,7 @@
 //! the page has loaded, and says so under a figure that failed, so that a
 //! missing figure is visible (and testable in a headless browser).
 
-use crate::pipeline::cache::write_atomic;
+use crate::fs::write_atomic;
 use crate::pipeline::graph;
 use crate::pipeline::resolve::Pipeline;
 use crate::pipeline::run::RunReport;

@@ -14,8 +14,9 @@ mod read;
 mod tables;
 mod write;
 
+pub use crate::diagnostics::Problem;
 pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
-pub use read::{CampaignError, FILES, Problem, content_hash, read};
+pub use read::{CampaignError, FILES, MAX_FILE_BYTES, content_hash, read};
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};

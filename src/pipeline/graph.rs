@@ -421,7 +421,8 @@ fn arrow_head(from: (i32, i32), to: (i32, i32)) -> Vec<(i32, i32)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::{load_source, source::Source};
+    use crate::diagnostics::Source;
+    use crate::pipeline::load_source;
 
     fn pipeline() -> Pipeline {
         let text = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\

@@ -24,31 +24,20 @@ pub mod raw;
 pub mod resolve;
 pub mod run;
 pub mod snapshot;
-pub mod source;
 pub mod sweep;
 
+/// Where [`Source`] was first defined; kept for code written against it.
+pub use crate::diagnostics as source;
+pub use crate::diagnostics::Problem;
+
+use crate::diagnostics::Source;
 use resolve::{Override, Pipeline};
-use source::{Source, SourceError};
 use std::fmt;
 use std::path::Path;
 
-/// One problem with the user's input.
-#[derive(Clone, Debug)]
-pub enum Problem {
-    /// At a place in the pipeline file.
-    At(SourceError),
-    /// In a command-line argument (`--set`) or otherwise without a place.
-    Arg(String),
-}
-
-impl fmt::Display for Problem {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Problem::At(e) => write!(f, "{e}"),
-            Problem::Arg(s) => f.write_str(s),
-        }
-    }
-}
+/// The largest pipeline file ltcal reads: hand-written TOML is a few
+/// kilobytes; anything near this is not a pipeline file.
+const MAX_PIPELINE_BYTES: u64 = 16 << 20;
 
 /// Everything wrong with a pipeline file, reported together.
 #[derive(Clone, Debug)]
@@ -71,13 +60,13 @@ impl std::error::Error for InputError {}
 impl InputError {
     /// One mistake in the command line's arguments.
     pub fn arg(message: impl Into<String>) -> anyhow::Error {
-        InputError(vec![Problem::Arg(message.into())]).into()
+        InputError(vec![Problem::arg(message)]).into()
     }
 }
 
 /// Reads, parses and resolves a pipeline file.
 pub fn load(path: &Path, overrides: &[Override]) -> anyhow::Result<Pipeline> {
-    let src = Source::read(path)?;
+    let src = Source::read(path, MAX_PIPELINE_BYTES)?;
     load_source(&src, overrides)
 }
 

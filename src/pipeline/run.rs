@@ -180,7 +180,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         stages,
         sweep,
     };
-    cache::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
+    crate::fs::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
     let tables: report::Tables = produced
         .into_iter()
         .map(|(stage, prod)| {
@@ -411,7 +411,7 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
                 .join(sweep::PSEUDO_STAGE)
                 .join(format!("{name}.parquet"));
             if !std::fs::read(&path).is_ok_and(|old| old == bytes) {
-                cache::write_atomic(&path, &bytes)?;
+                crate::fs::write_atomic(&path, &bytes)?;
             }
         }
         tables.insert(name, (Arc::new(df), cache::hash_bytes(&bytes)));
@@ -638,10 +638,10 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<PathBuf>> 
         match std::fs::read(&path) {
             Ok(old) if old == *bytes => continue,
             Ok(_) => {
-                cache::write_atomic(&path, bytes)?;
+                crate::fs::write_atomic(&path, bytes)?;
                 replaced.push(path);
             }
-            Err(_) => cache::write_atomic(&path, bytes)?,
+            Err(_) => crate::fs::write_atomic(&path, bytes)?,
         }
     }
     Ok(replaced)

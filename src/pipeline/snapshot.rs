@@ -16,12 +16,13 @@
 //! only be checked once the tables exist, and are then reported at their
 //! place in the file like every other pipeline error.
 
-use super::cache::{Lookup, Store, write_atomic};
+use super::cache::{Lookup, Store};
 use super::raw::RawSnapshot;
 use super::resolve::{InputRef, Pipeline, Stage};
 use super::run::RunReport;
-use super::source::Source;
 use super::{InputError, Problem};
+use crate::diagnostics::Source;
+use crate::fs::write_atomic;
 use crate::table;
 use anyhow::{Result, anyhow, bail};
 use polars::prelude::DataFrame;
