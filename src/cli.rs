@@ -2,11 +2,8 @@
 //! `show`, `kinds`.
 
 use crate::pipeline::{
-    self, InputError,
-    cache::{self, Store},
-    explain, graph, plan,
-    resolve::Override,
-    run, snapshot, sweep,
+    self, InputError, cache::Store, explain, graph, plan, published, resolve::Override, run,
+    snapshot,
 };
 use crate::stages;
 use crate::table;
@@ -433,76 +430,11 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
     };
     let rerun = format!("`ltcal run {}`", p.pipeline.display());
     let store = store(p, &pipeline);
-    // What the published file must hash to if it is the current result,
-    // or why there is no current result.
-    let (path, expected): (PathBuf, Result<String, String>) = match (&pipeline.sweep, stage) {
-        (Some(sw), sweep::PSEUDO_STAGE) => {
-            let names = sw.table_names();
-            let Some(name) = name.filter(|n| names.iter().any(|g| g == n)) else {
-                return Err(InputError::arg(format!(
-                    "the sweep gathers {}: show one as `sweep.<stage>.<table>`",
-                    names.join(", ")
-                )));
-            };
-            let expected = plan::gathered_now(sw, &store)
-                .and_then(|mut h| h.remove(name))
-                .ok_or_else(|| "some sweep points would run again".to_string());
-            (dir.join(stage).join(format!("{name}.parquet")), expected)
-        }
-        (sw, _) => {
-            let s = pipeline.stage(stage)?;
-            if let Some(sw) = sw.as_ref().filter(|sw| !sw.after.contains(&s.name)) {
-                return Err(InputError::arg(format!(
-                    "`{stage}` runs at every sweep point, and a point's tables are not published \
-                     one by one; the sweep gathers {} (show one as `sweep.<stage>.<table>`; \
-                     [sweep] gather chooses which)",
-                    sw.table_names().join(", ")
-                )));
-            }
-            let outputs = s.config.outputs();
-            let name = name.unwrap_or(outputs[0]);
-            if !outputs.contains(&name) {
-                return Err(InputError::arg(format!(
-                    "stage `{stage}` has no table `{name}`; its tables are: {}",
-                    outputs.join(", ")
-                )));
-            }
-            let item = plan::plan(&pipeline, &store)
-                .into_iter()
-                .find(|i| i.stage == stage)
-                .expect("every stage is planned");
-            let manifest = item.key.as_deref().and_then(|k| store.check(k));
-            let expected = match (item.status.as_str(), manifest) {
-                ("cached", Some(Ok(m))) => m
-                    .tables
-                    .into_iter()
-                    .find(|t| t.name == name)
-                    .map(|t| t.hash)
-                    .ok_or_else(|| format!("`{stage}` would run again")),
-                _ => Err(format!("`{stage}` would run again ({})", item.reason)),
-            };
-            (dir.join(stage).join(format!("{name}.parquet")), expected)
-        }
-    };
-    let bytes = match std::fs::read(&path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!(
-                "no result yet ({} does not exist): run {rerun} first",
-                path.display()
-            )
-        }
-        Err(e) => bail!("reading {}: {e}", path.display()),
-    };
-    match expected {
-        Ok(hash) if hash != cache::hash_bytes(&bytes) => bail!(
-            "{} differs from the result it was published from (edited or damaged): \
-             {rerun} restores it",
-            path.display()
-        ),
-        Ok(_) => {}
-        Err(why) => eprintln!("note: this table is from an earlier run; {why}: run {rerun}"),
+    let published = published::read(&pipeline, &store, &dir, stage, name, &rerun)?;
+    if let Some(why) = &published.stale {
+        eprintln!("note: this table is from an earlier run; {why}: run {rerun}");
     }
+    let (path, bytes) = (published.path, published.bytes);
     let df = table::from_parquet_bytes(&bytes).with_context(|| {
         format!(
             "{} is not a readable table: {rerun} restores it",

@@ -20,7 +20,6 @@ pub mod mesh;
 pub mod pipeline;
 pub mod plots;
 pub mod random;
-pub mod report;
 pub mod schema;
 pub mod sensitivity;
 pub mod simulate;

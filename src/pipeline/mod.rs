@@ -11,16 +11,19 @@
 //! 3. [`plan`] — execution order, parallel levels and cache keys.
 //!
 //! [`run`] executes a plan against the [`cache`] (stage panics caught by
-//! [`panics`]) and writes the page [`crate::report`]; [`explain`] says why a
+//! [`panics`]) and writes the page [`report`]; [`explain`] says why a
 //! stage would run, [`graph`] draws the stages, [`snapshot`] records and
-//! checks result tables.
+//! checks result tables, [`published`] reads a published table back and
+//! says whether it is current.
 
 pub mod cache;
 pub mod explain;
 pub mod graph;
 pub mod panics;
 pub mod plan;
+pub mod published;
 pub mod raw;
+pub mod report;
 pub mod resolve;
 pub mod run;
 pub mod snapshot;

@@ -1,7 +1,7 @@
 //! The runner: executes a resolved pipeline level by level, stages of a level
 //! in parallel (rayon), reusing cached results, and publishes every stage's
 //! tables and figures under `results/<pipeline>/<stage>/`, the run report
-//! (`run.json`) and the page [`crate::report`] (`index.html`).
+//! (`run.json`) and the page [`super::report`] (`index.html`).
 //!
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
 //! reported as a failure of that stage with its message; by default the run
@@ -15,9 +15,9 @@
 use super::cache::{self, Entry, FileRecord, Lookup, Manifest, PointRecords, Store, TableRecord};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
+use super::report;
 use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
 use super::sweep;
-use crate::report;
 use crate::stages::{Context, StageInputs};
 use crate::table;
 use anyhow::{Result, anyhow};

@@ -11,10 +11,10 @@
 //! the page has loaded, and says so under a figure that failed, so that a
 //! missing figure is visible (and testable in a headless browser).
 
+use super::graph;
+use super::resolve::Pipeline;
+use super::run::RunReport;
 use crate::fs::write_atomic;
-use crate::pipeline::graph;
-use crate::pipeline::resolve::Pipeline;
-use crate::pipeline::run::RunReport;
 use crate::table;
 use anyhow::Result;
 use polars::prelude::{AnyValue, DataFrame};
