@@ -3,7 +3,7 @@
 
 use crate::pipeline::{
     self, InputError, cache::Store, explain, graph, plan, published, resolve::Override, run,
-    snapshot,
+    snapshot, status::Status,
 };
 use crate::stages;
 use crate::table;
@@ -171,7 +171,10 @@ fn store(p: &PipelineArgs, pipeline: &pipeline::resolve::Pipeline) -> Store {
 /// Prints the run's outcome — counts, recomputed cache entries, skipped
 /// stages, and each failure with its message — and returns the exit code.
 fn summarize(report: &run::RunReport) -> ExitCode {
-    let (ran, cached) = (report.with_status("ran"), report.with_status("cached"));
+    let (ran, cached) = (
+        report.with_status(Status::Ran),
+        report.with_status(Status::Cached),
+    );
     let damaged: Vec<&run::StageReport> = report
         .stages
         .iter()
@@ -203,7 +206,7 @@ fn summarize(report: &run::RunReport) -> ExitCode {
             s.cache_problem.as_deref().unwrap_or_default()
         );
     }
-    for s in report.stages.iter().filter(|s| s.status == "skipped") {
+    for s in report.stages.iter().filter(|s| s.status == Status::Skipped) {
         eprintln!("  skipped `{}`: {}", s.stage, s.reason);
     }
     for f in &failed {
@@ -362,7 +365,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 }
                 print_out(&text)?;
             }
-            let stale = items.iter().filter(|i| i.status != "cached").count();
+            let stale = items.iter().filter(|i| i.status != Status::Cached).count();
             if check && stale > 0 {
                 eprintln!("plan --check: {stale} of {} stages would run", items.len());
                 return Ok(ExitCode::from(1));

@@ -27,6 +27,7 @@ pub mod report;
 pub mod resolve;
 pub mod run;
 pub mod snapshot;
+pub mod status;
 pub mod sweep;
 
 /// Where [`Source`] was first defined; kept for code written against it.

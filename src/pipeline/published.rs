@@ -7,6 +7,7 @@
 
 use super::cache::{self, Store};
 use super::resolve::Pipeline;
+use super::status::Status;
 use super::{InputError, plan, sweep};
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
@@ -71,8 +72,8 @@ pub fn read(
                 .find(|i| i.stage == stage)
                 .expect("every stage is planned");
             let manifest = item.key.as_deref().and_then(|k| store.check(k));
-            let expected = match (item.status.as_str(), manifest) {
-                ("cached", Some(Ok(m))) => m
+            let expected = match (item.status, manifest) {
+                (Status::Cached, Some(Ok(m))) => m
                     .tables
                     .into_iter()
                     .find(|t| t.name == name)

@@ -20,6 +20,7 @@ use super::cache::{Lookup, Store};
 use super::raw::RawSnapshot;
 use super::resolve::{InputRef, Pipeline, Stage};
 use super::run::RunReport;
+use super::status::Status;
 use super::{InputError, Problem};
 use crate::diagnostics::Source;
 use crate::fs::write_atomic;
@@ -192,7 +193,7 @@ pub fn collect(
         let Some(key) = report
             .stages
             .iter()
-            .find(|s| s.stage == r.stage && (s.status == "ran" || s.status == "cached"))
+            .find(|s| s.stage == r.stage && matches!(s.status, Status::Ran | Status::Cached))
             .and_then(|s| s.key.as_ref())
         else {
             bail!(
