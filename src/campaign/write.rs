@@ -107,7 +107,9 @@ fn holds(dir: &Path, files: &[(&str, Vec<u8>)]) -> bool {
         .collect();
     names.len() == files.len()
         && files.iter().all(|(name, bytes)| {
-            names.contains(*name) && fs::read(dir.join(name)).is_ok_and(|b| b == *bytes)
+            names.contains(*name)
+                && crate::fs::read_regular_file(&dir.join(name), super::MAX_FILE_BYTES)
+                    .is_ok_and(|b| b == *bytes)
         })
 }
 
