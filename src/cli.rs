@@ -2,11 +2,8 @@
 //! `show`, `kinds`.
 
 use crate::pipeline::{
-    self, InputError,
-    cache::{self, Store},
-    explain, graph, plan,
-    resolve::Override,
-    run, snapshot, sweep,
+    self, InputError, cache::Store, explain, graph, plan, published, resolve::Override, run,
+    snapshot, status::Status,
 };
 use crate::stages;
 use crate::table;
@@ -183,7 +180,10 @@ fn store(p: &PipelineArgs, pipeline: &pipeline::resolve::Pipeline) -> Store {
 /// Prints the run's outcome — counts, recomputed cache entries, skipped
 /// stages, and each failure with its message — and returns the exit code.
 fn summarize(report: &run::RunReport) -> ExitCode {
-    let (ran, cached) = (report.with_status("ran"), report.with_status("cached"));
+    let (ran, cached) = (
+        report.with_status(Status::Ran),
+        report.with_status(Status::Cached),
+    );
     let damaged: Vec<&run::StageReport> = report
         .stages
         .iter()
@@ -215,7 +215,7 @@ fn summarize(report: &run::RunReport) -> ExitCode {
             s.cache_problem.as_deref().unwrap_or_default()
         );
     }
-    for s in report.stages.iter().filter(|s| s.status == "skipped") {
+    for s in report.stages.iter().filter(|s| s.status == Status::Skipped) {
         eprintln!("  skipped `{}`: {}", s.stage, s.reason);
     }
     for f in &failed {
@@ -308,16 +308,13 @@ fn diagnose_command(
     let output = stages::diagnose::outputs(&d)?;
     for (name, df) in &output.tables {
         let path = out.join(format!("{name}.parquet"));
-        pipeline::cache::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
+        crate::fs::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
         if name == "where" {
-            pipeline::cache::write_atomic(
-                &out.join("where.csv"),
-                &crate::diagnose::output::csv(df)?,
-            )?;
+            crate::fs::write_atomic(&out.join("where.csv"), &crate::diagnose::output::csv(df)?)?;
         }
     }
     for (name, bytes) in &output.files {
-        pipeline::cache::write_atomic(&out.join(name), bytes)?;
+        crate::fs::write_atomic(&out.join(name), bytes)?;
     }
     println!("{}", crate::diagnose::output::verdict(&d));
     eprintln!(
@@ -377,7 +374,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 }
                 print_out(&text)?;
             }
-            let stale = items.iter().filter(|i| i.status != "cached").count();
+            let stale = items.iter().filter(|i| i.status != Status::Cached).count();
             if check && stale > 0 {
                 eprintln!("plan --check: {stale} of {} stages would run", items.len());
                 return Ok(ExitCode::from(1));
@@ -445,76 +442,11 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
     };
     let rerun = format!("`ltcal run {}`", p.pipeline.display());
     let store = store(p, &pipeline);
-    // What the published file must hash to if it is the current result,
-    // or why there is no current result.
-    let (path, expected): (PathBuf, Result<String, String>) = match (&pipeline.sweep, stage) {
-        (Some(sw), sweep::PSEUDO_STAGE) => {
-            let names = sw.table_names();
-            let Some(name) = name.filter(|n| names.iter().any(|g| g == n)) else {
-                return Err(InputError::arg(format!(
-                    "the sweep gathers {}: show one as `sweep.<stage>.<table>`",
-                    names.join(", ")
-                )));
-            };
-            let expected = plan::gathered_now(sw, &store)
-                .and_then(|mut h| h.remove(name))
-                .ok_or_else(|| "some sweep points would run again".to_string());
-            (dir.join(stage).join(format!("{name}.parquet")), expected)
-        }
-        (sw, _) => {
-            let s = pipeline.stage(stage)?;
-            if let Some(sw) = sw.as_ref().filter(|sw| !sw.after.contains(&s.name)) {
-                return Err(InputError::arg(format!(
-                    "`{stage}` runs at every sweep point, and a point's tables are not published \
-                     one by one; the sweep gathers {} (show one as `sweep.<stage>.<table>`; \
-                     [sweep] gather chooses which)",
-                    sw.table_names().join(", ")
-                )));
-            }
-            let outputs = s.config.outputs();
-            let name = name.unwrap_or(outputs[0]);
-            if !outputs.contains(&name) {
-                return Err(InputError::arg(format!(
-                    "stage `{stage}` has no table `{name}`; its tables are: {}",
-                    outputs.join(", ")
-                )));
-            }
-            let item = plan::plan(&pipeline, &store)
-                .into_iter()
-                .find(|i| i.stage == stage)
-                .expect("every stage is planned");
-            let manifest = item.key.as_deref().and_then(|k| store.check(k));
-            let expected = match (item.status.as_str(), manifest) {
-                ("cached", Some(Ok(m))) => m
-                    .tables
-                    .into_iter()
-                    .find(|t| t.name == name)
-                    .map(|t| t.hash)
-                    .ok_or_else(|| format!("`{stage}` would run again")),
-                _ => Err(format!("`{stage}` would run again ({})", item.reason)),
-            };
-            (dir.join(stage).join(format!("{name}.parquet")), expected)
-        }
-    };
-    let bytes = match std::fs::read(&path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!(
-                "no result yet ({} does not exist): run {rerun} first",
-                path.display()
-            )
-        }
-        Err(e) => bail!("reading {}: {e}", path.display()),
-    };
-    match expected {
-        Ok(hash) if hash != cache::hash_bytes(&bytes) => bail!(
-            "{} differs from the result it was published from (edited or damaged): \
-             {rerun} restores it",
-            path.display()
-        ),
-        Ok(_) => {}
-        Err(why) => eprintln!("note: this table is from an earlier run; {why}: run {rerun}"),
+    let published = published::read(&pipeline, &store, &dir, stage, name, &rerun)?;
+    if let Some(why) = &published.stale {
+        eprintln!("note: this table is from an earlier run; {why}: run {rerun}");
     }
+    let (path, bytes) = (published.path, published.bytes);
     let df = table::from_parquet_bytes(&bytes).with_context(|| {
         format!(
             "{} is not a readable table: {rerun} restores it",

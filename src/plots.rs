@@ -37,6 +37,39 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing the figure: {e}")
 }
 
+/// The canvas every figure is drawn on.
+type Canvas<'a> = DrawingArea<SVGBackend<'a>, Shift>;
+
+/// The scaffold of every figure: a white SVG canvas of `size` pixels, which
+/// `draw` fills, presented as SVG text.
+fn figure(size: (u32, u32), draw: impl FnOnce(&Canvas<'_>) -> Result<()>) -> Result<String> {
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
+        root.fill(&WHITE).map_err(err)?;
+        draw(&root)?;
+        root.present().map_err(err)?;
+    }
+    Ok(svg)
+}
+
+/// The legend of every figure with one: a framed box on a nearly opaque
+/// white ground, at `position`, in `font_size`-point text.
+fn legend<'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, SVGBackend<'a>, CT>,
+    position: SeriesLabelPosition,
+    font_size: u32,
+) -> Result<()> {
+    chart
+        .configure_series_labels()
+        .position(position)
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK)
+        .label_font(("sans-serif", font_size))
+        .draw()
+        .map_err(err)
+}
+
 /// One mesh point with its error before and after calibration.
 pub struct PointError {
     pub x_mm: f64,
@@ -49,10 +82,7 @@ pub struct PointError {
 /// Figures 6–8: the mesh in 3-D coloured by its error before calibration,
 /// and every point's error before and after (log scale).
 pub fn mesh_errors(title: &str, pts: &[PointError]) -> Result<String> {
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (1200, 560)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
+    figure((1200, 560), |root| {
         let root = root.titled(title, ("sans-serif", 26)).map_err(err)?;
         let (left, right) = root.split_horizontally(560);
         let (mesh_area, bar_area) = left.split_horizontally(470);
@@ -71,9 +101,8 @@ pub fn mesh_errors(title: &str, pts: &[PointError]) -> Result<String> {
             &FIGURE_BAR,
         )?;
         errors_by_point(&right, pts)?;
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 fn bounds(v: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -174,13 +203,7 @@ fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) ->
             .label(name)
             .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.9))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 14))
-        .draw()
-        .map_err(err)?;
+    legend(&mut chart, SeriesLabelPosition::MiddleRight, 14)?;
     Ok(())
 }
 
@@ -202,11 +225,8 @@ pub fn criterion_errors(
         .fold(0.0, f64::max)
         .max(1e-9)
         * 1.05;
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (1000, 520)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
-        let mut chart = ChartBuilder::on(&root)
+    figure((1000, 520), |root| {
+        let mut chart = ChartBuilder::on(root)
             .margin(20)
             .caption(title, ("sans-serif", 22))
             .x_label_area_size(45)
@@ -236,16 +256,9 @@ pub fn criterion_errors(
                 .label(name)
                 .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.9))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 14))
-            .draw()
-            .map_err(err)?;
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        legend(&mut chart, SeriesLabelPosition::MiddleRight, 14)?;
+        Ok(())
+    })
 }
 
 /// One panel of Figure 11: a parameter's error at every mesh point.
@@ -271,11 +284,7 @@ pub fn sensitivity_fields(title: &str, panels: &[ParamField]) -> Result<String> 
         (0.0, d_hi.max(1.0))
     };
     let rows = panels.len().div_ceil(3).max(1);
-    let mut svg = String::new();
-    {
-        let root =
-            SVGBackend::with_string(&mut svg, (1250, 170 * rows as u32 + 60)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
+    figure((1250, 170 * rows as u32 + 60), |root| {
         let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
         let (grid, bar) = root.split_horizontally(1150);
         for (area, p) in grid.split_evenly((rows, 3)).iter().zip(panels) {
@@ -319,9 +328,8 @@ pub fn sensitivity_fields(title: &str, panels: &[ParamField]) -> Result<String> 
             viridis,
             &FIGURE_BAR,
         )?;
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 /// Figure 12's data for one parameter: its error on a grid of directions at
@@ -341,11 +349,7 @@ pub struct DirectionCurves {
 /// at distance `d_mm`; a line's colour is its φ or θ, dark to light.
 pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) -> Result<String> {
     let n = rows.len().max(1);
-    let mut svg = String::new();
-    {
-        let root =
-            SVGBackend::with_string(&mut svg, (1100, 230 * n as u32 + 80)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
+    figure((1100, 230 * n as u32 + 80), |root| {
         let root = root
             .titled(
                 &format!(
@@ -408,9 +412,8 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
                 }
             }
         }
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 /// Residuals against one factor (the "where" of a diagnosis): three
@@ -434,10 +437,7 @@ pub fn residuals_by_factor(
         Some(c) => (-0.5, c.len() as f64 - 0.5),
         None => bounds(xs.into_iter()),
     };
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (900, 820)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
+    figure((900, 820), |root| {
         let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
         for (area, (label, values)) in root.split_evenly((3, 1)).iter().zip(panels) {
             let m = finite(values)
@@ -476,9 +476,8 @@ pub fn residuals_by_factor(
                 .draw_series(LineSeries::new([(x0, 0.0), (x1, 0.0)], BLACK.mix(0.4)))
                 .map_err(err)?;
         }
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 /// A diverging colour map for signed values: blue (0) through white (0.5)
@@ -690,12 +689,8 @@ pub fn incidence_maps(
         .flatten()
         .fold(0.0f64, |a, v| a.max(v.abs()))
         .max(1e-9);
-    let mut svg = String::new();
-    {
-        let rows = fits.len().max(1);
-        let root =
-            SVGBackend::with_string(&mut svg, (1500, 440 * rows as u32 + 50)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
+    let rows = fits.len().max(1);
+    figure((1500, 440 * rows as u32 + 50), |root| {
         let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
         let cells = root.split_evenly((rows, 3));
         for (k, f) in fits.iter().enumerate() {
@@ -738,20 +733,15 @@ pub fn incidence_maps(
                 heat_map(&cells[3 * k + c], m)?;
             }
         }
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 /// Layout design: one panel of horizontal bars per quantity (σ_min, O1, …),
 /// one bar per layout, the value written at its end.
 pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Result<String> {
     let n = names.len().max(1);
-    let mut svg = String::new();
-    {
-        let root =
-            SVGBackend::with_string(&mut svg, (1200, 60 + 34 * n as u32 + 120)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
+    figure((1200, 60 + 34 * n as u32 + 120), |root| {
         let root = root.titled(title, ("sans-serif", 20)).map_err(err)?;
         let areas = root.split_evenly((1, panels.len().max(1)));
         for (area, (label, values)) in areas.iter().zip(panels) {
@@ -806,9 +796,8 @@ pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Re
                 }))
                 .map_err(err)?;
         }
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 /// A 12-point label on a drawing area at pixel `at`, anchored as given.
@@ -829,11 +818,8 @@ fn label_at(
 pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -> Result<String> {
     let n = labels.len();
     let max = counts.iter().flatten().copied().max().unwrap_or(0).max(1) as f64;
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (980, 760)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
-        let mut chart = ChartBuilder::on(&root)
+    figure((980, 760), |root| {
+        let mut chart = ChartBuilder::on(root)
             .margin(20)
             .caption(title, ("sans-serif", 18))
             .x_label_area_size(90)
@@ -884,13 +870,12 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
         // The class names under and beside the cells' centres.
         for (i, name) in labels.iter().enumerate() {
             let (px, py) = chart.backend_coord(&(i as f64, -0.5));
-            label_at(&root, name, (px, py + 8), HPos::Center)?;
+            label_at(root, name, (px, py + 8), HPos::Center)?;
             let (px, py) = chart.backend_coord(&(-0.5, (n - 1 - i) as f64));
-            label_at(&root, name, (px - 8, py - 6), HPos::Right)?;
+            label_at(root, name, (px - 8, py - 6), HPos::Right)?;
         }
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 /// One line of [`metric_lines`]: `(x, mean, sd, n)` per point.
@@ -910,11 +895,8 @@ pub fn metric_lines(
     let all = lines.iter().flat_map(|l| l.points.iter());
     let (x0, x1) = bounds(all.clone().map(|p| p.0));
     let (y0, y1) = bounds(all.flat_map(|p| [p.1 - p.2, p.1 + p.2]));
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (1000, 600)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
-        let mut chart = ChartBuilder::on(&root)
+    figure((1000, 600), |root| {
+        let mut chart = ChartBuilder::on(root)
             .margin(20)
             .caption(title, ("sans-serif", 22))
             .x_label_area_size(45)
@@ -952,16 +934,9 @@ pub fn metric_lines(
                 }))
                 .map_err(err)?;
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.9))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 14))
-            .draw()
-            .map_err(err)?;
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        legend(&mut chart, SeriesLabelPosition::MiddleRight, 14)?;
+        Ok(())
+    })
 }
 
 /// Grouped bars: one group per category, one bar per series, with a
@@ -983,11 +958,8 @@ pub fn grouped_bars(
     // Head room for the legend above the tallest bar.
     let hi = hi.max(1.0) * 1.35;
     let lo = if lo < 0.0 { lo * 1.08 } else { 0.0 };
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (1200, 620)).into_drawing_area();
-        root.fill(&WHITE).map_err(err)?;
-        let mut chart = ChartBuilder::on(&root)
+    figure((1200, 620), |root| {
+        let mut chart = ChartBuilder::on(root)
             .margin(20)
             .caption(title, ("sans-serif", 20))
             .x_label_area_size(60)
@@ -1032,14 +1004,7 @@ pub fn grouped_bars(
                     .map_err(err)?;
             }
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.9))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 13))
-            .draw()
-            .map_err(err)?;
+        legend(&mut chart, SeriesLabelPosition::UpperRight, 13)?;
         // Category names under each group, long ones over two lines.
         for (i, name) in categories.iter().enumerate() {
             let (px, py) = chart.backend_coord(&(i as f64, lo));
@@ -1053,12 +1018,11 @@ pub fn grouped_bars(
                 } else {
                     line.to_string()
                 };
-                label_at(&root, &text, (px, py + 8 + 15 * k as i32), HPos::Center)?;
+                label_at(root, &text, (px, py + 8 + 15 * k as i32), HPos::Center)?;
             }
         }
-        root.present().map_err(err)?;
-    }
-    Ok(svg)
+        Ok(())
+    })
 }
 
 #[cfg(test)]

@@ -7,15 +7,17 @@
 //! and goes back to a folder ([`write()`]) or tables ([`Campaign::to_tables`])
 //! without loss: angles stay in the degrees they were written in and are
 //! converted to radians only when a [`Reading`] is asked for. Whatever the
-//! way in or out, [`Campaign::check`] holds it to the same rules.
+//! way in or out, [`Campaign::check`] holds it to the same rules. The tables
+//! are the pipeline's business, so that way in and out is written in
+//! `stages` (`stages/campaign_tables.rs`); this module knows only files.
 
 mod check;
 mod read;
-mod tables;
 mod write;
 
+pub use crate::diagnostics::Problem;
 pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
-pub use read::{CampaignError, FILES, Problem, content_hash, read};
+pub use read::{CampaignError, FILES, MAX_FILE_BYTES, content_hash, read};
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};

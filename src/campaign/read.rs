@@ -19,9 +19,8 @@
 
 use super::check::{Issue, Place, Table};
 use super::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
+use crate::diagnostics::{Problem, Source, SourceError, toml_error};
 use crate::kinematics::Face;
-use crate::pipeline::raw::toml_error;
-use crate::pipeline::source::{Source, SourceError};
 use csv_core::ReadFieldResult;
 use nalgebra::Vector3;
 use serde::Deserialize;
@@ -36,40 +35,6 @@ use toml::Spanned;
 pub struct CampaignError {
     pub dir: PathBuf,
     pub problems: Vec<Problem>,
-}
-
-/// One problem with a campaign folder.
-#[derive(Debug)]
-pub enum Problem {
-    /// At a place in one of its files.
-    At(SourceError),
-    /// About a whole file (missing, unreadable) or the folder.
-    File { path: PathBuf, message: String },
-}
-
-impl Problem {
-    /// `path:line:col` (or the path alone for a whole-file problem).
-    pub fn location(&self) -> String {
-        match self {
-            Problem::At(e) => e.location(),
-            Problem::File { path, .. } => path.display().to_string(),
-        }
-    }
-    pub fn message(&self) -> &str {
-        match self {
-            Problem::At(e) => &e.message,
-            Problem::File { message, .. } => message,
-        }
-    }
-}
-
-impl fmt::Display for Problem {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Problem::At(e) => write!(f, "{e}"),
-            Problem::File { path, message } => write!(f, "{}: {message}", path.display()),
-        }
-    }
 }
 
 /// Problems shown in full; a file broken on every line would bury the first
@@ -105,12 +70,11 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         problems,
     };
     if !dir.is_dir() {
-        return Err(fail(vec![Problem::File {
-            path: dir.to_path_buf(),
-            message: "not a folder: a campaign is a folder holding campaign.toml, readings.csv, \
-                      targets.csv and optionally gauge.csv"
-                .into(),
-        }]));
+        return Err(fail(vec![Problem::file(
+            dir,
+            "not a folder: a campaign is a folder holding campaign.toml, readings.csv, \
+             targets.csv and optionally gauge.csv",
+        )]));
     }
     let mut problems = Vec::new();
     let meta = match load(&dir.join("campaign.toml"), true, &mut problems) {
@@ -182,6 +146,10 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
 /// The files of a campaign folder, all the reader ever looks at.
 pub const FILES: [&str; 4] = ["campaign.toml", "readings.csv", "targets.csv", "gauge.csv"];
 
+/// The largest campaign file ltcal reads: about ten million readings, far
+/// beyond any campaign measured by hand, and still held in memory at once.
+pub const MAX_FILE_BYTES: u64 = 1 << 30;
+
 /// The blake3 hash of what [`read`] would read in `dir`: each of [`FILES`]
 /// by name, with its bytes or as absent. Two folders with the same hash read
 /// the same; other files in the folder do not count.
@@ -189,15 +157,15 @@ pub fn content_hash(dir: &Path) -> std::io::Result<String> {
     let mut h = blake3::Hasher::new();
     for name in FILES {
         h.update(name.as_bytes());
-        match std::fs::read(dir.join(name)) {
+        match crate::fs::read_regular_file(&dir.join(name), MAX_FILE_BYTES) {
             Ok(bytes) => {
                 h.update(&(bytes.len() as u64).to_le_bytes());
                 h.update(&bytes);
             }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Err(e) if e.is_missing() => {
                 h.update(b"\0absent");
             }
-            Err(e) => return Err(e),
+            Err(e) => return Err(std::io::Error::other(e)),
         }
     }
     Ok(h.finalize().to_hex().to_string())
@@ -207,22 +175,18 @@ pub fn content_hash(dir: &Path) -> std::io::Result<String> {
 /// cannot be had. A UTF-8 byte-order mark is dropped so that columns count
 /// as an editor shows them.
 fn load(path: &Path, required: bool, problems: &mut Vec<Problem>) -> Option<Source> {
-    let bytes = match std::fs::read(path) {
+    let bytes = match crate::fs::read_regular_file(path, MAX_FILE_BYTES) {
         Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound && !required => return None,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            problems.push(Problem::File {
-                path: path.to_path_buf(),
-                message: "missing: a campaign needs campaign.toml, readings.csv and targets.csv"
-                    .into(),
-            });
+        Err(e) if e.is_missing() && !required => return None,
+        Err(e) if e.is_missing() => {
+            problems.push(Problem::file(
+                path,
+                "missing: a campaign needs campaign.toml, readings.csv and targets.csv",
+            ));
             return None;
         }
         Err(e) => {
-            problems.push(Problem::File {
-                path: path.to_path_buf(),
-                message: format!("cannot be read: {e}"),
-            });
+            problems.push(Problem::file(path, format!("cannot be read: {}", e.reason)));
             return None;
         }
     };

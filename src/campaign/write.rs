@@ -21,9 +21,7 @@ use anyhow::{Context as _, Result, anyhow, bail};
 use serde::Serialize;
 use std::collections::BTreeSet;
 use std::fs;
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Writes `c` as the folder `dir`, which must not exist yet (or hold
 /// exactly this campaign already).
@@ -65,14 +63,12 @@ fn publish(c: &Campaign, dir: &Path, replace: bool) -> Result<()> {
         _ => PathBuf::from("."),
     };
     fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
-    let suffix = unique_suffix();
+    let suffix = crate::fs::temp_name();
     let tmp = parent.join(format!(".{name}.{suffix}.tmp"));
     let built = (|| -> std::io::Result<()> {
         fs::create_dir(&tmp)?;
         for (file, bytes) in &files {
-            let mut f = fs::File::create(tmp.join(file))?;
-            f.write_all(bytes)?;
-            f.sync_all()?;
+            crate::fs::write_staged(&tmp.join(file), bytes, true)?;
         }
         Ok(())
     })();
@@ -111,7 +107,9 @@ fn holds(dir: &Path, files: &[(&str, Vec<u8>)]) -> bool {
         .collect();
     names.len() == files.len()
         && files.iter().all(|(name, bytes)| {
-            names.contains(*name) && fs::read(dir.join(name)).is_ok_and(|b| b == *bytes)
+            names.contains(*name)
+                && crate::fs::read_regular_file(&dir.join(name), super::MAX_FILE_BYTES)
+                    .is_ok_and(|b| b == *bytes)
         })
 }
 
@@ -126,15 +124,6 @@ fn refuse_invalid(c: &Campaign, dir: &Path) -> Result<()> {
         "the campaign is not written to {}: it breaks the campaign format's rules:\n  {}",
         dir.display(),
         list.join("\n  ")
-    )
-}
-
-fn unique_suffix() -> String {
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    format!(
-        "{}-{}",
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
     )
 }
 

@@ -30,14 +30,13 @@
 //! directory without `manifest.json` cannot come from [`Store::put`]; if one
 //! appears it is treated as incomplete, ignored and removed.
 
+use crate::fs::{temp_name, write_atomic};
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Everything a stage's output depends on. Its hash is the cache key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -239,39 +238,6 @@ pub fn hash_bytes(b: &[u8]) -> String {
     blake3::hash(b).to_hex().to_string()
 }
 
-static COUNTER: AtomicU64 = AtomicU64::new(0);
-
-/// A name no other writer in any process uses.
-fn unique_suffix() -> String {
-    format!(
-        "{}-{}",
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
-    )
-}
-
-/// Writes `bytes` to `path` atomically: a temporary file beside it, synced,
-/// then renamed over it.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.{}.tmp", unique_suffix()));
-    let write = || -> std::io::Result<()> {
-        let mut f = fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        fs::rename(&tmp, path)
-    };
-    write().map_err(|e| {
-        let _ = fs::remove_file(&tmp);
-        anyhow!("writing {}: {e}", path.display())
-    })
-}
-
 /// The cache of one pipeline.
 pub struct Store {
     root: PathBuf,
@@ -362,7 +328,7 @@ impl Store {
     /// Moves a bad entry out of the way, then deletes it: readers never see
     /// a half-deleted entry under its key.
     fn discard(&self, dir: &Path) {
-        let trash = self.entries().join(format!(".trash-{}", unique_suffix()));
+        let trash = self.entries().join(format!(".trash-{}", temp_name()));
         if fs::rename(dir, &trash).is_ok() {
             let _ = fs::remove_dir_all(&trash);
         }
@@ -374,7 +340,7 @@ impl Store {
         let key = &entry.manifest.key;
         let entries = self.entries();
         fs::create_dir_all(&entries).with_context(|| format!("creating {}", entries.display()))?;
-        let tmp = entries.join(format!(".tmp-{}-{}", short(key), unique_suffix()));
+        let tmp = entries.join(format!(".tmp-{}-{}", short(key), temp_name()));
         let result = (|| -> Result<()> {
             fs::create_dir_all(&tmp)?;
             if !entry.files.is_empty() {
@@ -567,9 +533,8 @@ fn owner_gone(pid: Option<&str>) -> bool {
 /// manifest catch on reuse. Syncing each of the thousands of files of a
 /// sweep would cost more than computing them.
 fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
-    let mut f = fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
-    f.write_all(bytes)?;
-    Ok(())
+    crate::fs::write_staged(path, bytes, false)
+        .with_context(|| format!("creating {}", path.display()))
 }
 
 #[cfg(test)]
@@ -635,7 +600,7 @@ mod tests {
 
     #[test]
     fn put_lookup_and_detect_a_flipped_byte() {
-        let dir = std::env::temp_dir().join(format!("ltcal-store-{}", unique_suffix()));
+        let dir = std::env::temp_dir().join(format!("ltcal-store-{}", temp_name()));
         let store = Store::new(&dir);
         let k = key_fields(1);
         store.put(&entry(&k)).unwrap();

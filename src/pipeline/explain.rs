@@ -15,6 +15,7 @@ use super::InputError;
 use super::cache::{KeyFields, Store, short};
 use super::plan::{self, Assessment};
 use super::resolve::{Pipeline, SweepPoint};
+use super::status::Status;
 use anyhow::Result;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -38,8 +39,8 @@ pub struct Row {
 pub struct Explanation {
     pub stage: String,
     pub kind: String,
-    /// `cached` or `run`, as `ltcal plan` says.
-    pub status: String,
+    /// [`Status::Cached`] or [`Status::Run`], as `ltcal plan` says.
+    pub status: Status,
     pub reason: String,
     /// The current key, when every input's content is known.
     pub key: Option<String>,
@@ -97,7 +98,7 @@ pub fn explain(
                 .collect();
             let would_run = assessed
                 .iter()
-                .filter(|(_, a)| a.item.status != "cached")
+                .filter(|(_, a)| a.item.status != Status::Cached)
                 .count();
             let chosen = match point {
                 Some(i) => assessed.get(i).ok_or_else(|| {
@@ -109,7 +110,7 @@ pub fn explain(
                 })?,
                 None => assessed
                     .iter()
-                    .find(|(_, a)| a.item.status != "cached")
+                    .find(|(_, a)| a.item.status != Status::Cached)
                     .unwrap_or(&assessed[0]),
             };
             let (pt, a) = chosen.clone();
@@ -189,8 +190,8 @@ fn rows(a: &Assessment, last: Option<&KeyFields>) -> Vec<Row> {
 
 impl fmt::Display for Explanation {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let verdict = match (self.status.as_str(), self.reason.is_empty()) {
-            ("cached", _) => "cached".to_string(),
+        let verdict = match (self.status, self.reason.is_empty()) {
+            (Status::Cached, _) => "cached".to_string(),
             (_, true) => "would run".to_string(),
             (_, false) => format!("would run: {}", self.reason),
         };
@@ -223,7 +224,7 @@ impl fmt::Display for Explanation {
                 f,
                 "(no earlier run of it is recorded here: nothing to compare with)"
             )?;
-        } else if self.status == "cached" && self.rows.iter().any(|r| r.changed) {
+        } else if self.status == Status::Cached && self.rows.iter().any(|r| r.changed) {
             writeln!(
                 f,
                 "(an earlier run with the current settings is in the cache; the last run differed)"

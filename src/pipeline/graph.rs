@@ -9,24 +9,25 @@
 
 use super::plan::Graph;
 use super::resolve::Pipeline;
+use super::status::Status;
 use anyhow::{Result, anyhow};
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::collections::BTreeMap;
 
-/// A stage's status as drawn: `cached`, `run` (would run), and after a run
-/// `ran`, `failed`, `skipped`.
-pub type Statuses = BTreeMap<String, String>;
+/// A stage's status as drawn: planned (`cached`, `run`) or after a run
+/// (`ran`, `failed`, `skipped`); a stage not in the map has none.
+pub type Statuses = BTreeMap<String, Status>;
 
 /// Fill colour and legend label of a status.
-fn style(status: &str) -> (RGBColor, &'static str) {
+fn style(status: Option<Status>) -> (RGBColor, &'static str) {
     match status {
-        "cached" => (RGBColor(198, 239, 206), "cached"),
-        "run" => (RGBColor(255, 224, 178), "would run"),
-        "ran" => (RGBColor(187, 222, 251), "ran"),
-        "failed" => (RGBColor(255, 171, 171), "failed"),
-        "skipped" => (RGBColor(224, 224, 224), "skipped"),
-        _ => (RGBColor(255, 255, 255), "unknown"),
+        Some(Status::Cached) => (RGBColor(198, 239, 206), "cached"),
+        Some(Status::Run) => (RGBColor(255, 224, 178), "would run"),
+        Some(Status::Ran) => (RGBColor(187, 222, 251), "ran"),
+        Some(Status::Failed) => (RGBColor(255, 171, 171), "failed"),
+        Some(Status::Skipped) => (RGBColor(224, 224, 224), "skipped"),
+        None => (RGBColor(255, 255, 255), "unknown"),
     }
 }
 
@@ -34,8 +35,17 @@ fn hex(c: RGBColor) -> String {
     format!("#{:02x}{:02x}{:02x}", c.0, c.1, c.2)
 }
 
-fn status_of<'a>(statuses: &'a Statuses, stage: &str) -> &'a str {
-    statuses.get(stage).map_or("", String::as_str)
+fn status_of(statuses: &Statuses, stage: &str) -> Option<Status> {
+    statuses.get(stage).copied()
+}
+
+/// The statuses that occur, each once, in the order of their words (the
+/// legend's order).
+fn used(statuses: &Statuses) -> Vec<Status> {
+    let mut used: Vec<Status> = statuses.values().copied().collect();
+    used.sort_by_key(|s| s.as_str());
+    used.dedup();
+    used
 }
 
 /// `(producer, consumer, label)` for every input, in stage order. The label
@@ -99,11 +109,9 @@ pub fn mermaid(p: &Pipeline, statuses: &Statuses) -> String {
     let mut out = String::from("flowchart TB\n");
     let escape = |s: &str| s.replace('"', "#quot;");
     for (i, s) in p.stages.iter().enumerate() {
-        let status = status_of(statuses, &s.name);
-        let class = if status.is_empty() {
-            String::new()
-        } else {
-            format!(":::{status}")
+        let class = match status_of(statuses, &s.name) {
+            None => String::new(),
+            Some(status) => format!(":::{status}"),
         };
         out.push_str(&format!(
             "  s{i}[\"{}<br/><i>{}</i>\"]{class}\n",
@@ -114,13 +122,10 @@ pub fn mermaid(p: &Pipeline, statuses: &Statuses) -> String {
     for (i, j, label) in edges(p) {
         out.push_str(&format!("  s{i} -->|\"{}\"| s{j}\n", escape(&label)));
     }
-    let mut used: Vec<&str> = statuses.values().map(String::as_str).collect();
-    used.sort();
-    used.dedup();
-    for st in used {
+    for st in used(statuses) {
         out.push_str(&format!(
             "  classDef {st} fill:{},stroke:#555\n",
-            hex(style(st).0)
+            hex(style(Some(st)).0)
         ));
     }
     out
@@ -377,13 +382,10 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
             ))
             .map_err(draw_err)?;
         }
-        let mut used: Vec<&str> = statuses.values().map(String::as_str).collect();
-        used.sort();
-        used.dedup();
         let mut x = MARGIN;
         let y = height - MARGIN - 14;
-        for st in used {
-            let (fill, label) = style(st);
+        for st in used(statuses) {
+            let (fill, label) = style(Some(st));
             let corners = [(x, y), (x + 18, y + 14)];
             root.draw(&Rectangle::new(corners, fill.filled()))
                 .map_err(draw_err)?;
@@ -421,7 +423,8 @@ fn arrow_head(from: (i32, i32), to: (i32, i32)) -> Vec<(i32, i32)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::{load_source, source::Source};
+    use crate::diagnostics::Source;
+    use crate::pipeline::load_source;
 
     fn pipeline() -> Pipeline {
         let text = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
@@ -433,10 +436,14 @@ mod tests {
     #[test]
     fn dot_and_mermaid_name_every_stage_and_input() {
         let p = pipeline();
-        let st: Statuses = [("a", "cached"), ("t", "cached"), ("m", "run")]
-            .iter()
-            .map(|(a, b)| (a.to_string(), b.to_string()))
-            .collect();
+        let st: Statuses = [
+            ("a", Status::Cached),
+            ("t", Status::Cached),
+            ("m", Status::Run),
+        ]
+        .iter()
+        .map(|(a, b)| (a.to_string(), *b))
+        .collect();
         let d = dot(&p, &st);
         assert!(d.contains("\"a\" -> \"m\" [label=\"points\"];"), "{d}");
         assert!(d.contains("\"t\" -> \"m\" [label=\"errors\"];"), "{d}");

@@ -11,44 +11,33 @@
 //! 3. [`plan`] — execution order, parallel levels and cache keys.
 //!
 //! [`run`] executes a plan against the [`cache`] (stage panics caught by
-//! [`panics`]) and writes the page [`crate::report`]; [`explain`] says why a
+//! [`panics`]) and writes the page [`report`]; [`explain`] says why a
 //! stage would run, [`graph`] draws the stages, [`snapshot`] records and
-//! checks result tables.
+//! checks result tables, [`published`] reads a published table back and
+//! says whether it is current.
 
 pub mod cache;
 pub mod explain;
 pub mod graph;
 pub mod panics;
 pub mod plan;
+pub mod published;
 pub mod raw;
+pub mod report;
 pub mod resolve;
 pub mod run;
 pub mod snapshot;
-pub mod source;
+pub mod status;
 pub mod sweep;
 
+/// Where [`Source`] was first defined; kept for code written against it.
+pub use crate::diagnostics as source;
+pub use crate::diagnostics::Problem;
+
+use crate::diagnostics::Source;
 use resolve::{Override, Pipeline};
-use source::{Source, SourceError};
 use std::fmt;
 use std::path::Path;
-
-/// One problem with the user's input.
-#[derive(Clone, Debug)]
-pub enum Problem {
-    /// At a place in the pipeline file.
-    At(SourceError),
-    /// In a command-line argument (`--set`) or otherwise without a place.
-    Arg(String),
-}
-
-impl fmt::Display for Problem {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Problem::At(e) => write!(f, "{e}"),
-            Problem::Arg(s) => f.write_str(s),
-        }
-    }
-}
 
 /// Everything wrong with a pipeline file, reported together.
 #[derive(Clone, Debug)]
@@ -71,7 +60,7 @@ impl std::error::Error for InputError {}
 impl InputError {
     /// One mistake in the command line's arguments.
     pub fn arg(message: impl Into<String>) -> anyhow::Error {
-        InputError(vec![Problem::Arg(message.into())]).into()
+        InputError(vec![Problem::arg(message)]).into()
     }
 }
 
@@ -89,28 +78,21 @@ pub const MAX_FILE_BYTES: u64 = 1 << 20;
 /// is the user's input being wrong, named with the file (and the line and
 /// column of the first byte that is not UTF-8).
 fn read(path: &Path) -> Result<Source, Problem> {
-    use std::io::Read as _;
-    let wrong = |m: &dyn fmt::Display| Problem::Arg(format!("{}: {m}", path.display()));
-    let meta = std::fs::metadata(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => wrong(&"no such pipeline file"),
-        _ => wrong(&format_args!("cannot be read: {e}")),
+    use crate::fs::Reason;
+    let bytes = crate::fs::read_regular_file(path, MAX_FILE_BYTES).map_err(|e| {
+        let why = match &e.reason {
+            _ if e.is_missing() => "no such pipeline file".to_string(),
+            Reason::NotRegular("a folder") => "a folder, not a pipeline file".to_string(),
+            Reason::NotRegular(kind) => {
+                format!("not a regular file ({kind}: a FIFO or device is not read)")
+            }
+            Reason::TooLarge { max_bytes } => {
+                format!("larger than {} MiB: not a pipeline file", max_bytes >> 20)
+            }
+            Reason::Io(err) => format!("cannot be read: {err}"),
+        };
+        Problem::arg(format!("{}: {why}", path.display()))
     })?;
-    if meta.is_dir() {
-        return Err(wrong(&"a folder, not a pipeline file"));
-    }
-    if !meta.is_file() {
-        return Err(wrong(&"not a regular file (a FIFO or device is not read)"));
-    }
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .and_then(|f| f.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes))
-        .map_err(|e| wrong(&format_args!("cannot be read: {e}")))?;
-    if bytes.len() as u64 > MAX_FILE_BYTES {
-        return Err(wrong(&format_args!(
-            "larger than {} MiB: not a pipeline file",
-            MAX_FILE_BYTES >> 20
-        )));
-    }
     String::from_utf8(bytes)
         .map(|text| Source::new(path, text))
         .map_err(|e| {

@@ -5,6 +5,7 @@
 
 use super::cache::{self, KeyFields, Store};
 use super::resolve::{Pipeline, Stage, Sweep};
+use super::status::Status;
 use super::sweep::{self, PSEUDO_STAGE};
 use crate::table;
 use rayon::prelude::*;
@@ -98,8 +99,8 @@ pub fn reason(store: &Store, stage: &str, point: Option<usize>, key: &KeyFields)
 pub struct PlanItem {
     pub stage: String,
     pub kind: String,
-    /// `cached` or `run`.
-    pub status: String,
+    /// [`Status::Cached`] or [`Status::Run`].
+    pub status: Status,
     pub reason: String,
     /// The cache key, when every input's content is known.
     pub key: Option<String>,
@@ -147,13 +148,13 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
                 .filter_map(|pt| {
                     pt.iter()
                         .find(|a| a.item.stage == a0.item.stage)
-                        .filter(|a| a.item.status != "cached")
+                        .filter(|a| a.item.status != Status::Cached)
                 })
                 .collect();
             let mut a = a0.clone();
             a.item.key = None;
             if let Some(s) = stale.first() {
-                a.item.status = "run".into();
+                a.item.status = Status::Run;
                 a.item.reason = format!(
                     "{} of {} sweep points would run it (first: {})",
                     stale.len(),
@@ -164,7 +165,7 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
             out.push(a);
         }
     }
-    let all_cached = out.iter().all(|a| a.item.status == "cached");
+    let all_cached = out.iter().all(|a| a.item.status == Status::Cached);
     let mut known = Known::new();
     if all_cached {
         if let Some(h) = gathered_hashes(sw, store, &points) {
@@ -186,7 +187,10 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
 /// (or an entry cannot be read).
 pub fn gathered_now(sw: &Sweep, store: &Store) -> Option<BTreeMap<String, String>> {
     let points = assess_points(sw, store);
-    let cached = points.iter().flatten().all(|a| a.item.status == "cached");
+    let cached = points
+        .iter()
+        .flatten()
+        .all(|a| a.item.status == Status::Cached);
     cached
         .then(|| gathered_hashes(sw, store, &points))
         .flatten()
@@ -265,7 +269,7 @@ fn assess_stages(
                 let stages: Vec<String> = stages.into_iter().collect();
                 format!("its input stage {} will run", stages.join(", "))
             });
-            ("run", reason, None)
+            (Status::Run, reason, None)
         } else {
             let key = fields.hash();
             let (status, reason) = match store.check(&key) {
@@ -277,10 +281,10 @@ fn assess_stages(
                             .map(|t| (t.name.clone(), t.hash.clone()))
                             .collect(),
                     );
-                    ("cached", String::new())
+                    (Status::Cached, String::new())
                 }
-                Some(Err(why)) => ("run", format!("its cached result is corrupt: {why}")),
-                None => ("run", reason(store, &s.name, point, &fields)),
+                Some(Err(why)) => (Status::Run, format!("its cached result is corrupt: {why}")),
+                None => (Status::Run, reason(store, &s.name, point, &fields)),
             };
             (status, reason, Some(key))
         };
@@ -288,7 +292,7 @@ fn assess_stages(
             item: PlanItem {
                 stage: s.name.clone(),
                 kind: s.config.kind().to_string(),
-                status: status.into(),
+                status,
                 reason,
                 key,
             },

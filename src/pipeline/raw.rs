@@ -8,7 +8,7 @@
 //! [`RawPipeline`]; a new one (say `[sweep]`) is added the same way and
 //! resolved in [`super::resolve`].
 
-use super::source::{Source, SourceError};
+use crate::diagnostics::{Source, SourceError, toml_error};
 use crate::stages::{KINDS, StageConfig};
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -78,12 +78,6 @@ pub struct RawPipeline {
 }
 
 const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot", "sweep"];
-
-/// A toml error turned into one that points into the file.
-pub(crate) fn toml_error(src: &Source, e: toml::de::Error, fallback: Range<usize>) -> SourceError {
-    let span = e.span().unwrap_or(fallback);
-    src.error(span, e.message().trim().to_string())
-}
 
 fn key_str<'a>(k: &'a Spanned<std::borrow::Cow<'_, str>>) -> &'a str {
     k.get_ref().as_ref()

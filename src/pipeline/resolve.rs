@@ -7,7 +7,8 @@
 
 use super::raw::{RawPipeline, RawStage};
 use super::snapshot::{self, Snapshot};
-use super::{Problem, source::Source, sweep};
+use super::{Problem, sweep};
+use crate::diagnostics::Source;
 use crate::stages::StageConfig;
 use anyhow::{Result, anyhow, bail};
 use serde::Deserialize;
@@ -61,7 +62,7 @@ impl Override {
         let message = format!("{}: {message}", self.name());
         match &self.origin {
             Some(span) => Problem::At(src.error(span.clone(), message)),
-            None => Problem::Arg(message),
+            None => Problem::arg(message),
         }
     }
 
@@ -269,7 +270,7 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
         );
         return Err(vec![match &raw.meta.name {
             Some(n) => Problem::At(src.error(n.span(), message)),
-            None => Problem::Arg(format!("{}: {message}", src.path.display())),
+            None => Problem::file(&src.path, message),
         }]);
     }
     let gather_names: Vec<String> = raw
@@ -380,7 +381,7 @@ fn resolve_stage(
                 return alone;
             }
             let sets: Vec<String> = mine.iter().map(|(o, _)| o.name()).collect();
-            vec![Problem::Arg(format!("{}: {e}", sets.join(", ")))]
+            vec![Problem::arg(format!("{}: {e}", sets.join(", ")))]
         })?
     };
     config.resolve();

@@ -1,7 +1,7 @@
 //! The runner: executes a resolved pipeline level by level, stages of a level
 //! in parallel (rayon), reusing cached results, and publishes every stage's
 //! tables and figures under `results/<pipeline>/<stage>/`, the run report
-//! (`run.json`) and the page [`crate::report`] (`index.html`).
+//! (`run.json`) and the page [`super::report`] (`index.html`).
 //!
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
 //! reported as a failure of that stage with its message; by default the run
@@ -15,9 +15,10 @@
 use super::cache::{self, Entry, FileRecord, Lookup, Manifest, PointRecords, Store, TableRecord};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
+use super::report;
 use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
+use super::status::Status;
 use super::sweep;
-use crate::report;
 use crate::stages::{Context, StageInputs};
 use crate::table;
 use anyhow::{Result, anyhow};
@@ -44,8 +45,9 @@ pub struct RunOptions {
 pub struct StageReport {
     pub stage: String,
     pub kind: String,
-    /// `ran`, `cached`, `failed` or `skipped`.
-    pub status: String,
+    /// [`Status::Ran`], [`Status::Cached`], [`Status::Failed`] or
+    /// [`Status::Skipped`].
+    pub status: Status,
     /// Why it ran, failed or was skipped; empty when cached.
     pub reason: String,
     /// What was wrong with the stage's cached entry when it failed
@@ -74,7 +76,11 @@ pub struct RunReport {
 }
 
 impl RunReport {
-    pub fn with_status(&self, status: &str) -> Vec<&str> {
+    /// The stages with `status` (a [`Status`], or the word it is written as).
+    pub fn with_status<S>(&self, status: S) -> Vec<&str>
+    where
+        Status: PartialEq<S>,
+    {
         self.stages
             .iter()
             .filter(|s| s.status == status)
@@ -84,7 +90,7 @@ impl RunReport {
     pub fn failed(&self) -> Vec<&StageReport> {
         self.stages
             .iter()
-            .filter(|s| s.status == "failed")
+            .filter(|s| s.status == Status::Failed)
             .collect()
     }
 }
@@ -180,7 +186,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         stages,
         sweep,
     };
-    cache::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
+    crate::fs::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
     let tables: report::Tables = produced
         .into_iter()
         .map(|(stage, prod)| {
@@ -248,7 +254,7 @@ fn execute_stages(
             ready.iter().map(run_one).collect()
         };
         for (i, report, out) in results {
-            if report.status == "failed" && !runner.keep_going {
+            if report.status == Status::Failed && !runner.keep_going {
                 stop = true;
             }
             if let Some(out) = out {
@@ -276,7 +282,7 @@ fn execute_stages(
                 StageReport {
                     stage: s.name.clone(),
                     kind: s.config.kind().to_string(),
-                    status: "skipped".into(),
+                    status: Status::Skipped,
                     cache_problem: None,
                     reason: if failed_inputs.is_empty() {
                         "the run stopped at the first failure (use --keep-going)".into()
@@ -343,7 +349,7 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
     };
     let mut reports: Vec<StageReport> = Vec::new();
     for (pt, (rs, _)) in sw.points.iter().zip(&outcomes) {
-        let failed: Vec<&StageReport> = rs.iter().filter(|r| r.status == "failed").collect();
+        let failed: Vec<&StageReport> = rs.iter().filter(|r| r.status == Status::Failed).collect();
         if !failed.is_empty() {
             counts.failed += 1;
             for f in failed {
@@ -356,7 +362,7 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
                 );
                 reports.push(f);
             }
-        } else if rs.iter().any(|r| r.status == "ran") {
+        } else if rs.iter().any(|r| r.status == Status::Ran) {
             counts.ran += 1;
         } else {
             counts.cached += 1;
@@ -367,10 +373,10 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
         for (k, r0) in first.iter().enumerate() {
             let ran = outcomes
                 .iter()
-                .filter(|(rs, _)| rs.get(k).is_some_and(|r| r.status == "ran"))
+                .filter(|(rs, _)| rs.get(k).is_some_and(|r| r.status == Status::Ran))
                 .count();
             let mut r = r0.clone();
-            r.status = if ran > 0 { "ran" } else { "cached" }.into();
+            r.status = if ran > 0 { Status::Ran } else { Status::Cached };
             r.reason = format!("{ran} of {} sweep points ran it", sw.points.len());
             r.key = None;
             r.seconds = outcomes
@@ -411,7 +417,7 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
                 .join(sweep::PSEUDO_STAGE)
                 .join(format!("{name}.parquet"));
             if !std::fs::read(&path).is_ok_and(|old| old == bytes) {
-                cache::write_atomic(&path, &bytes)?;
+                crate::fs::write_atomic(&path, &bytes)?;
             }
         }
         tables.insert(name, (Arc::new(df), cache::hash_bytes(&bytes)));
@@ -430,9 +436,9 @@ fn point_label(sw: &Sweep, pt: &SweepPoint) -> String {
 }
 
 fn progress_line(r: &StageReport) {
-    let detail = match r.status.as_str() {
-        "cached" => String::new(),
-        "ran" => format!("  {:.2} s  ({})", r.seconds, r.reason),
+    let detail = match r.status {
+        Status::Cached => String::new(),
+        Status::Ran => format!("  {:.2} s  ({})", r.seconds, r.reason),
         _ => format!("  ({})", r.reason),
     };
     eprintln!("{:>8}  {}{detail}", r.status, r.stage);
@@ -446,7 +452,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
     let mut report = StageReport {
         stage: s.name.clone(),
         kind: s.config.kind().to_string(),
-        status: "failed".into(),
+        status: Status::Failed,
         reason: String::new(),
         cache_problem: None,
         key: None,
@@ -468,7 +474,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
     let why = match store.lookup(&key) {
         Lookup::Hit(entry) => match decode(&entry) {
             Ok(prod) => {
-                report.status = "cached".into();
+                report.status = Status::Cached;
                 fill(&mut report, &entry.manifest);
                 match publish(runner, &s.name, &entry) {
                     // The cached result is the stage's result: a published
@@ -484,7 +490,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
                         }
                     }
                     Err(e) => {
-                        report.status = "failed".into();
+                        report.status = Status::Failed;
                         report.reason = format!("{e:#}");
                         return (report, None);
                     }
@@ -578,7 +584,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
     })();
     match stored {
         Ok(entry) => {
-            report.status = "ran".into();
+            report.status = Status::Ran;
             fill(&mut report, &entry.manifest);
             let prod = Produced {
                 tables: output
@@ -638,10 +644,10 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<PathBuf>> 
         match std::fs::read(&path) {
             Ok(old) if old == *bytes => continue,
             Ok(_) => {
-                cache::write_atomic(&path, bytes)?;
+                crate::fs::write_atomic(&path, bytes)?;
                 replaced.push(path);
             }
-            Err(_) => cache::write_atomic(&path, bytes)?,
+            Err(_) => crate::fs::write_atomic(&path, bytes)?,
         }
     }
     Ok(replaced)

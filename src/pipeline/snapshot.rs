@@ -16,12 +16,14 @@
 //! only be checked once the tables exist, and are then reported at their
 //! place in the file like every other pipeline error.
 
-use super::cache::{Lookup, Store, write_atomic};
+use super::cache::{Lookup, Store};
 use super::raw::RawSnapshot;
 use super::resolve::{InputRef, Pipeline, Stage};
 use super::run::RunReport;
-use super::source::Source;
+use super::status::Status;
 use super::{InputError, Problem};
+use crate::diagnostics::Source;
+use crate::fs::write_atomic;
 use crate::table;
 use anyhow::{Result, anyhow, bail};
 use polars::prelude::DataFrame;
@@ -191,7 +193,7 @@ pub fn collect(
         let Some(key) = report
             .stages
             .iter()
-            .find(|s| s.stage == r.stage && (s.status == "ran" || s.status == "cached"))
+            .find(|s| s.stage == r.stage && matches!(s.status, Status::Ran | Status::Cached))
             .and_then(|s| s.key.as_ref())
         else {
             bail!(
@@ -308,6 +310,10 @@ pub struct TableCheck {
     pub outcome: Outcome,
 }
 
+/// The largest recording read back: a recorded table is text a person
+/// reviews in a diff, far below this.
+const MAX_RECORDED_BYTES: u64 = 256 << 20;
+
 /// Compares every table with its recording in `dir`.
 pub fn check(
     p: &Pipeline,
@@ -318,10 +324,15 @@ pub fn check(
     let mut out = Vec::new();
     for (r, df) in tables {
         let path = file(dir, p, r);
-        let outcome = match std::fs::read_to_string(&path) {
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Outcome::NotRecorded,
-            Err(e) => bail!("reading {}: {e}", path.display()),
-            Ok(recorded) => {
+        let read = crate::fs::read_regular_file(&path, MAX_RECORDED_BYTES);
+        let outcome = match read.map(String::from_utf8) {
+            Err(e) if e.is_missing() => Outcome::NotRecorded,
+            Err(e) => bail!("reading {}: {}", path.display(), e.reason),
+            Ok(Err(_)) => bail!(
+                "reading {}: stream did not contain valid UTF-8",
+                path.display()
+            ),
+            Ok(Ok(recorded)) => {
                 let now = table::to_text(df, snap.digits);
                 compare(snap, &recorded, &now).map_err(|e| anyhow!("{}: {e}", path.display()))?
             }

@@ -32,7 +32,7 @@
 
 use super::Problem;
 use super::resolve::{Override, Sweep, SweepPoint, split_path};
-use super::source::Source;
+use crate::diagnostics::Source;
 use crate::{random, table};
 use anyhow::{Result, anyhow};
 use polars::prelude::{Column, DataFrame};
@@ -190,7 +190,7 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
     let mut axes = Vec::new();
     let mut groups: Vec<(String, Vec<usize>)> = Vec::new();
     if raw.axes.is_empty() {
-        return Err(vec![Problem::Arg(format!(
+        return Err(vec![Problem::arg(format!(
             "{}: [sweep] needs at least one [[sweep.axis]]",
             src.path.display()
         ))]);
@@ -254,7 +254,7 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
         .try_fold(1usize, |acc, n| acc.checked_mul(n))
         .unwrap_or(usize::MAX);
     if total > MAX_POINTS {
-        return Err(vec![Problem::Arg(format!(
+        return Err(vec![Problem::arg(format!(
             "{}: the sweep expands to {total} points, more than the limit of {MAX_POINTS}",
             src.path.display()
         ))]);

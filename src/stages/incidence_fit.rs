@@ -319,6 +319,14 @@ pub fn effect_snippet(stage: &str, vertex: &Fit, rms_um: f64, source: &Path) -> 
     )
 }
 
+/// The largest data file this stage reads: Table 9 is a few kilobytes, and
+/// a measured map of the same kind would be far below this.
+const MAX_DATA_BYTES: u64 = 64 << 20;
+
+fn read_data(path: &Path) -> Result<Vec<u8>, crate::fs::ReadError> {
+    crate::fs::read_regular_file(path, MAX_DATA_BYTES)
+}
+
 impl StageKind for IncidenceFitStage {
     const KIND: &'static str = "incidence_fit";
     const SUMMARY: &'static str = "Section 10: Table 9 fitted with the SMR vertex-offset model and a polynomial; the fit as a simulate_campaign effect";
@@ -326,21 +334,25 @@ impl StageKind for IncidenceFitStage {
     const OUTPUTS: &'static [&'static str] = &["fits", "residuals", "grid", "effect"];
 
     fn resolve(&mut self) {
-        self.content_hash = std::fs::read(&self.path).ok().map(|b| hash(&b));
+        self.content_hash = read_data(&self.path).ok().map(|b| hash(&b));
     }
 
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
-        match std::fs::read_to_string(&self.path) {
-            Ok(text) => {
+        match read_data(&self.path).map(String::from_utf8) {
+            Ok(Ok(text)) => {
                 if let Err(e) = read_grid(&self.path, &text) {
                     out.push(Invalid::new("path", e.to_string()));
                 }
             }
-            Err(e) => out.push(Invalid::new(
+            Ok(Err(_)) => out.push(Invalid::new(
                 "path",
-                format!("`path`: cannot read {}: {e}", self.path.display()),
+                format!(
+                    "`path`: cannot read {}: stream did not contain valid UTF-8",
+                    self.path.display()
+                ),
             )),
+            Err(e) => out.push(Invalid::new("path", format!("`path`: {e}"))),
         }
         if !(1..=4).contains(&self.poly_order) {
             out.push(Invalid::new(
@@ -366,8 +378,8 @@ impl StageKind for IncidenceFitStage {
     }
 
     fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
-        let bytes = std::fs::read(&self.path)
-            .map_err(|e| anyhow!("reading {}: {e}", self.path.display()))?;
+        let bytes = read_data(&self.path)
+            .map_err(|e| anyhow!("reading {}: {}", e.path.display(), e.reason))?;
         if Some(hash(&bytes)) != self.content_hash {
             bail!(
                 "{} changed since the pipeline was loaded: run it again",

@@ -8,6 +8,7 @@
 
 pub mod blind_check;
 pub mod calibrate;
+mod campaign_tables;
 pub mod correct;
 pub mod counts;
 pub mod diagnose;

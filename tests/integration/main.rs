@@ -8,6 +8,7 @@ mod diagnose;
 mod effects;
 mod errors;
 mod incidence;
+mod layering;
 mod layout_design;
 mod report;
 mod runner;

@@ -11,10 +11,11 @@
 //! the page has loaded, and says so under a figure that failed, so that a
 //! missing figure is visible (and testable in a headless browser).
 
-use crate::pipeline::cache::write_atomic;
-use crate::pipeline::graph;
-use crate::pipeline::resolve::Pipeline;
-use crate::pipeline::run::RunReport;
+use super::graph;
+use super::resolve::Pipeline;
+use super::run::RunReport;
+use super::status::Status;
+use crate::fs::write_atomic;
 use crate::table;
 use anyhow::Result;
 use polars::prelude::{AnyValue, DataFrame};
@@ -102,7 +103,7 @@ pub fn write(dir: &Path, p: &Pipeline, report: &RunReport, tables: &Tables) -> R
     let statuses: graph::Statuses = report
         .stages
         .iter()
-        .map(|s| (s.stage.clone(), s.status.clone()))
+        .map(|s| (s.stage.clone(), s.status))
         .collect();
     write_atomic(&dir.join("graph.svg"), graph::svg(p, &statuses)?.as_bytes())?;
     write_atomic(&dir.join("index.html"), page(p, report, tables).as_bytes())
@@ -120,17 +121,17 @@ pub fn page(p: &Pipeline, report: &RunReport, tables: &Tables) -> String {
     if !p.description.is_empty() {
         let _ = writeln!(h, "<p>{}</p>", escape(&p.description));
     }
-    let count = |st: &str| report.with_status(st).len();
+    let count = |st: Status| report.with_status(st).len();
     let _ = writeln!(
         h,
         "<p>Run {} → {}: {} ran, {} cached, {} failed, {} skipped. \
          Pipeline file <code>{}</code>; the run as JSON: <a href=\"run.json\">run.json</a>.</p>",
         escape(&report.started),
         escape(&report.finished),
-        count("ran"),
-        count("cached"),
-        count("failed"),
-        count("skipped"),
+        count(Status::Ran),
+        count(Status::Cached),
+        count(Status::Failed),
+        count(Status::Skipped),
         escape(&p.source.path.display().to_string()),
     );
     run_section(&mut h, report);
@@ -158,8 +159,8 @@ fn run_section(h: &mut String, report: &RunReport) {
             escape(&s.stage),
             escape(&s.stage),
             escape(&s.kind),
-            escape(&s.status),
-            escape(&s.status),
+            s.status.as_str(),
+            s.status.as_str(),
             s.seconds,
         );
     }
@@ -206,7 +207,7 @@ fn tables_section(h: &mut String, p: &Pipeline, report: &RunReport, tables: &Tab
             escape(&s.kind)
         );
         let Some(produced) = tables.get(&s.stage) else {
-            let _ = writeln!(h, "<p>No tables: the stage {}.</p>", escape(&s.status));
+            let _ = writeln!(h, "<p>No tables: the stage {}.</p>", s.status.as_str());
             continue;
         };
         // The kind's declared order, then anything else it produced.

@@ -1,9 +1,15 @@
 //! Errors that point into the user's file: `pipeline.toml:14:9`, the line,
 //! and a caret under the offending text.
+//!
+//! Every file ltcal reads from a user — a pipeline file, a campaign's files —
+//! reports its mistakes the same way, through [`SourceError`], and collects
+//! them as [`Problem`]s so that all of them are shown at once. Knowing
+//! nothing of what the files mean, this module sits below both the domain
+//! (campaign reading) and the runner (pipeline files).
 
 use std::fmt;
 use std::ops::Range;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// A file the user wrote, kept whole so that any later error can quote it.
@@ -95,6 +101,79 @@ impl fmt::Display for SourceError {
 }
 
 impl std::error::Error for SourceError {}
+
+/// A toml error turned into one that points into the file; `fallback` is
+/// where it points when toml knows no place.
+pub fn toml_error(src: &Source, e: toml::de::Error, fallback: Range<usize>) -> SourceError {
+    let span = e.span().unwrap_or(fallback);
+    src.error(span, e.message().trim().to_string())
+}
+
+/// One problem with what the user gave ltcal.
+#[derive(Clone, Debug)]
+pub enum Problem {
+    /// At a place in one of the user's files.
+    At(SourceError),
+    /// About a whole file or folder (`path`), or, without a path, about a
+    /// command-line argument (`--set`): nothing to put a caret under.
+    File {
+        path: Option<PathBuf>,
+        message: String,
+    },
+}
+
+impl Problem {
+    /// About the whole file or folder `path`.
+    pub fn file(path: &Path, message: impl Into<String>) -> Problem {
+        Problem::File {
+            path: Some(path.to_path_buf()),
+            message: message.into(),
+        }
+    }
+
+    /// About a command-line argument, or otherwise without a place.
+    pub fn arg(message: impl Into<String>) -> Problem {
+        Problem::File {
+            path: None,
+            message: message.into(),
+        }
+    }
+
+    /// `path:line:col`, or the path alone for a whole-file problem (empty
+    /// for an argument).
+    pub fn location(&self) -> String {
+        match self {
+            Problem::At(e) => e.location(),
+            Problem::File { path, .. } => path
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default(),
+        }
+    }
+
+    pub fn message(&self) -> &str {
+        match self {
+            Problem::At(e) => &e.message,
+            Problem::File { message, .. } => message,
+        }
+    }
+}
+
+impl fmt::Display for Problem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Problem::At(e) => write!(f, "{e}"),
+            Problem::File {
+                path: Some(path),
+                message,
+            } => write!(f, "{}: {message}", path.display()),
+            Problem::File {
+                path: None,
+                message,
+            } => f.write_str(message),
+        }
+    }
+}
 
 #[cfg(test)]
 mod tests {

@@ -1,6 +1,8 @@
 //! A campaign as pipeline tables and back, so that stages can pass a whole
-//! campaign along (a group input slot, [`super::TABLES`]) and the cache can
-//! hash it like any other output.
+//! campaign along (a group input slot, [`campaign::TABLES`]) and the cache can
+//! hash it like any other output. It lives with the stages, not in
+//! [`crate::campaign`], because it is an adapter between the runner's tables
+//! and the domain: the campaign itself knows nothing of stage inputs.
 //!
 //! The tables mirror the files column for column — `readings` has exactly
 //! readings.csv's columns, `targets` targets.csv's, `gauge` gauge.csv's —
@@ -8,17 +10,16 @@
 //! `meta` holds campaign.toml as one row. The round trip is exact: numbers
 //! stay `f64`, angles stay in degrees.
 
-use super::check::Issue;
-use super::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
+use super::StageInputs;
+use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Issue, Meta, Target, Tracker};
 use crate::kinematics::Face;
-use crate::stages::StageInputs;
 use crate::table::{TableBuilder, TableRef};
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
 use polars::prelude::DataFrame;
 
 impl Campaign {
-    /// `readings`, `targets`, `gauge` and `meta`, in the order of [`super::TABLES`].
+    /// `readings`, `targets`, `gauge` and `meta`, in the order of [`campaign::TABLES`].
     pub fn to_tables(&self) -> Result<Vec<(String, DataFrame)>> {
         Ok(vec![
             ("readings".into(), self.readings_table()?),

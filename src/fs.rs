@@ -1,0 +1,220 @@
+//! The file-system primitives every other module uses, written once.
+//!
+//! - [`write_atomic`]: a file appears whole or not at all — a temporary file
+//!   beside it, synced, then renamed over it — so a killed run never leaves a
+//!   torn figure, table or record behind.
+//! - [`temp_name`]: a name no other writer in any process uses, for the
+//!   temporary file or folder that is renamed into place. Its form
+//!   (`<pid>-<n>`) lets a later run tell which temporaries belong to a
+//!   process that has ended and may be removed.
+//! - [`write_staged`]: a file inside a folder that is itself published by one
+//!   rename (a cache entry, a campaign folder), where the folder's rename is
+//!   what makes the whole appear at once.
+//! - [`read_regular_file`]: what a user points ltcal at (a pipeline file, a
+//!   campaign file, a data table) read only if it is a regular file of a sane
+//!   size: a FIFO would block the run forever, `/dev/zero` would fill memory.
+
+use anyhow::{Context as _, Result, anyhow};
+use std::fmt;
+use std::io::{Read as _, Write as _};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// `<pid>-<n>`: unique among every writer of every process.
+pub fn temp_name() -> String {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    format!(
+        "{}-{}",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    )
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file beside it
+/// (`.<name>.<temp_name>.tmp`), synced, then renamed over it. Creates the
+/// folder if needed.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.{}.tmp", temp_name()));
+    let write = || -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    };
+    write().map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        anyhow!("writing {}: {e}", path.display())
+    })
+}
+
+/// Writes `bytes` as the new file `path` inside a folder that is still being
+/// built under a [`temp_name`] and is published afterwards by one rename.
+/// `sync` asks for the bytes to reach the disk before returning: a campaign
+/// folder wants it; a cache entry does not (a killed process cannot tear an
+/// entry, and what a power cut might tear its content hashes catch on reuse,
+/// while syncing the thousands of files of a sweep would cost more than
+/// computing them).
+pub fn write_staged(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()> {
+    let mut f = std::fs::File::create(path)?;
+    f.write_all(bytes)?;
+    if sync {
+        f.sync_all()?;
+    }
+    Ok(())
+}
+
+/// Why a file the user named was not read.
+#[derive(Debug)]
+pub struct ReadError {
+    pub path: PathBuf,
+    pub reason: Reason,
+}
+
+/// What was wrong with the file, without its name (callers that show the
+/// name elsewhere quote only this).
+#[derive(Debug)]
+pub enum Reason {
+    /// A folder, FIFO, socket or device: reading it could block or never end.
+    NotRegular(&'static str),
+    /// Larger than the caller allows.
+    TooLarge { max_bytes: u64 },
+    /// An error of the system, a missing file among them.
+    Io(std::io::Error),
+}
+
+impl ReadError {
+    pub fn is_missing(&self) -> bool {
+        matches!(&self.reason, Reason::Io(e) if e.kind() == std::io::ErrorKind::NotFound)
+    }
+}
+
+impl fmt::Display for Reason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Reason::NotRegular(what) => write!(f, "is {what}, not a regular file"),
+            Reason::TooLarge { max_bytes } => {
+                write!(f, "is larger than the {max_bytes} bytes ltcal reads")
+            }
+            Reason::Io(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+impl fmt::Display for ReadError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "cannot read {}: {}", self.path.display(), self.reason)
+    }
+}
+
+impl std::error::Error for ReadError {}
+
+/// Reads the regular file `path` if it holds at most `max_bytes`.
+///
+/// The kind of file is checked before it is opened (opening a FIFO blocks
+/// until a writer appears), and at most `max_bytes + 1` bytes are read, so a
+/// file that grows after the check is still refused rather than read whole.
+pub fn read_regular_file(path: &Path, max_bytes: u64) -> Result<Vec<u8>, ReadError> {
+    let fail = |reason| ReadError {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let io = |e| fail(Reason::Io(e));
+    let meta = std::fs::metadata(path).map_err(io)?;
+    if !meta.is_file() {
+        return Err(fail(Reason::NotRegular(kind_of(&meta.file_type()))));
+    }
+    if meta.len() > max_bytes {
+        return Err(fail(Reason::TooLarge { max_bytes }));
+    }
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    file.take(max_bytes.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(fail(Reason::TooLarge { max_bytes }));
+    }
+    Ok(bytes)
+}
+
+/// "a folder", "a FIFO", …: what a path that is not a regular file is.
+fn kind_of(t: &std::fs::FileType) -> &'static str {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt as _;
+        if t.is_fifo() {
+            return "a FIFO";
+        }
+        if t.is_char_device() || t.is_block_device() {
+            return "a device";
+        }
+        if t.is_socket() {
+            return "a socket";
+        }
+    }
+    if t.is_dir() { "a folder" } else { "not a file" }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("ltcal-fs-{name}-{}", temp_name()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn write_atomic_replaces_the_file_and_leaves_no_temporary() {
+        let dir = scratch("atomic");
+        let path = dir.join("a.txt");
+        write_atomic(&path, b"one").unwrap();
+        write_atomic(&path, b"two").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"two");
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn read_regular_file_refuses_folders_devices_and_files_over_the_limit() {
+        let dir = scratch("read");
+        let path = dir.join("a.csv");
+        std::fs::write(&path, b"12345").unwrap();
+        assert_eq!(read_regular_file(&path, 5).unwrap(), b"12345");
+        let big = read_regular_file(&path, 4).unwrap_err();
+        assert!(matches!(big.reason, Reason::TooLarge { max_bytes: 4 }));
+        assert!(big.to_string().contains("a.csv"), "{big}");
+        let folder = read_regular_file(&dir, 100).unwrap_err();
+        assert!(folder.to_string().contains("a folder"), "{folder}");
+        assert!(
+            read_regular_file(&dir.join("none"), 100)
+                .unwrap_err()
+                .is_missing()
+        );
+        if cfg!(unix) {
+            let zero = read_regular_file(Path::new("/dev/zero"), 100).unwrap_err();
+            assert!(zero.to_string().contains("a device"), "{zero}");
+        }
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn read_regular_file_does_not_block_on_a_fifo() {
+        let dir = scratch("fifo");
+        let fifo = dir.join("pipe");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            let e = read_regular_file(&fifo, 100).unwrap_err();
+            assert!(e.to_string().contains("a FIFO"), "{e}");
+        }
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}

@@ -1,0 +1,138 @@
+//! The architecture invariants of ARCHITECTURE.md that can be checked by
+//! reading the source: a test fails the day a change breaks one, instead of
+//! the layers eroding one convenient import at a time.
+
+use std::path::{Path, PathBuf};
+
+/// Every `.rs` file below `dir`, sorted.
+fn rust_files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let path = e.path();
+        if path.is_dir() {
+            out.extend(rust_files(&path));
+        } else if path.extension().is_some_and(|x| x == "rs") {
+            out.push(path);
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The source, without `//` comments: a doc comment may mention the runner;
+/// only code depends on it.
+fn code(path: &Path) -> String {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| l.split_once("//").map_or(l, |(code, _)| code))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The layers above the domain, as paths from the crate root.
+const ABOVE: [&str; 3] = ["pipeline", "stages", "cli"];
+
+/// Whether `code` names one of [`ABOVE`]: `crate::pipeline`,
+/// `crate::{…, stages, …}`, `super::super::cli`.
+fn names_a_layer_above(code: &str) -> Option<String> {
+    let compact: String = code.chars().filter(|c| !c.is_whitespace()).collect();
+    for root in ["crate::", "super::"] {
+        for (at, _) in compact.match_indices(root) {
+            let mut rest = &compact[at + root.len()..];
+            while let Some(r) = rest.strip_prefix("super::") {
+                rest = r;
+            }
+            let names: Vec<&str> = match rest.strip_prefix('{') {
+                Some(group) => group
+                    .split('}')
+                    .next()
+                    .unwrap_or_default()
+                    .split(',')
+                    .collect(),
+                None => vec![rest],
+            };
+            for name in names {
+                let first = name
+                    .split(|c: char| !(c.is_alphanumeric() || c == '_'))
+                    .next()
+                    .unwrap_or_default();
+                if ABOVE.contains(&first) {
+                    return Some(format!("{root}{}", &rest[..rest.len().min(40)]));
+                }
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn the_domain_knows_nothing_of_pipeline_stages_or_cli() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let above = |p: &Path| {
+        let rel = p.strip_prefix(&src).unwrap();
+        let first = rel
+            .components()
+            .next()
+            .unwrap()
+            .as_os_str()
+            .to_string_lossy();
+        ["pipeline", "stages", "cli.rs", "main.rs", "lib.rs"].contains(&first.as_ref())
+    };
+    let domain: Vec<PathBuf> = rust_files(&src).into_iter().filter(|p| !above(p)).collect();
+    assert!(
+        domain.len() > 20,
+        "found only {} domain files",
+        domain.len()
+    );
+    let offending: Vec<String> = domain
+        .iter()
+        .filter_map(|p| {
+            names_a_layer_above(&code(p))
+                .map(|what| format!("{} names {what}", p.strip_prefix(&src).unwrap().display()))
+        })
+        .collect();
+    assert!(
+        offending.is_empty(),
+        "the domain must not depend on the runner (ARCHITECTURE.md, invariants):\n  {}",
+        offending.join("\n  ")
+    );
+}
+
+#[test]
+fn the_layering_check_sees_every_way_of_naming_a_layer() {
+    assert!(names_a_layer_above("use crate::pipeline::cache;").is_some());
+    assert!(names_a_layer_above("use crate::{table, stages::StageInputs};").is_some());
+    assert!(names_a_layer_above("use super::super::cli;").is_some());
+    assert!(names_a_layer_above("crate :: pipeline :: run()").is_some());
+    assert!(names_a_layer_above("use crate::table; use super::check;").is_none());
+    assert!(names_a_layer_above("use crate::pipelines_of_pipes;").is_none());
+}
+
+#[test]
+fn every_file_ltcal_writes_goes_through_fs() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let writes = ["File::create", "fs::write(", "OpenOptions", "fs::copy("];
+    let offending: Vec<String> = rust_files(&src)
+        .into_iter()
+        .filter(|p| p != &src.join("fs.rs"))
+        .filter_map(|p| {
+            // Unit tests may damage files on purpose.
+            let text = code(&p);
+            let shipped = text.split("#[cfg(test)]").next().unwrap_or_default();
+            let found: Vec<&str> = writes.into_iter().filter(|w| shipped.contains(w)).collect();
+            (!found.is_empty()).then(|| {
+                format!(
+                    "{} uses {}",
+                    p.strip_prefix(&src).unwrap().display(),
+                    found.join(", ")
+                )
+            })
+        })
+        .collect();
+    assert!(
+        offending.is_empty(),
+        "files are written only by src/fs.rs (write_atomic, write_staged):\n  {}",
+        offending.join("\n  ")
+    );
+}
