@@ -15,6 +15,15 @@
 //! iteratively reweighted least squares) or squared. Eq. (13) as printed
 //! sums signed differences; as an objective it needs their absolute values
 //! or squares (NOTES item 9).
+//!
+//! These objectives cannot be block-sparse like the bundle adjustment
+//! ([`super::sparse`]): their residuals are distances between *pairs* of
+//! reflectors seen from one station (and, for Eq. 14, from another too), so
+//! their number grows with the square of the reflectors per station, and
+//! each carries a dense row over the error parameters. A campaign whose
+//! terms would pass [`MAX_TERMS`] is refused before any work, with the
+//! count and the memory it would need; the bundle objective serves such
+//! networks in time linear in the readings.
 
 use super::register::align;
 use super::{Calibration, FitSummary, Network, Norm, Objective, Settings, gauge_scale_ppm};
@@ -76,7 +85,51 @@ fn pairs(v: &View) -> Vec<(usize, usize)> {
     out
 }
 
+/// The most distance terms a fit takes on: 2 million rows over 18
+/// parameters hold ~0.3 GB of Jacobian, ~1 s per iteration on one core.
+pub const MAX_TERMS: usize = 2_000_000;
+
+/// How many terms `objective` would have, counted without building them.
+fn count_terms(net: &Network, views: &[View], objective: Objective) -> usize {
+    let c2 = |n: usize| n * n.saturating_sub(1) / 2;
+    match objective {
+        Objective::Eq13 => views
+            .iter()
+            .map(|v| {
+                c2(v.targets
+                    .keys()
+                    .filter(|&&k| net.references[k].is_some())
+                    .count())
+            })
+            .sum(),
+        _ => {
+            let mut n = 0;
+            for v in 0..views.len() {
+                for w in v + 1..views.len() {
+                    let common = views[v]
+                        .targets
+                        .keys()
+                        .filter(|k| views[w].targets.contains_key(k))
+                        .count();
+                    n += c2(common);
+                }
+            }
+            n + views.len() * net.gauge.len()
+        }
+    }
+}
+
 fn terms(net: &Network, views: &[View], objective: Objective) -> Result<Vec<Term>> {
+    let n = count_terms(net, views, objective);
+    if n > MAX_TERMS {
+        bail!(
+            "objective = \"{}\" on this campaign has {n} distance terms (they grow with the square of the \
+             reflectors seen per station): about {:.1} GB of Jacobian, beyond the limit of {MAX_TERMS} \
+             terms; use objective = \"bundle\", whose cost grows linearly with the readings",
+            objective.name(),
+            (n * 18 * 8) as f64 / 1e9
+        );
+    }
     let mut out = Vec::new();
     match objective {
         Objective::Eq13 => {

@@ -209,3 +209,49 @@ fn two_face_data_improve_identifiability() {
     let two = smallest(&[Face::Front, Face::Back]);
     assert!(two / one > 3.0, "smallest singular value {one} → {two}");
 }
+
+/// A large network: the distance objectives, whose terms grow with the
+/// square of the reflectors per station, are refused before any work with
+/// their count and memory; the bundle adjustment calibrates the same
+/// campaign (1 100 reflectors, 20 stations, 16 000 readings) to a χ²
+/// consistent with the noise.
+#[test]
+fn a_large_network_calibrates_by_bundle_and_distance_objectives_are_refused_with_their_cost() {
+    let mut spec = Spec::new(Kind::Network);
+    spec.per_level = 200;
+    spec.stations = 20;
+    let layout = layout::build(&spec);
+    assert_eq!(layout.targets.len(), 1100);
+    let sim = simulate_campaign(&CampaignSpec {
+        name: "network".into(),
+        layout: &layout,
+        errors: Some(&ErrorParams::table2()),
+        faces: &[Face::Front],
+        aim: Aim::StationsCentroid,
+        max_angle_deg: 30.0,
+        noise: REALISTIC,
+        effects: &Effects::default(),
+        gauge_u_mm: 0.0005,
+        reference_u_mm: 0.002,
+        level_urad: 1000.0,
+        interval_s: 20.0,
+        record_time: true,
+        record_temperature: true,
+        seed: 5,
+    })
+    .unwrap();
+    let net = Network::from_campaign(&sim.campaign).unwrap();
+    assert!(net.obs.len() > 15_000, "{}", net.obs.len());
+    let start = ErrorParams::zero(&ErrorModel::constant());
+    let free = vec![true; 18];
+    let err = calibrate::calibrate(&net, &start, &free, &settings(Objective::Eq14, Norm::L2))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("objective = \"eq14\"") && err.contains("GB") && err.contains("\"bundle\""),
+        "{err}"
+    );
+    let cal = run(&net, &start, &settings(Objective::Bundle, Norm::L2));
+    assert_eq!(cal.fit.rank, 7);
+    assert!(cal.fit.chi2_p.unwrap() > 0.001, "{:?}", cal.fit);
+}
