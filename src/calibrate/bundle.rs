@@ -27,13 +27,14 @@
 use super::register::{Rigid, align};
 use super::sparse::{self, BlockJacobian, Normal};
 use super::{Calibration, FitSummary, Network, Norm, Settings, gauge_scale_ppm};
-use crate::error_model::{ErrorParams, Links};
+use crate::error_model::{ErrorParams, Evaluator, Links};
 use crate::identifiability::{self, Analysis, Combination};
 use crate::kinematics::nominal_jacobian;
 use crate::solver::{LevenbergMarquardt, LmJacobian, NormalEquations};
 use anyhow::{Result, anyhow, bail};
 use argmin::core::{Error as ArgminError, Jacobian, Operator};
 use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector3};
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 /// `W·J(q)⁻¹` for a reading `r` with the σ of observation `o`.
@@ -175,14 +176,88 @@ impl<'a> Bundle<'a> {
         Vector3::new(x[o], x[o + 1], x[o + 2])
     }
 
+    /// One reading's residuals and, when `jac`, its Jacobian blocks. With
+    /// `design`, the Jacobian is that of a consistent network — the
+    /// reading's predicted point taken equal to its corrected one — so that
+    /// the model's exact redundancies with the poses show as exact zeros,
+    /// whatever the current misfit.
+    fn reading_block(
+        &self,
+        x: &DVector<f64>,
+        params: &ErrorParams,
+        eval: &Evaluator,
+        i: usize,
+        jac: bool,
+        design: bool,
+    ) -> ReadingBlock {
+        let o = &self.net.obs[i];
+        let (r_s, c, w) = self.pose(x, o.station);
+        let xt = self.point(x, o.target);
+        let y = r_s.inverse() * (xt - c);
+        // The design network reads exactly the predicted point: the joints
+        // that reach `y` with the current parameters.
+        let design_q = design
+            .then(|| params.reading_of(&y, o.face).ok())
+            .flatten()
+            .map(|r| (r.joints(), Links::new(r.joints()), design_weight(o, r)));
+        let (q, links, m) = match &design_q {
+            Some((q, l, m)) => (*q, l, *m),
+            None => (o.q, &o.links, self.weights[i]),
+        };
+        if !jac {
+            return ReadingBlock {
+                r: m * (eval.point(q, links) - y),
+                jz: Vec::new(),
+                station: None,
+                point: [0.0; 9],
+            };
+        }
+        let mut cols = Vec::new();
+        let p = eval.point_with_jacobian(q, links, &mut cols);
+        // Error-parameter coordinates: 3 × n_free, then onto the basis.
+        let nz = self.layout.n_z;
+        let jfree: Vec<Vector3<f64>> = self.free_index.iter().map(|&ci| m * cols[ci]).collect();
+        let mut jz = vec![0.0; 3 * nz];
+        for row in 0..3 {
+            for c in 0..nz {
+                jz[row * nz + c] = jfree
+                    .iter()
+                    .enumerate()
+                    .map(|(k, j)| j[row] * self.basis[(k, c)])
+                    .sum();
+            }
+        }
+        let rt = r_s.inverse();
+        let rt = rt.matrix();
+        let station = self.layout.station[o.station].map(|so| {
+            // ∂y/∂ω = Exp(−ω)·[v]×·J_r(−ω); ∂y/∂c = −R_sᵀ.
+            let v = self.poses0[o.station].rotation.inverse() * (xt - c);
+            let dy_dw = Rotation3::new(-w).matrix() * v.cross_matrix() * right_jacobian(&(-w));
+            let (a, b) = (-m * dy_dw, m * rt);
+            let mut part = [0.0; 18];
+            for row in 0..3 {
+                for k in 0..3 {
+                    part[row * 6 + k] = a[(row, k)];
+                    part[row * 6 + 3 + k] = b[(row, k)];
+                }
+            }
+            (so, part)
+        });
+        ReadingBlock {
+            r: m * (p - y),
+            jz,
+            station,
+            point: row_major(&(-m * rt)),
+        }
+    }
+
     /// Visits every residual block in order — each reading's three rows,
     /// then each gauge length, then each reference coordinate — as
     /// `(rows, residuals, parts)` with the parts `(first column, rows ×
-    /// width values, row-major)` when `jac`, none otherwise. With `design`,
-    /// the Jacobian is that of a consistent network — each reading's
-    /// predicted point taken equal to its corrected one — so that the
-    /// model's exact redundancies with the poses show as exact zeros,
-    /// whatever the current misfit.
+    /// width values, row-major)` when `jac`, none otherwise (`design`: see
+    /// [`Self::reading_block`]). The readings are evaluated in parallel,
+    /// each on its own, and visited in order: the same numbers whatever
+    /// the number of threads.
     fn visit(
         &self,
         x: &DVector<f64>,
@@ -192,72 +267,26 @@ impl<'a> Bundle<'a> {
     ) {
         let params = self.params(x);
         let eval = params.evaluator();
-        let mut cols = Vec::new();
-        let nz = self.layout.n_z;
-        let nf = self.free_index.len();
-        let mut jz = vec![0.0; 3 * nz];
-        let mut jfree = vec![Vector3::zeros(); nf];
-        for (i, o) in self.net.obs.iter().enumerate() {
-            let (r_s, c, w) = self.pose(x, o.station);
-            let xt = self.point(x, o.target);
-            let y = r_s.inverse() * (xt - c);
-            // The design network reads exactly the predicted point: the
-            // joints that reach `y` with the current parameters.
-            let design_q = design
-                .then(|| params.reading_of(&y, o.face).ok())
-                .flatten()
-                .map(|r| (r.joints(), Links::new(r.joints()), design_weight(o, r)));
-            let (q, links, m) = match &design_q {
-                Some((q, l, m)) => (*q, l, *m),
-                None => (o.q, &o.links, self.weights[i]),
-            };
-            let p = if jac {
-                eval.point_with_jacobian(q, links, &mut cols)
-            } else {
-                eval.point(q, links)
-            };
-            let r = m * (p - y);
+        let blocks: Vec<ReadingBlock> = (0..self.net.obs.len())
+            .into_par_iter()
+            .with_min_len(256)
+            .map(|i| self.reading_block(x, &params, &eval, i, jac, design))
+            .collect();
+        for (o, b) in self.net.obs.iter().zip(&blocks) {
             if !jac {
-                f(3, r.as_slice(), &[]);
+                f(3, b.r.as_slice(), &[]);
                 continue;
             }
-            // Error-parameter coordinates: 3 × n_free, then onto the basis.
-            for (k, &ci) in self.free_index.iter().enumerate() {
-                jfree[k] = m * cols[ci];
-            }
-            for row in 0..3 {
-                for c in 0..nz {
-                    jz[row * nz + c] = (0..nf).map(|k| jfree[k][row] * self.basis[(k, c)]).sum();
-                }
-            }
-            let mut station = [0.0; 18];
-            let rt = r_s.inverse();
-            let rt = rt.matrix();
-            if self.layout.station[o.station].is_some() {
-                // ∂y/∂ω = Exp(−ω)·[v]×·J_r(−ω); ∂y/∂c = −R_sᵀ.
-                let v = self.poses0[o.station].rotation.inverse() * (xt - c);
-                let dy_dw = Rotation3::new(-w).matrix() * v.cross_matrix() * right_jacobian(&(-w));
-                let a = -m * dy_dw;
-                let b = m * rt;
-                for row in 0..3 {
-                    for k in 0..3 {
-                        station[row * 6 + k] = a[(row, k)];
-                        station[row * 6 + 3 + k] = b[(row, k)];
-                    }
-                }
-            }
-            let jx = -m * rt;
-            let point = row_major(&jx);
             let (po, _) = self.layout.point[o.target].expect("seen");
             let mut parts: Vec<(usize, &[f64])> = Vec::with_capacity(3);
-            if nz > 0 {
-                parts.push((0, &jz));
+            if !b.jz.is_empty() {
+                parts.push((0, &b.jz));
             }
-            if let Some(so) = self.layout.station[o.station] {
-                parts.push((so, &station));
+            if let Some((so, part)) = &b.station {
+                parts.push((*so, part));
             }
-            parts.push((po, &point));
-            f(3, r.as_slice(), &parts);
+            parts.push((po, &b.point));
+            f(3, b.r.as_slice(), &parts);
         }
         for g in &self.net.gauge {
             let (Some((oa, _)), Some((ob, _))) = (self.layout.point[g.a], self.layout.point[g.b])
@@ -308,6 +337,16 @@ impl<'a> Bundle<'a> {
         self.visit(x, false, false, |_, r, _| out.extend_from_slice(r));
         DVector::from_vec(out)
     }
+}
+
+/// One reading's residuals (units of σ) and Jacobian blocks, row-major:
+/// on the error-parameter coordinates (3 × n_z), its station's pose
+/// (3 × 6, when free) and its reflector (3 × 3).
+struct ReadingBlock {
+    r: Vector3<f64>,
+    jz: Vec<f64>,
+    station: Option<(usize, [f64; 18])>,
+    point: [f64; 9],
 }
 
 /// A 3 × 3 matrix's entries, row by row.
@@ -463,11 +502,7 @@ fn analyse_setup(
                      reflectors not on a line"
                 )
             })?;
-        let mut p = jz.clone();
-        for (mut c, col) in p.column_iter_mut().zip(jz.column_iter()) {
-            c.copy_from(&sparse::project_out(&nuisance, &f, &col.into_owned()));
-        }
-        p
+        sparse::project_out_columns(&nuisance, &f, &jz)
     };
     let analysis = identifiability::analyse(&projected, rank_tol)?;
     let names: Vec<String> = setup

@@ -461,11 +461,25 @@ impl Normal {
             if !inv.iter().all(|v| v.is_finite()) {
                 return None;
             }
-            let w = &p.h_ax * DMatrix::from_column_slice(3, 3, inv.as_slice()); // cols × 3
-            let wh = &w * p.h_ax.transpose();
-            for (a, &ca) in p.cols.iter().enumerate() {
-                for (b, &cb) in p.cols.iter().enumerate() {
-                    s[(ca, cb)] -= wh[(a, b)];
+            // W = H_AX·H_XX⁻¹ (cols × 3), then S −= W·H_XA on the upper
+            // triangle, mirrored: the small products written out, as they
+            // run once per reflector per factorisation.
+            let nc = p.cols.len();
+            let mut w = DMatrix::zeros(nc, 3);
+            for a in 0..nc {
+                for c in 0..3 {
+                    w[(a, c)] = (0..3).map(|k| p.h_ax[(a, k)] * inv[(k, c)]).sum();
+                }
+            }
+            for a in 0..nc {
+                let (wa0, wa1, wa2) = (w[(a, 0)], w[(a, 1)], w[(a, 2)]);
+                for b in a..nc {
+                    let v = wa0 * p.h_ax[(b, 0)] + wa1 * p.h_ax[(b, 1)] + wa2 * p.h_ax[(b, 2)];
+                    let (ca, cb) = (p.cols[a], p.cols[b]);
+                    s[(ca, cb)] -= v;
+                    if a != b {
+                        s[(cb, ca)] -= v;
+                    }
                 }
             }
             points.push(FactorPoint {
@@ -544,6 +558,41 @@ impl Factor {
         x
     }
 
+    /// `N⁻¹·B` for the columns of `B` (n × k).
+    pub fn solve_columns(&self, rhs: &DMatrix<f64>) -> DMatrix<f64> {
+        let n_a = self.n_a;
+        let k = rhs.ncols();
+        let mut b = rhs.rows(0, n_a).into_owned();
+        for (i, p) in self.points.iter().enumerate() {
+            if p.cols.is_empty() {
+                continue;
+            }
+            let wr = &p.w * rhs.rows(n_a + 3 * i, 3);
+            for (row, &c) in p.cols.iter().enumerate() {
+                for col in 0..k {
+                    b[(c, col)] -= wr[(row, col)];
+                }
+            }
+        }
+        for mut c in b.column_iter_mut() {
+            c.component_mul_assign(&self.d);
+        }
+        let mut xa = self.chol.solve(&b);
+        for mut c in xa.column_iter_mut() {
+            c.component_mul_assign(&self.d);
+        }
+        let mut x = DMatrix::zeros(rhs.nrows(), k);
+        x.rows_mut(0, n_a).copy_from(&xa);
+        for (i, p) in self.points.iter().enumerate() {
+            let mut xx = p.inv * rhs.rows(n_a + 3 * i, 3);
+            if !p.cols.is_empty() {
+                xx -= p.w.transpose() * xa.select_rows(&p.cols);
+            }
+            x.rows_mut(n_a + 3 * i, 3).copy_from(&xx);
+        }
+        x
+    }
+
     /// `S⁻¹`: the covariance of the dense part (in units of the residuals' variance).
     pub fn dense_covariance(&self) -> DMatrix<f64> {
         let mut inv = self.chol.inverse();
@@ -618,6 +667,52 @@ pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f
         r -= j.mul(&y);
     }
     r
+}
+
+/// [`project_out`] for the `k` columns of `x` (m × k) at once: one pass
+/// over the blocks serves every column, which is what makes the
+/// identifiability analysis (18 columns) cost a few passes, not 18 × a few.
+pub fn project_out_columns(j: &BlockJacobian, f: &Factor, x: &DMatrix<f64>) -> DMatrix<f64> {
+    let k = x.ncols();
+    // Row-major copies: a row's k values side by side.
+    let mut r: Vec<f64> = x.transpose().as_slice().to_vec();
+    for _ in 0..2 {
+        // Jᵀ·r, n × k row-major.
+        let mut g = vec![0.0; j.n * k];
+        for blk in &j.blocks {
+            for (col, w, v) in j.parts_of(blk) {
+                for row in 0..blk.rows {
+                    let rr = &r[(blk.row + row) * k..(blk.row + row + 1) * k];
+                    for a in 0..w {
+                        let coef = v[row * w + a];
+                        let out = &mut g[(col + a) * k..(col + a + 1) * k];
+                        for (o, x) in out.iter_mut().zip(rr) {
+                            *o += coef * x;
+                        }
+                    }
+                }
+            }
+        }
+        let g = DMatrix::from_row_slice(j.n, k, &g);
+        let y = f.solve_columns(&g).transpose();
+        let y = y.as_slice(); // n × k row-major
+        // r −= J·y
+        for blk in &j.blocks {
+            for (col, w, v) in j.parts_of(blk) {
+                for row in 0..blk.rows {
+                    let out = &mut r[(blk.row + row) * k..(blk.row + row + 1) * k];
+                    for a in 0..w {
+                        let coef = v[row * w + a];
+                        let ya = &y[(col + a) * k..(col + a + 1) * k];
+                        for (o, x) in out.iter_mut().zip(ya) {
+                            *o -= coef * x;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    DMatrix::from_row_slice(j.m, k, &r)
 }
 
 /// The unknowns mix mm, rad and µm-level parameters, so the normal matrix
@@ -715,6 +810,12 @@ mod tests {
         let q = jd.clone().qr().q();
         let reference = &x - &q * (q.transpose() * &x);
         assert!((p - reference).norm() < 1e-10);
+        let xs = DMatrix::from_fn(j.nrows(), 3, |i, c| ((i * (c + 2)) % 7) as f64 - c as f64);
+        let ps = project_out_columns(&j, &f, &xs);
+        for c in 0..3 {
+            let one = project_out(&j, &f, &xs.column(c).into_owned());
+            assert!((ps.column(c) - one).norm() < 1e-12 * xs.norm());
+        }
     }
 
     #[test]
