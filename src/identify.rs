@@ -13,8 +13,9 @@
 //! keep their start values (zero by default) — the minimum-norm solution —
 //! and the result says so, naming them.
 
+use crate::determined::Determined;
 use crate::error_model::{Coef, ErrorParams, Links};
-use crate::identifiability::{self, Analysis, Combination};
+use crate::identifiability::{Analysis, Combination};
 use crate::kinematics::{Joints, Reading};
 use crate::solver::{DenseNormal, LevenbergMarquardt};
 use anyhow::{Result, bail};
@@ -40,7 +41,7 @@ pub struct Settings {
 impl Default for Settings {
     fn default() -> Self {
         Settings {
-            rank_tol: identifiability::DEFAULT_REL_TOL,
+            rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
         }
     }
@@ -188,24 +189,23 @@ pub fn identify(
     if obs.is_empty() {
         bail!("no readings to identify from");
     }
-    let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
     let obs = &prepare(obs)[..];
     let r0 = residuals(start, obs);
-    let j0 = jacobian(start, obs, &free_index);
-    let analysis = identifiability::analyse(&j0, settings.rank_tol)?;
-    let names: Vec<String> = free_index
-        .iter()
-        .map(|&i| start.coefs()[i].symbol())
-        .collect();
-    let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
-    let basis = analysis.row_basis.clone();
-    let rank = analysis.rank;
+    let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
+    let det = Determined::analyse(
+        &jacobian(start, obs, &free_index),
+        start,
+        free,
+        settings.rank_tol,
+    )?;
+    let basis = det.basis();
+    let rank = det.rank();
 
     let problem = Eq11 {
         start,
         obs,
         free_index: &free_index,
-        basis: &basis,
+        basis,
     };
     let (z, r, iterations, stop_reason) = if rank == 0 {
         (DVector::zeros(0), r0.clone(), 0, "nothing-to-estimate")
@@ -217,34 +217,23 @@ pub fn identify(
             .map_err(|e| anyhow::anyhow!("identification failed: {e}"))?;
         (fit.x, fit.residuals, fit.iterations, fit.reason)
     };
-    let problem = Eq11 {
-        start,
-        obs,
-        free_index: &free_index,
-        basis: &basis,
-    };
-    let params = problem.params(&z);
-
-    let mut std = vec![None; free.len()];
-    if rank > 0 {
-        let jz = jacobian(&params, obs, &free_index) * &basis;
-        let dof = r.len().saturating_sub(rank).max(1);
-        let s2 = r.norm_squared() / dof as f64;
-        if let Some(inv) = (jz.transpose() * &jz).try_inverse() {
-            let cov = &basis * inv * basis.transpose() * s2;
-            for (k, &i) in free_index.iter().enumerate() {
-                std[i] = Some(cov[(k, k)].max(0.0).sqrt());
-            }
+    let params = det.params(start, &z);
+    let std = match rank {
+        0 => vec![None; free.len()],
+        _ => {
+            let jz = jacobian(&params, obs, &free_index) * basis;
+            det.scatter_covariance(&jz, &r)
+                .map_or_else(|| vec![None; free.len()], |c| det.std(&c, free.len()))
         }
-    }
+    };
     let rms = |r: &DVector<f64>| (r.norm_squared() / obs.len() as f64).sqrt();
     Ok(Identification {
         params,
         free: free.to_vec(),
         std,
-        analysis,
-        free_index,
-        combinations,
+        analysis: det.analysis,
+        free_index: det.free_index,
+        combinations: det.combinations,
         rms_before_um: rms(&r0),
         rms_after_um: rms(&r),
         iterations,

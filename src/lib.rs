@@ -8,6 +8,7 @@ pub mod campaign;
 pub mod cli;
 pub mod code;
 pub mod criteria;
+pub mod determined;
 pub mod diagnose;
 pub mod diagnostics;
 pub mod effects;

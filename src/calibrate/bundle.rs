@@ -27,8 +27,9 @@
 use super::register::{Rigid, align};
 use super::sparse::{self, BlockJacobian, Normal};
 use super::{Calibration, FitSummary, Network, Norm, Settings, gauge_scale_ppm};
+use crate::determined::Determined;
 use crate::error_model::{ErrorParams, Evaluator, Links};
-use crate::identifiability::{self, Analysis, Combination};
+use crate::identifiability::{Analysis, Combination};
 use crate::kinematics::nominal_jacobian;
 use crate::solver::{LevenbergMarquardt, LmJacobian, NormalEquations};
 use anyhow::{Result, anyhow, bail};
@@ -463,7 +464,8 @@ pub fn analyse(
     rank_tol: f64,
 ) -> Result<(Analysis, Vec<Combination>)> {
     let setup = Setup::new(net, start, free)?;
-    analyse_setup(net, start, &setup, rank_tol)
+    let det = analyse_setup(net, start, &setup, rank_tol)?;
+    Ok((det.analysis, det.combinations))
 }
 
 /// The projection of the error-parameter columns never forms the whole
@@ -477,7 +479,7 @@ fn analyse_setup(
     start: &ErrorParams,
     setup: &Setup,
     rank_tol: f64,
-) -> Result<(Analysis, Vec<Combination>)> {
+) -> Result<Determined> {
     let n = setup.free_index.len();
     let identity = DMatrix::identity(n, n);
     let layout = setup.layout(net, n);
@@ -504,14 +506,10 @@ fn analyse_setup(
             })?;
         sparse::project_out_columns(&nuisance, &f, &jz)
     };
-    let analysis = identifiability::analyse(&projected, rank_tol)?;
-    let names: Vec<String> = setup
-        .free_index
-        .iter()
-        .map(|&i| start.coefs()[i].symbol())
+    let free: Vec<bool> = (0..start.coefs().len())
+        .map(|i| setup.free_index.contains(&i))
         .collect();
-    let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
-    Ok((analysis, combinations))
+    Determined::analyse(&projected, start, &free, rank_tol)
 }
 
 /// The linearised problem at a bundle adjustment's solution, for tests of
@@ -534,9 +532,8 @@ pub fn calibrate(
         bail!("the bundle adjustment is a least-squares fit: use norm = \"l2\"");
     }
     let setup = Setup::new(net, start, free)?;
-    let free_index = setup.free_index.clone();
-    let (analysis, combinations) = analyse_setup(net, start, &setup, settings.rank_tol)?;
-    let basis = analysis.row_basis.clone();
+    let det = analyse_setup(net, start, &setup, settings.rank_tol)?;
+    let basis = det.basis().clone();
     let layout = setup.layout(net, basis.ncols());
     let problem = setup.problem(net, start, &basis, &layout);
     let x0 = setup.initial(&layout);
@@ -562,15 +559,8 @@ pub fn calibrate(
         .factor(0.0)
         .ok_or_else(|| anyhow!("singular normal matrix at the solution"))?;
     let cov_a = factor.dense_covariance() * var_factor;
-    let mut std = vec![None; free.len()];
     let nz = layout.n_z;
-    if nz > 0 {
-        let cov_z = cov_a.view((0, 0), (nz, nz));
-        let cov_p = &basis * cov_z * basis.transpose();
-        for (k, &i) in free_index.iter().enumerate() {
-            std[i] = Some(cov_p[(k, k)].max(0.0).sqrt());
-        }
-    }
+    let std = det.std(&cov_a.view((0, 0), (nz, nz)).into_owned(), free.len());
     let pose_std = layout
         .station
         .iter()
@@ -612,8 +602,8 @@ pub fn calibrate(
     Ok(Calibration {
         free: free.to_vec(),
         std,
-        free_index,
-        combinations,
+        free_index: det.free_index,
+        combinations: det.combinations,
         poses,
         pose_std,
         points,
@@ -624,7 +614,7 @@ pub fn calibrate(
             n_readings: net.obs.len(),
             n_residuals: m,
             n_unknowns: layout.n,
-            rank: analysis.rank,
+            rank: det.analysis.rank,
             iterations: fit.iterations,
             stop: fit.reason.into(),
             rms_before: rms(&r0),
@@ -636,7 +626,7 @@ pub fn calibrate(
             chi2_p,
             gauge_scale_ppm: gauge_scale_ppm(net, &params),
         },
-        analysis,
+        analysis: det.analysis,
         params,
         residuals,
         linearisation: Some(Linearisation {
@@ -652,6 +642,7 @@ mod tests {
     use crate::campaign::Aim;
     use crate::effects::Effects;
     use crate::error_model::ErrorModel;
+    use crate::identifiability;
     use crate::kinematics::Face;
     use crate::layout::{self, Kind, Spec};
     use crate::simulate::{CampaignSpec, Noise, simulate_campaign};
@@ -718,7 +709,8 @@ mod tests {
         let free = [true; 18];
         let setup = Setup::new(&net, &start, &free).unwrap();
         let tol = crate::identifiability::DEFAULT_REL_TOL;
-        let (a, combinations) = analyse_setup(&net, &start, &setup, tol).unwrap();
+        let det = analyse_setup(&net, &start, &setup, tol).unwrap();
+        let (a, combinations) = (&det.analysis, &det.combinations);
         let identity = DMatrix::identity(18, 18);
         let layout = setup.layout(&net, 18);
         let probe = setup.problem(&net, &start, &identity, &layout);

@@ -27,8 +27,8 @@
 
 use super::register::align;
 use super::{Calibration, FitSummary, Network, Norm, Objective, Settings, gauge_scale_ppm};
+use crate::determined::Determined;
 use crate::error_model::ErrorParams;
-use crate::identifiability;
 use crate::solver::LevenbergMarquardt;
 use anyhow::{Result, anyhow, bail};
 use argmin::core::{Error as ArgminError, Jacobian, Operator};
@@ -342,14 +342,14 @@ pub fn calibrate(
     let terms = terms(net, &views, settings.objective)?;
     let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
     let e0 = evaluate(net, &views, &terms, start, &free_index, true);
-    let analysis = identifiability::analyse(e0.j.as_ref().expect("requested"), settings.rank_tol)?;
-    let names: Vec<String> = free_index
-        .iter()
-        .map(|&i| start.coefs()[i].symbol())
-        .collect();
-    let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
-    let basis = analysis.row_basis.clone();
-    let rank = analysis.rank;
+    let det = Determined::analyse(
+        e0.j.as_ref().expect("requested"),
+        start,
+        free,
+        settings.rank_tol,
+    )?;
+    let basis = det.basis();
+    let rank = det.rank();
     let mut sqrt_w = DVector::from_element(terms.len(), 1.0);
     let mut z = DVector::zeros(rank);
     let mut iterations = 0;
@@ -368,7 +368,7 @@ pub fn calibrate(
                 terms: &terms,
                 start,
                 free_index: &free_index,
-                basis: &basis,
+                basis,
                 sqrt_w: &sqrt_w,
             };
             let fit = LevenbergMarquardt::new()
@@ -382,7 +382,7 @@ pub fn calibrate(
                 break;
             }
             // IRLS: weight each term by 1/|r| so that Σ w·r² ≈ Σ |r|.
-            let params = start.plus(&free_index, &(&basis * &z));
+            let params = det.params(start, &z);
             let r = evaluate(net, &views, &terms, &params, &free_index, false).r;
             let l1 = r.iter().map(|x| x.abs()).sum::<f64>();
             let eps = (1e-6 * l1 / r.len() as f64).max(1e-9);
@@ -394,7 +394,7 @@ pub fn calibrate(
             last_l1 = l1;
         }
     }
-    let params = start.plus(&free_index, &(&basis * &z));
+    let params = det.params(start, &z);
     let e1 = evaluate(net, &views, &terms, &params, &free_index, true);
     let m = terms.len() as f64;
     let rms = |r: &DVector<f64>| (r.norm_squared() / m).sqrt();
@@ -402,18 +402,14 @@ pub fn calibrate(
 
     // Standard uncertainties from the least-squares covariance of the terms,
     // scaled by their scatter (no stated weights enter the distance forms).
-    let mut std = vec![None; free.len()];
-    if rank > 0 {
-        let jz = e1.j.as_ref().expect("requested") * &basis;
-        let dof = terms.len().saturating_sub(rank).max(1);
-        let s2 = e1.r.norm_squared() / dof as f64;
-        if let Some(inv) = (jz.transpose() * &jz).try_inverse() {
-            let cov = &basis * inv * basis.transpose() * s2;
-            for (k, &i) in free_index.iter().enumerate() {
-                std[i] = Some(cov[(k, k)].max(0.0).sqrt());
-            }
+    let std = match rank {
+        0 => vec![None; free.len()],
+        _ => {
+            let jz = e1.j.as_ref().expect("requested") * basis;
+            det.scatter_covariance(&jz, &e1.r)
+                .map_or_else(|| vec![None; free.len()], |c| det.std(&c, free.len()))
         }
-    }
+    };
     let station_pts = net.station_points(&params);
     let anchor = net.references_fix_frame().then(|| net.reference_points());
     let alignment = align(&station_pts, anchor.as_ref())
@@ -421,9 +417,9 @@ pub fn calibrate(
     Ok(Calibration {
         std,
         free: free.to_vec(),
-        analysis,
+        analysis: det.analysis,
         free_index,
-        combinations,
+        combinations: det.combinations,
         pose_std: vec![None; alignment.poses.len()],
         poses: alignment.poses.clone(),
         points: alignment.points.clone(),

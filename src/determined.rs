@@ -1,0 +1,95 @@
+//! Fitting in the determined directions: what identification (Eq. 11) and
+//! every calibration objective (Eq. 13–15, the bundle adjustment) share.
+//!
+//! The data never determine all 18 error parameters (Table 3's null space,
+//! NOTES item 8). Each fit therefore analyses the Jacobian of its free
+//! coefficients ([`identifiability`]), estimates coordinates `z` along the
+//! determined directions only — `p(z) = p₀ + B·z`, `B` the row basis — and
+//! leaves the undetermined directions at their start value: the
+//! minimum-norm solution, with the undetermined combinations named in
+//! words. The covariance of `z` maps back to the free coefficients as
+//! `B·C_z·Bᵀ`.
+
+use crate::error_model::ErrorParams;
+use crate::identifiability::{self, Analysis, Combination};
+use anyhow::Result;
+use nalgebra::{DMatrix, DVector};
+
+/// The determined directions of a fit's free coefficients.
+#[derive(Clone, Debug)]
+pub struct Determined {
+    /// Indices of the free coefficients among all of them.
+    pub free_index: Vec<usize>,
+    pub analysis: Analysis,
+    /// The undetermined directions, in words.
+    pub combinations: Vec<Combination>,
+}
+
+impl Determined {
+    /// From an analysis of the free coefficients' (projected) Jacobian.
+    pub fn new(analysis: Analysis, start: &ErrorParams, free: &[bool]) -> Determined {
+        let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
+        let names: Vec<String> = free_index
+            .iter()
+            .map(|&i| start.coefs()[i].symbol())
+            .collect();
+        let combinations = identifiability::describe_null_space(&analysis.null_basis, &names);
+        Determined {
+            free_index,
+            analysis,
+            combinations,
+        }
+    }
+
+    /// Analyses `j`, the Jacobian of the free coefficients (columns in
+    /// their order), at the relative threshold `rank_tol`.
+    pub fn analyse(
+        j: &DMatrix<f64>,
+        start: &ErrorParams,
+        free: &[bool],
+        rank_tol: f64,
+    ) -> Result<Determined> {
+        Ok(Determined::new(
+            identifiability::analyse(j, rank_tol)?,
+            start,
+            free,
+        ))
+    }
+
+    /// `B`: free coefficients × determined directions.
+    pub fn basis(&self) -> &DMatrix<f64> {
+        &self.analysis.row_basis
+    }
+
+    /// Number of determined directions.
+    pub fn rank(&self) -> usize {
+        self.analysis.rank
+    }
+
+    /// `p₀ + B·z` on the free coefficients.
+    pub fn params(&self, start: &ErrorParams, z: &DVector<f64>) -> ErrorParams {
+        start.plus(&self.free_index, &(self.basis() * z))
+    }
+
+    /// Each coefficient's standard uncertainty from the covariance of `z`
+    /// (`None` for coefficients held fixed), `n` coefficients in all.
+    pub fn std(&self, cov_z: &DMatrix<f64>, n: usize) -> Vec<Option<f64>> {
+        let mut std = vec![None; n];
+        if self.rank() > 0 {
+            let cov = self.basis() * cov_z * self.basis().transpose();
+            for (k, &i) in self.free_index.iter().enumerate() {
+                std[i] = Some(cov[(k, k)].max(0.0).sqrt());
+            }
+        }
+        std
+    }
+
+    /// The covariance of `z` of an unweighted least-squares fit whose
+    /// Jacobian on `z` is `jz` and residuals `r`: `s²·(JᵀJ)⁻¹`, `s²` the
+    /// residuals' scatter (`None` when `JᵀJ` is singular).
+    pub fn scatter_covariance(&self, jz: &DMatrix<f64>, r: &DVector<f64>) -> Option<DMatrix<f64>> {
+        let dof = r.len().saturating_sub(self.rank()).max(1);
+        let s2 = r.norm_squared() / dof as f64;
+        (jz.transpose() * jz).try_inverse().map(|inv| inv * s2)
+    }
+}
