@@ -298,17 +298,7 @@ fn hall(spec: &Spec) -> Layout {
         for k in 0..spec.per_level {
             // Walk the perimeter, offset per level so that levels interleave.
             let f = (k as f64 + 0.5 + l as f64 / 3.0) / spec.per_level as f64;
-            let s = f * 2.0 * (lx + ly);
-            let p = if s < lx {
-                Vector3::new(s, 0.0, *z)
-            } else if s < lx + ly {
-                Vector3::new(lx, s - lx, *z)
-            } else if s < 2.0 * lx + ly {
-                Vector3::new(2.0 * lx + ly - s, ly, *z)
-            } else {
-                Vector3::new(0.0, 2.0 * (lx + ly) - s, *z)
-            };
-            pts.push(p);
+            pts.push(on_walls(f * 2.0 * (lx + ly), lx, ly, *z));
         }
     }
     let targets: Vec<(String, Vector3<f64>)> = ids("T", pts.len()).into_iter().zip(pts).collect();
@@ -330,6 +320,20 @@ fn hall(spec: &Spec) -> Layout {
     }
 }
 
+/// The point at arc length `s` along the walls of an `lx × ly` hall
+/// (walking from the origin along x first), at height `z`.
+fn on_walls(s: f64, lx: f64, ly: f64, z: f64) -> Vector3<f64> {
+    if s < lx {
+        Vector3::new(s, 0.0, z)
+    } else if s < lx + ly {
+        Vector3::new(lx, s - lx, z)
+    } else if s < 2.0 * lx + ly {
+        Vector3::new(2.0 * lx + ly - s, ly, z)
+    } else {
+        Vector3::new(0.0, 2.0 * (lx + ly) - s, z)
+    }
+}
+
 /// The `network` layout (see the module doc). Walls at four heights, then
 /// floor, ceiling and monuments, each spread evenly; stations on two or
 /// three rows along the hall.
@@ -345,15 +349,7 @@ fn network(spec: &Spec) -> Layout {
     {
         for k in 0..n {
             let s = (k as f64 + 0.5 + l as f64 / 4.0) / n as f64 * perimeter;
-            pts.push(if s < lx {
-                Vector3::new(s, 0.0, *z)
-            } else if s < lx + ly {
-                Vector3::new(lx, s - lx, *z)
-            } else if s < 2.0 * lx + ly {
-                Vector3::new(2.0 * lx + ly - s, ly, *z)
-            } else {
-                Vector3::new(0.0, perimeter - s, *z)
-            });
+            pts.push(on_walls(s, lx, ly, *z));
         }
     }
     // Floor and ceiling: a grid inset from the walls, n / 2 each.
