@@ -238,6 +238,16 @@ pub enum Norm {
     L2,
 }
 
+impl Norm {
+    /// The id used in pipeline files and tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            Norm::L1 => "l1",
+            Norm::L2 => "l2",
+        }
+    }
+}
+
 /// Settings common to every objective.
 #[derive(Clone, Debug)]
 pub struct Settings {
@@ -285,16 +295,18 @@ pub struct ReadingResidual {
 }
 
 /// Numbers that describe a fit.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct FitSummary {
-    pub objective: String,
-    pub norm: String,
+    pub objective: Objective,
+    pub norm: Norm,
     pub n_readings: usize,
     pub n_residuals: usize,
     pub n_unknowns: usize,
     pub rank: usize,
     pub iterations: u64,
-    pub stop: String,
+    /// Why the solver stopped: one of [`crate::solver::Fit::reason`]'s
+    /// words, `nothing-to-estimate` or `irls-converged`.
+    pub stop: &'static str,
     /// Root mean square of the objective's residuals before and after
     /// (µm for the distance objectives; units of σ for the bundle).
     pub rms_before: f64,

@@ -145,14 +145,14 @@ pub fn tables(net: &Network, cal: &Calibration) -> Result<StageOutput> {
 fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
     let f = &cal.fit;
     TableBuilder::new()
-        .str("objective", &[&f.objective])
-        .str("norm", &[&f.norm])
+        .str("objective", &[f.objective.name()])
+        .str("norm", &[f.norm.name()])
         .i64("n_readings", vec![f.n_readings as i64])
         .i64("n_residuals", vec![f.n_residuals as i64])
         .i64("n_unknowns", vec![f.n_unknowns as i64])
         .i64("rank", vec![f.rank as i64])
         .i64("iterations", vec![f.iterations as i64])
-        .str("stop", &[&f.stop])
+        .str("stop", &[f.stop])
         .f64("rms_before", vec![f.rms_before])
         .f64("rms_after", vec![f.rms_after])
         .f64("mean_abs_before", vec![f.mean_abs_before])
