@@ -168,17 +168,83 @@ fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
     order
 }
 
-/// Diagnoses a campaign.
+/// Diagnoses a campaign: the base calibration, then where, which and how
+/// far (see the module doc), step by step.
 pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
     let net = Network::from_campaign(c)?;
+    let cal = base_calibration(&net, s)?;
+    let lin = cal
+        .linearisation
+        .clone()
+        .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
+    let infos = reading_infos(c, &net, &cal);
+    let (fold_of, n_folds) = folds(&net, s);
+    let to_mm: Vec<Matrix3<f64>> = net
+        .obs
+        .iter()
+        .map(|o| nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma))
+        .collect();
+    let lm = LinearModel::new(lin.jacobian, lin.residuals, &fold_of, n_folds, to_mm)?;
+    let chi2 = lm.chi2();
+    let dof = cal.fit.dof.unwrap_or(lm.dof());
+    let chi2_p = cal.fit.chi2_p.unwrap_or(1.0);
+    let floor = noise_floor(&lm, s);
+
+    // Which.
+    let enabled = |id: &str| s.effects.is_empty() || s.effects.iter().any(|e| e == id);
+    let (cands, skipped) = candidates::build(
+        &infos,
+        &net.stations,
+        &net.targets,
+        &station_order(c, &net.stations),
+        &enabled,
+    );
+    let (mut rows, tried) = score(&lm, &cands, dof, floor, s.alpha);
+
+    // Where.
+    let residuals = residual_rows(c, &net, &cal, &infos);
+    let factor_defs = factors::factors(&residuals);
+    let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
+
+    let rms_before = lm.cv_rms_um_base();
+    rows.push(none_row(
+        chi2,
+        dof,
+        chi2_p,
+        s.alpha,
+        rms_before,
+        floor,
+        &factor_tests,
+    ));
+    rank(&mut rows);
+    Ok(Diagnosis {
+        campaign: c.meta.name.clone(),
+        rows,
+        factors: factor_tests,
+        residuals,
+        factor_defs,
+        skipped,
+        chi2,
+        dof,
+        chi2_p,
+        noise_stated: net.noise_stated,
+        noise_floor_um: floor,
+        calibration: cal,
+        sigma: net.obs.iter().map(|o| o.sigma).collect(),
+        tried,
+    })
+}
+
+/// Step 1: the bundle adjustment with the base model.
+fn base_calibration(net: &Network, s: &Settings) -> Result<Calibration> {
     let start = ErrorParams::zero(&s.model);
     let free: Vec<bool> = start
         .coefs()
         .iter()
         .map(|k| !s.fixed.contains(&k.param))
         .collect();
-    let cal = calibrate::calibrate(
-        &net,
+    calibrate::calibrate(
+        net,
         &start,
         &free,
         &CalSettings {
@@ -187,16 +253,13 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
             rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
         },
-    )?;
-    let lin = cal
-        .linearisation
-        .clone()
-        .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
-    let n_read = net.obs.len();
+    )
+}
 
-    // Per reading: what the candidates and the factors need.
-    let stations = net.stations.clone();
-    let first_time = first_times(c, &stations);
+/// Per reading, what the candidates and the factors need: its geometry at
+/// the base solution, its time since its station began, its incidence.
+fn reading_infos(c: &Campaign, net: &Network, cal: &Calibration) -> Vec<ReadingInfo> {
+    let first_time = first_times(c, &net.stations);
     let centroid = cal
         .poses
         .iter()
@@ -215,8 +278,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
                 .flatten(),
         }
     };
-    let infos: Vec<ReadingInfo> = net
-        .obs
+    net.obs
         .iter()
         .zip(&c.readings)
         .map(|(o, r)| {
@@ -240,14 +302,17 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
                 }),
             }
         })
-        .collect();
+        .collect()
+}
 
-    // Cross-validation folds, stratified by reflector: each reflector's
-    // readings go round the folds from a random start, so no fold holds
-    // out every reading of a reflector (which no model could predict).
-    let folds = s.folds.clamp(2, n_read.max(2));
+/// Cross-validation folds (each reading's fold, and their number),
+/// stratified by reflector: each reflector's
+/// readings go round the folds from a random start, so no fold holds out
+/// every reading of a reflector (which no model could predict).
+fn folds(net: &Network, s: &Settings) -> (Vec<usize>, usize) {
+    let folds = s.folds.clamp(2, net.obs.len().max(2));
     let mut rng = random::stream(s.seed, "diagnose-folds");
-    let mut fold_of = vec![0; n_read];
+    let mut fold_of = vec![0; net.obs.len()];
     let mut next: std::collections::BTreeMap<usize, usize> = Default::default();
     for (i, o) in net.obs.iter().enumerate() {
         let k = next
@@ -256,28 +321,32 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         fold_of[i] = *k;
         *k = (*k + 1) % folds;
     }
-    let to_mm: Vec<Matrix3<f64>> = net
-        .obs
-        .iter()
-        .map(|o| nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma))
-        .collect();
-    let lm = LinearModel::new(lin.jacobian, lin.residuals, &fold_of, folds, to_mm)?;
-    let chi2 = lm.chi2();
-    let dof = cal.fit.dof.unwrap_or(lm.dof());
-    let chi2_p = cal.fit.chi2_p.unwrap_or(1.0);
+    (fold_of, folds)
+}
 
-    // The noise floor: stated noise through the same adjustment.
+/// How far, the reference: the held-out RMS the stated noise alone leaves,
+/// by Monte Carlo draws through the same adjustment.
+fn noise_floor(lm: &LinearModel, s: &Settings) -> f64 {
     let mut mc = random::stream(s.seed, "diagnose-noise");
     let draws: Vec<DVector<f64>> = (0..s.mc_draws)
         .map(|_| DVector::from_fn(lm.rows(), |_, _| random::normal(&mut mc)))
         .collect();
-    let floor = lm.noise_floor_um(&draws);
-    let rms_before = lm.cv_rms_um_base();
+    lm.noise_floor_um(&draws)
+}
 
-    // Which: every candidate, its alternatives resolved by χ².
-    let order_st = station_order(c, &stations);
-    let enabled = |id: &str| s.effects.is_empty() || s.effects.iter().any(|e| e == id);
-    let (cands, skipped) = candidates::build(&infos, &stations, &net.targets, &order_st, &enabled);
+/// Step 3, which: every candidate's fit, the best alternative of each
+/// (effect, place) by χ², and its row — F test (Bonferroni over every
+/// alternative tried), ΔBIC, held-out score and gap. Also returns the
+/// number of alternatives tried.
+fn score(
+    lm: &LinearModel,
+    cands: &[Candidate],
+    dof: usize,
+    floor: f64,
+    alpha: f64,
+) -> (Vec<Row>, usize) {
+    let chi2 = lm.chi2();
+    let rms_before = lm.cv_rms_um_base();
     let fits: Vec<linear::Fit> = cands.par_iter().map(|c| lm.fit(&c.columns)).collect();
     let mut best: Vec<(usize, f64)> = Vec::new();
     for (i, (c, f)) in cands.iter().zip(&fits).enumerate() {
@@ -292,7 +361,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
     }
     let tried: usize = best.iter().map(|(i, _)| cands[*i].alternatives).sum();
     let m = lm.rows() as f64;
-    let mut rows: Vec<Row> = best
+    let rows = best
         .par_iter()
         .map(|&(i, _)| {
             let cand: &Candidate = &cands[i];
@@ -316,7 +385,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
                 magnitude: (cand.magnitude)(&fit.beta),
                 unit: cand.unit.to_string(),
                 score,
-                significant: p_corrected < s.alpha && delta_bic > 0.0 && score > 0.0,
+                significant: p_corrected < alpha && delta_bic > 0.0 && score > 0.0,
                 rms_before_um: rms_before,
                 rms_after_um: rms_after,
                 gap_before_um: gb,
@@ -334,10 +403,17 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
             }
         })
         .collect();
+    (rows, tried)
+}
 
-    // Where.
-    let residuals: Vec<ResidualRow> = cal
-        .residuals
+/// Step 2, where: each reading's residual with what the factors group by.
+fn residual_rows(
+    c: &Campaign,
+    net: &Network,
+    cal: &Calibration,
+    infos: &[ReadingInfo],
+) -> Vec<ResidualRow> {
+    cal.residuals
         .iter()
         .map(|rr| {
             let o = &net.obs[rr.obs];
@@ -356,12 +432,22 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
                 temperature_c: r.temperature_c,
             }
         })
-        .collect();
-    let factor_defs = factors::factors(&residuals);
-    let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
+        .collect()
+}
 
-    // Rank: the significant by score, then `none`, then the rest by score.
-    let noise_ok = chi2_p >= s.alpha;
+/// The `none` row: accepted when the residual is consistent with the
+/// stated noise (χ² test); otherwise "unexplained structure" and where the
+/// factors say it lies.
+fn none_row(
+    chi2: f64,
+    dof: usize,
+    chi2_p: f64,
+    alpha: f64,
+    rms_before: f64,
+    floor: f64,
+    factor_tests: &[FactorTest],
+) -> Row {
+    let noise_ok = chi2_p >= alpha;
     let place = if noise_ok {
         "all".to_string()
     } else {
@@ -378,7 +464,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
                 .into(),
         }
     };
-    rows.push(Row {
+    Row {
         rank: 0,
         effect: "none".into(),
         place,
@@ -396,17 +482,21 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         p_corrected: chi2_p,
         delta_bic: 0.0,
         detail: format!("χ² = {chi2:.1} on {dof} degrees of freedom, p = {chi2_p:.3}"),
-    });
+    }
+}
+
+/// The ranking: the significant first, then `none`, then the rest. Within
+/// a class the information criterion orders: it weighs what a candidate
+/// explains against its parameters, so the one station that drifts beats
+/// "every station", and a reflector knocked between stations is not
+/// out-scored by cross-validation, which cannot predict a held-out reading
+/// from before the knock.
+fn rank(rows: &mut [Row]) {
     let class = |r: &Row| match (r.effect.as_str(), r.significant) {
         ("none", _) => 1,
         (_, true) => 0,
         _ => 2,
     };
-    // Within a class the information criterion orders: it weighs what a
-    // candidate explains against its parameters, so the one station that
-    // drifts beats "every station", and a reflector knocked between
-    // stations is not out-scored by cross-validation, which cannot predict
-    // a held-out reading from before the knock.
     rows.sort_by(|a, b| {
         class(a)
             .cmp(&class(b))
@@ -417,22 +507,6 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
     for (i, r) in rows.iter_mut().enumerate() {
         r.rank = i + 1;
     }
-    Ok(Diagnosis {
-        campaign: c.meta.name.clone(),
-        rows,
-        factors: factor_tests,
-        residuals,
-        factor_defs,
-        skipped,
-        chi2,
-        dof,
-        chi2_p,
-        noise_stated: net.noise_stated,
-        noise_floor_um: floor,
-        calibration: cal,
-        sigma: net.obs.iter().map(|o| o.sigma).collect(),
-        tried,
-    })
 }
 
 #[cfg(test)]
