@@ -12,7 +12,8 @@ use ltcal::effects::Effects;
 use ltcal::error_model::{ErrorModel, ErrorParams};
 use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind, Spec};
-use ltcal::simulate::{CampaignSpec, Noise, simulate_campaign};
+use ltcal::noise::Noise;
+use ltcal::simulate::{CampaignSpec, simulate_campaign};
 use std::hint::black_box;
 
 fn calibrate_corner(c: &mut Criterion) {

@@ -19,6 +19,7 @@ pub mod identify;
 pub mod kinematics;
 pub mod layout;
 pub mod mesh;
+pub mod noise;
 pub mod pipeline;
 pub mod plots;
 pub mod random;

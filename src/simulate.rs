@@ -6,70 +6,18 @@
 //! A tracker with errors pointed at a true point reports the *nominal*
 //! coordinates of the joint values that actually reach the point
 //! ([`ErrorParams::reading_of`] solves Eq. (8) exactly for them). Noise is
-//! the `noise` effect of `effects.md`: independent Gaussian noise of
-//! `sigma_angle_urad` on az and on el, and on d a standard deviation of
-//! `sqrt(sigma_range_um² + (sigma_range_ppm·d/1000)²)` µm.
+//! drawn from the reading-noise model of [`crate::noise`].
 
 use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
 use crate::effects::{Axis, Effects, RangeScale, incidence_angles, table9_delta_d_um};
 use crate::error_model::{ErrorParams, InverseError};
 use crate::kinematics::{Face, Reading};
 use crate::layout::Layout;
+use crate::noise::Noise;
 use crate::random;
 use nalgebra::{Rotation3, Vector3};
-use rand::rngs::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
-
-/// Reading noise, 1 σ.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Noise {
-    #[serde(default)]
-    pub sigma_angle_urad: f64,
-    #[serde(default)]
-    pub sigma_range_um: f64,
-    #[serde(default)]
-    pub sigma_range_ppm: f64,
-}
-
-impl Noise {
-    pub fn is_zero(&self) -> bool {
-        self.sigma_angle_urad == 0.0 && self.sigma_range_um == 0.0 && self.sigma_range_ppm == 0.0
-    }
-
-    /// The range noise at distance `d_mm`, in µm.
-    pub fn sigma_range_at_um(&self, d_mm: f64) -> f64 {
-        self.sigma_range_um
-            .hypot(self.sigma_range_ppm * d_mm / 1000.0)
-    }
-
-    /// The reading with one draw of noise added.
-    pub fn apply(&self, r: Reading, rng: &mut ChaCha8Rng) -> Reading {
-        let mut draw = || random::normal(rng);
-        let (na, ne, nd) = (draw(), draw(), draw());
-        Reading {
-            az: r.az + na * self.sigma_angle_urad * 1e-6,
-            el: r.el + ne * self.sigma_angle_urad * 1e-6,
-            d: r.d + nd * self.sigma_range_at_um(r.d) * 1e-3,
-        }
-    }
-
-    /// Names the first field that is negative or not finite.
-    pub fn check(&self) -> Result<(), (&'static str, f64)> {
-        for (f, v) in [
-            ("sigma_angle_urad", self.sigma_angle_urad),
-            ("sigma_range_um", self.sigma_range_um),
-            ("sigma_range_ppm", self.sigma_range_ppm),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err((f, v));
-            }
-        }
-        Ok(())
-    }
-}
 
 /// The reading of `target` by a tracker with `errors` (none: a perfect one).
 pub fn read(

@@ -645,7 +645,8 @@ mod tests {
     use crate::identifiability;
     use crate::kinematics::Face;
     use crate::layout::{self, Kind, Spec};
-    use crate::simulate::{CampaignSpec, Noise, simulate_campaign};
+    use crate::noise::Noise;
+    use crate::simulate::{CampaignSpec, simulate_campaign};
 
     fn corner_network() -> Network {
         let layout = layout::build(&Spec::new(Kind::Corner));

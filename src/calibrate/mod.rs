@@ -28,7 +28,7 @@ use crate::campaign::Campaign;
 use crate::error_model::{ErrorParams, Links};
 use crate::identifiability::{Analysis, Combination};
 use crate::kinematics::{Face, Joints, Reading};
-use crate::simulate::Noise;
+use crate::noise::Noise;
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};

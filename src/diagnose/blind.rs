@@ -23,8 +23,9 @@ use crate::effects::{
 use crate::error_model::{ErrorModel, ErrorParams};
 use crate::kinematics::Face;
 use crate::layout::{self, Kind, Spec};
+use crate::noise::Noise;
 use crate::random;
-use crate::simulate::{CampaignSpec, Noise, SimulatedCampaign, simulate_campaign};
+use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use anyhow::{Result, anyhow};
 use nalgebra::{DVector, Vector3};
 use rand::rngs::ChaCha8Rng;

@@ -15,9 +15,10 @@
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::kinematics::Face;
+use crate::noise::Noise;
 use crate::random;
 use crate::schema::{self, KnownReading};
-use crate::simulate::{self, Noise};
+use crate::simulate;
 use anyhow::{Result, anyhow};
 use serde::{Deserialize, Serialize};
 

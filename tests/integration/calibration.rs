@@ -8,7 +8,8 @@ use ltcal::effects::Effects;
 use ltcal::error_model::{ErrorModel, ErrorParams, ParamId, Shape};
 use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind, Spec};
-use ltcal::simulate::{CampaignSpec, Noise, SimulatedCampaign, simulate_campaign};
+use ltcal::noise::Noise;
+use ltcal::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use nalgebra::DVector;
 
 fn simulate(noise: Noise, faces: &[Face], errors: &ErrorParams, seed: u64) -> SimulatedCampaign {

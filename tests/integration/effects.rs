@@ -8,7 +8,8 @@ use ltcal::effects::{
 };
 use ltcal::kinematics::{Face, nominal_reading};
 use ltcal::layout::Layout;
-use ltcal::simulate::{CampaignSpec, Noise, SimulatedCampaign, simulate_campaign};
+use ltcal::noise::Noise;
+use ltcal::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use nalgebra::Vector3;
 
 fn layout() -> Layout {

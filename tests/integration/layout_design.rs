@@ -11,7 +11,8 @@ use ltcal::error_model::{ErrorModel, ErrorParams};
 use ltcal::identifiability::DEFAULT_REL_TOL;
 use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind, Spec};
-use ltcal::simulate::{self, CampaignSpec, Noise};
+use ltcal::noise::Noise;
+use ltcal::simulate::{self, CampaignSpec};
 use polars::prelude::DataFrame;
 
 fn layouts() -> (tempfile::TempDir, DataFrame) {
