@@ -14,7 +14,7 @@
 //! and the result says so, naming them.
 
 use crate::determined::Determined;
-use crate::error_model::{Coef, ErrorParams, Links};
+use crate::error_model::{ErrorParams, Links};
 use crate::identifiability::{Analysis, Combination};
 use crate::kinematics::{Joints, Reading};
 use crate::solver::{DenseNormal, LevenbergMarquardt};
@@ -252,13 +252,6 @@ impl Identification {
             .map(|&i| params.values()[i])
             .collect();
         c.determined_value(&x)
-    }
-
-    pub fn free_coefs(&self) -> Vec<Coef> {
-        self.free_index
-            .iter()
-            .map(|&i| self.params.coefs()[i])
-            .collect()
     }
 }
 

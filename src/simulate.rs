@@ -43,9 +43,6 @@ impl StationPose {
     pub fn to_local(&self, x: &Vector3<f64>) -> Vector3<f64> {
         self.rotation.inverse() * (x - self.position)
     }
-    pub fn to_campaign(&self, x: &Vector3<f64>) -> Vector3<f64> {
-        self.rotation * x + self.position
-    }
 }
 
 /// What a simulated campaign is made from.

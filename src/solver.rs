@@ -140,14 +140,6 @@ impl LevenbergMarquardt {
         self.gtol = positive("gtol", gtol)?;
         Ok(self)
     }
-    pub fn with_xtol(mut self, xtol: f64) -> Result<Self, Error> {
-        self.xtol = positive("xtol", xtol)?;
-        Ok(self)
-    }
-    pub fn with_ftol(mut self, ftol: f64) -> Result<Self, Error> {
-        self.ftol = positive("ftol", ftol)?;
-        Ok(self)
-    }
 
     /// Runs the solver on `problem` from `x0` for at most `max_iters` steps.
     pub fn minimize<O, J>(self, problem: O, x0: DVector<f64>, max_iters: u64) -> Result<Fit, Error>

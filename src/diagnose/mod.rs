@@ -123,11 +123,6 @@ impl Diagnosis {
     pub fn best(&self) -> &Row {
         &self.rows[0]
     }
-
-    /// Whether the residual is consistent with the stated noise.
-    pub fn noise_consistent(&self, alpha: f64) -> bool {
-        self.chi2_p >= alpha
-    }
 }
 
 /// Each station's earliest `time_s`, when its readings carry one.
