@@ -303,7 +303,8 @@ fn diagnose_command(
     if let Some(bad) = stage.validate().first() {
         return Err(InputError::arg(bad.message.clone()));
     }
-    let c = crate::campaign::read(campaign).map_err(|e| InputError::arg(e.to_string()))?;
+    let c = crate::campaign::read_for_calibration(campaign)
+        .map_err(|e| InputError::arg(e.to_string()))?;
     let d = stage.diagnose(&c)?;
     let output = stages::diagnose::outputs(&d)?;
     for (name, df) in &output.tables {

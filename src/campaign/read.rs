@@ -65,6 +65,17 @@ impl std::error::Error for CampaignError {}
 /// Reads the campaign in `dir`; relative paths are relative to the current
 /// directory.
 pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
+    read_checked(dir, false)
+}
+
+/// Reads the campaign in `dir` for a calibration or diagnosis: besides the
+/// format's rules, what the format allows but a calibration cannot use
+/// ([`Campaign::calibration_issues`]) is refused at its `file:line:col`.
+pub fn read_for_calibration(dir: &Path) -> Result<Campaign, CampaignError> {
+    read_checked(dir, true)
+}
+
+fn read_checked(dir: &Path, for_calibration: bool) -> Result<Campaign, CampaignError> {
     let fail = |problems| CampaignError {
         dir: dir.to_path_buf(),
         problems,
@@ -121,7 +132,10 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         targets,
         gauge,
     };
-    let issues = campaign.check();
+    let mut issues = campaign.check();
+    if for_calibration && issues.is_empty() {
+        issues = campaign.calibration_issues();
+    }
     if issues.is_empty() {
         return Ok(campaign);
     }
