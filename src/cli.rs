@@ -282,8 +282,8 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
     }
 }
 
-/// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs written
-/// to `out` (each file atomically).
+/// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs published
+/// as the folder `out` by one rename.
 fn diagnose_command(
     campaign: &Path,
     out: &Path,
@@ -305,18 +305,37 @@ fn diagnose_command(
     }
     let c = crate::campaign::read_for_calibration(campaign)
         .map_err(|e| InputError::arg(e.to_string()))?;
+    // The folder is replaced whole, so it must be one a diagnosis wrote (or
+    // empty): `--out .` must not delete the user's files.
+    if let Ok(entries) = std::fs::read_dir(out) {
+        let empty = entries.flatten().next().is_none();
+        if !empty && !out.join("diagnosis.csv").is_file() {
+            return Err(InputError::arg(format!(
+                "--out {} holds files that are not a diagnosis: it is replaced whole, so name a \
+                 new folder or an earlier diagnosis",
+                out.display()
+            )));
+        }
+    } else if out.symlink_metadata().is_ok() {
+        return Err(InputError::arg(format!(
+            "--out {} exists and is not a folder",
+            out.display()
+        )));
+    }
     let d = stage.diagnose(&c)?;
     let output = stages::diagnose::outputs(&d)?;
+    // Every file in memory first, then one folder published by one rename:
+    // a full disk or a kill leaves the previous folder (or none), never a
+    // partial one that looks finished.
+    let mut files: Vec<(String, Vec<u8>)> = Vec::new();
     for (name, df) in &output.tables {
-        let path = out.join(format!("{name}.parquet"));
-        crate::fs::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
+        files.push((format!("{name}.parquet"), table::to_parquet_bytes(df)?));
         if name == "where" {
-            crate::fs::write_atomic(&out.join("where.csv"), &crate::diagnose::output::csv(df)?)?;
+            files.push(("where.csv".into(), crate::diagnose::output::csv(df)?));
         }
     }
-    for (name, bytes) in &output.files {
-        crate::fs::write_atomic(&out.join(name), bytes)?;
-    }
+    files.extend(output.files.iter().cloned());
+    crate::fs::publish_folder(out, &files)?;
     println!("{}", crate::diagnose::output::verdict(&d));
     eprintln!(
         "diagnosis of {} written to {}",

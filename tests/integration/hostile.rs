@@ -164,3 +164,54 @@ fn a_non_finite_jacobian_from_a_tiny_sigma_names_the_key() {
         &["campaign.toml:7:", "unusable for calibration"],
     );
 }
+
+/// Regression: `ltcal diagnose` wrote its `--out` files one by one, so a
+/// full disk or a kill left a partial folder that looked finished. Now the
+/// folder is published by one rename: a failed diagnosis leaves none (see
+/// also `diagnose_refuses`), a new one replaces an earlier one whole, no
+/// temporary is left beside it, and a folder of other files is refused.
+#[test]
+fn diagnose_writes_its_out_folder_atomically() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = mutated_example(tmp.path(), "example-00-none", "readings.csv", |t| {
+        replace_cell(t, 3, 3, "90")
+    });
+    let fails = ltcal(
+        tmp.path(),
+        &["diagnose", dir.to_str().unwrap(), "--out", "out"],
+    );
+    assert_code(&fails, 2);
+    assert!(!tmp.path().join("out").exists());
+
+    let good =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns/example-00-none");
+    let out = tmp.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("diagnosis.csv"), "stale").unwrap();
+    std::fs::write(out.join("residuals-stale.svg"), "stale").unwrap();
+    let o = ltcal(
+        tmp.path(),
+        &["diagnose", good.to_str().unwrap(), "--out", "out"],
+    );
+    assert_code(&o, 0);
+    assert!(!out.join("residuals-stale.svg").exists());
+    assert!(out.join("report.md").is_file());
+    let beside: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(beside.is_empty(), "{beside:?}");
+
+    let mine = tmp.path().join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "keep").unwrap();
+    let o = ltcal(
+        tmp.path(),
+        &["diagnose", good.to_str().unwrap(), "--out", "mine"],
+    );
+    assert_code(&o, 2);
+    assert!(stderr(&o).contains("not a diagnosis"), "{}", stderr(&o));
+    assert!(mine.join("notes.txt").is_file());
+}
