@@ -303,8 +303,14 @@ fn diagnose_command(
     if let Some(bad) = stage.validate().first() {
         return Err(InputError::arg(bad.message.clone()));
     }
+    let step = step_spinner();
+    step.set_message(format!("reading {}", campaign.display()));
     let c = crate::campaign::read_for_calibration(campaign)
         .map_err(|e| InputError::arg(e.to_string()))?;
+    step.set_message(format!(
+        "adjusting and diagnosing {} readings",
+        c.readings.len()
+    ));
     // The folder is replaced whole, so it must be one a diagnosis wrote (or
     // empty): `--out .` must not delete the user's files.
     if let Ok(entries) = std::fs::read_dir(out) {
@@ -335,7 +341,9 @@ fn diagnose_command(
         }
     }
     files.extend(output.files.iter().cloned());
+    step.set_message(format!("writing {}", out.display()));
     crate::fs::publish_folder(out, &files)?;
+    step.finish_and_clear();
     println!("{}", crate::diagnose::output::verdict(&d));
     eprintln!(
         "diagnosis of {} written to {}",
@@ -343,6 +351,25 @@ fn diagnose_command(
         out.display()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// A spinner naming the step under way, so a long campaign read or
+/// adjustment (200 000 readings take minutes) is not silent. Only on a
+/// terminal: hidden when stderr is a pipe or a file, as in tests. (It
+/// reports steps, not the adjustment's iterations: those run inside the
+/// bundle adjustment, which reports nothing while it works.)
+fn step_spinner() -> indicatif::ProgressBar {
+    use std::io::IsTerminal as _;
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new_spinner();
+    b.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} ({elapsed})")
+            .expect("a valid template"),
+    );
+    b.enable_steady_tick(std::time::Duration::from_millis(120));
+    b
 }
 
 fn n_tables(n: usize) -> String {

@@ -215,3 +215,24 @@ fn diagnose_writes_its_out_folder_atomically() {
     assert!(stderr(&o).contains("not a diagnosis"), "{}", stderr(&o));
     assert!(mine.join("notes.txt").is_file());
 }
+
+/// Regression (issue 12): 200 000 readings took minutes and gigabytes with
+/// no word of a limit. A campaign file beyond `MAX_ROWS` data rows is
+/// refused at its first excess row, before the rest is held as cells.
+#[test]
+fn a_campaign_file_beyond_the_row_limit_is_refused_at_its_first_excess_row() {
+    let tmp = tempfile::tempdir().unwrap();
+    let text = example_text("readings.csv");
+    let row = text.lines().nth(1).unwrap().to_string() + "\n";
+    let mut big = String::with_capacity(row.len() * (ltcal::campaign::MAX_ROWS + 2));
+    big.push_str(text.lines().next().unwrap());
+    big.push('\n');
+    for _ in 0..ltcal::campaign::MAX_ROWS + 1 {
+        big.push_str(&row);
+    }
+    let dir = mutated_example(tmp.path(), "example-00-none", "readings.csv", |_| big);
+    let e = ltcal::campaign::read(&dir).unwrap_err().to_string();
+    let line = ltcal::campaign::MAX_ROWS + 2;
+    assert!(e.contains(&format!("readings.csv:{line}:1")), "{e}");
+    assert!(e.contains("at most 1000000 rows"), "{e}");
+}
