@@ -19,7 +19,7 @@ use super::check::{Issue, Place, Table};
 pub const POLE_COS_EL: f64 = 1e-6;
 
 /// The longest distance reading a calibration takes, mm (10 km: a hundred
-/// times a tracker's range). Beyond it the range noise and the Jacobian's
+/// times a tracker's range); a gauge length may be twice it. Beyond it the range noise and the Jacobian's
 /// products overflow (a `d_mm` of 1e15 gave a non-finite Jacobian).
 pub const MAX_RANGE_MM: f64 = 1e7;
 
@@ -81,6 +81,27 @@ impl Campaign {
                         r.d_mm
                     ),
                 ));
+            }
+        }
+        // Both ends are seen from stations within MAX_RANGE_MM, so no
+        // usable gauge is longer than twice that (a fuzzed 1e23 mm one left
+        // the normal matrix singular).
+        for (i, g) in self.gauge.iter().enumerate() {
+            if g.distance_mm > 2.0 * MAX_RANGE_MM {
+                out.push(Issue {
+                    place: Place::Cell {
+                        table: Table::Gauge,
+                        row: i,
+                        column: "distance_mm",
+                    },
+                    message: format!(
+                        "distance_mm = {:e} is valid per campaign-format.md but unusable for \
+                         calibration: its reflectors are seen from at most {MAX_RANGE_MM:e} mm, \
+                         so a gauge is at most {:e} mm",
+                        g.distance_mm,
+                        2.0 * MAX_RANGE_MM
+                    ),
+                });
             }
         }
         out
