@@ -282,8 +282,8 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
     }
 }
 
-/// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs written
-/// to `out` (each file atomically).
+/// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs published
+/// as the folder `out` by one rename.
 fn diagnose_command(
     campaign: &Path,
     out: &Path,
@@ -303,19 +303,47 @@ fn diagnose_command(
     if let Some(bad) = stage.validate().first() {
         return Err(InputError::arg(bad.message.clone()));
     }
-    let c = crate::campaign::read(campaign).map_err(|e| InputError::arg(e.to_string()))?;
+    let step = step_spinner();
+    step.set_message(format!("reading {}", campaign.display()));
+    let c = crate::campaign::read_for_calibration(campaign)
+        .map_err(|e| InputError::arg(e.to_string()))?;
+    step.set_message(format!(
+        "adjusting and diagnosing {} readings",
+        c.readings.len()
+    ));
+    // The folder is replaced whole, so it must be one a diagnosis wrote (or
+    // empty): `--out .` must not delete the user's files.
+    if let Ok(entries) = std::fs::read_dir(out) {
+        let empty = entries.flatten().next().is_none();
+        if !empty && !out.join("diagnosis.csv").is_file() {
+            return Err(InputError::arg(format!(
+                "--out {} holds files that are not a diagnosis: it is replaced whole, so name a \
+                 new folder or an earlier diagnosis",
+                out.display()
+            )));
+        }
+    } else if out.symlink_metadata().is_ok() {
+        return Err(InputError::arg(format!(
+            "--out {} exists and is not a folder",
+            out.display()
+        )));
+    }
     let d = stage.diagnose(&c)?;
     let output = stages::diagnose::outputs(&d)?;
+    // Every file in memory first, then one folder published by one rename:
+    // a full disk or a kill leaves the previous folder (or none), never a
+    // partial one that looks finished.
+    let mut files: Vec<(String, Vec<u8>)> = Vec::new();
     for (name, df) in &output.tables {
-        let path = out.join(format!("{name}.parquet"));
-        crate::fs::write_atomic(&path, &table::to_parquet_bytes(df)?)?;
+        files.push((format!("{name}.parquet"), table::to_parquet_bytes(df)?));
         if name == "where" {
-            crate::fs::write_atomic(&out.join("where.csv"), &crate::diagnose::output::csv(df)?)?;
+            files.push(("where.csv".into(), crate::diagnose::output::csv(df)?));
         }
     }
-    for (name, bytes) in &output.files {
-        crate::fs::write_atomic(&out.join(name), bytes)?;
-    }
+    files.extend(output.files.iter().cloned());
+    step.set_message(format!("writing {}", out.display()));
+    crate::fs::publish_folder(out, &files)?;
+    step.finish_and_clear();
     println!("{}", crate::diagnose::output::verdict(&d));
     eprintln!(
         "diagnosis of {} written to {}",
@@ -323,6 +351,25 @@ fn diagnose_command(
         out.display()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// A spinner naming the step under way, so a long campaign read or
+/// adjustment (200 000 readings take minutes) is not silent. Only on a
+/// terminal: hidden when stderr is a pipe or a file, as in tests. (It
+/// reports steps, not the adjustment's iterations: those run inside the
+/// bundle adjustment, which reports nothing while it works.)
+fn step_spinner() -> indicatif::ProgressBar {
+    use std::io::IsTerminal as _;
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new_spinner();
+    b.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} ({elapsed})")
+            .expect("a valid template"),
+    );
+    b.enable_steady_tick(std::time::Duration::from_millis(120));
+    b
 }
 
 fn n_tables(n: usize) -> String {

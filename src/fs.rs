@@ -10,11 +10,14 @@
 //! - [`write_staged`]: a file inside a folder that is itself published by one
 //!   rename (a cache entry, a campaign folder), where the folder's rename is
 //!   what makes the whole appear at once.
+//! - [`publish_folder`]: a whole folder of files built that way and renamed
+//!   into place (replacing the folder there, if any), so a full disk or a
+//!   kill never leaves a partial folder that looks finished.
 //! - [`read_regular_file`]: what a user points ltcal at (a pipeline file, a
 //!   campaign file, a data table) read only if it is a regular file of a sane
 //!   size: a FIFO would block the run forever, `/dev/zero` would fill memory.
 
-use anyhow::{Context as _, Result, anyhow};
+use anyhow::{Context as _, Result, anyhow, bail};
 use std::fmt;
 use std::io::{Read as _, Write as _};
 use std::path::{Path, PathBuf};
@@ -67,6 +70,56 @@ pub fn write_staged(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()
         f.sync_all()?;
     }
     Ok(())
+}
+
+/// Publishes `files` (name, bytes) as the folder `dir`: built beside it as
+/// `.<name>.<temp_name>.tmp` with every file synced, then renamed into
+/// place. A folder already at `dir` is renamed away first and removed once
+/// the new one is in place (put back if that rename fails); whether it may
+/// be replaced at all is the caller's decision. On any failure nothing is
+/// left but what was there before.
+pub fn publish_folder<N: AsRef<Path>>(dir: &Path, files: &[(N, Vec<u8>)]) -> Result<()> {
+    let name = dir
+        .file_name()
+        .ok_or_else(|| anyhow!("{}: the folder needs a name", dir.display()))?
+        .to_string_lossy()
+        .into_owned();
+    let parent = match dir.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
+    let suffix = temp_name();
+    let tmp = parent.join(format!(".{name}.{suffix}.tmp"));
+    let built = (|| -> std::io::Result<()> {
+        std::fs::create_dir(&tmp)?;
+        for (file, bytes) in files {
+            write_staged(&tmp.join(file), bytes, true)?;
+        }
+        Ok(())
+    })();
+    if let Err(e) = built {
+        let _ = std::fs::remove_dir_all(&tmp);
+        bail!("writing {}: {e}", tmp.display());
+    }
+    let placed = if std::fs::symlink_metadata(dir).is_ok() {
+        let old = parent.join(format!(".{name}.{suffix}.old"));
+        std::fs::rename(dir, &old)
+            .and_then(|()| {
+                std::fs::rename(&tmp, dir).inspect_err(|_| {
+                    let _ = std::fs::rename(&old, dir);
+                })
+            })
+            .map(|()| {
+                let _ = std::fs::remove_dir_all(&old);
+            })
+    } else {
+        std::fs::rename(&tmp, dir)
+    };
+    placed.map_err(|e| {
+        let _ = std::fs::remove_dir_all(&tmp);
+        anyhow!("moving the folder into {}: {e}", dir.display())
+    })
 }
 
 /// Why a file the user named was not read.
@@ -164,6 +217,35 @@ fn kind_of(t: &std::fs::FileType) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Regression (issue 12): `ltcal diagnose` on a full disk left a partial
+    /// `--out` folder that looked finished. A folder whose writing fails
+    /// midway (here its second file cannot be created) is not published,
+    /// and its temporary is gone.
+    #[test]
+    fn diagnose_out_folder_failing_midway_is_not_published() {
+        let root = scratch("publish");
+        let out = root.join("out");
+        let files = vec![
+            ("a.csv".to_string(), b"x".to_vec()),
+            ("no/such/folder.csv".to_string(), b"y".to_vec()),
+        ];
+        assert!(publish_folder(&out, &files).is_err());
+        assert!(!out.exists());
+        assert_eq!(std::fs::read_dir(&root).unwrap().count(), 0);
+        // A whole folder replaces the one there, stale files included.
+        std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join("stale.svg"), b"old").unwrap();
+        publish_folder(&out, &files[..1]).unwrap();
+        let names: Vec<_> = std::fs::read_dir(&out)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(names, ["a.csv"]);
+        assert_eq!(std::fs::read_dir(&root).unwrap().count(), 1);
+        std::fs::remove_dir_all(&root).unwrap();
+    }
 
     fn scratch(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("ltcal-fs-{name}-{}", temp_name()));

@@ -37,6 +37,34 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing the figure: {e}")
 }
 
+/// The widest axis span drawn. plotters computes an axis's tick marks in a
+/// loop that ends only for a finite span: one `time_s` of 1.8e308, padded
+/// by 5 %, made the span ∞ and the loop spin forever. Spans beyond this are
+/// refused too: nothing a tracker measures needs them, and near `f64::MAX`
+/// the tick arithmetic overflows.
+pub const MAX_SPAN: f64 = 1e300;
+
+/// An axis that cannot be drawn: a non-finite end or a span beyond
+/// [`MAX_SPAN`]. Callers that can do without the figure skip it with a note.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "an axis from {lo:e} to {hi:e} cannot be drawn (its ends must be finite and its span at most 1e300)"
+)]
+pub struct Undrawable {
+    pub lo: f64,
+    pub hi: f64,
+}
+
+/// Every data-driven axis range goes through here, so no input can make a
+/// figure hang.
+fn span(lo: f64, hi: f64) -> std::result::Result<std::ops::Range<f64>, Undrawable> {
+    if lo.is_finite() && hi.is_finite() && (hi - lo).abs() <= MAX_SPAN {
+        Ok(lo..hi)
+    } else {
+        Err(Undrawable { lo, hi })
+    }
+}
+
 /// The canvas every figure is drawn on.
 type Canvas<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 
@@ -124,7 +152,7 @@ fn mesh_3d(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError], emax: f64)
     let mut chart = ChartBuilder::on(area)
         .margin(20)
         .caption("mesh, coloured by error before", ("sans-serif", 18))
-        .build_cartesian_3d(x0..x1, z0..z1, y0..y1)
+        .build_cartesian_3d(span(x0, x1)?, span(z0, z1)?, span(y0, y1)?)
         .map_err(err)?;
     chart.with_projection(|mut p| {
         p.yaw = 0.6;
@@ -173,7 +201,7 @@ fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) ->
         .caption("error of each point", ("sans-serif", 18))
         .x_label_area_size(45)
         .y_label_area_size(70)
-        .build_cartesian_2d(0..n.max(1), (lo..hi).log_scale())
+        .build_cartesian_2d(0..n.max(1), span(lo, hi)?.log_scale())
         .map_err(err)?;
     chart
         .configure_mesh()
@@ -231,7 +259,7 @@ pub fn criterion_errors(
             .caption(title, ("sans-serif", 22))
             .x_label_area_size(45)
             .y_label_area_size(70)
-            .build_cartesian_2d(0..order.len().max(1), 0.0..top)
+            .build_cartesian_2d(0..order.len().max(1), span(0.0, top)?)
             .map_err(err)?;
         chart
             .configure_mesh()
@@ -296,7 +324,7 @@ pub fn sensitivity_fields(title: &str, panels: &[ParamField]) -> Result<String> 
                 .caption(&p.label, ("sans-serif", 14))
                 .x_label_area_size(28)
                 .y_label_area_size(48)
-                .build_cartesian_2d(0..p.err_um.len().max(1), 0.0..top)
+                .build_cartesian_2d(0..p.err_um.len().max(1), span(0.0, top)?)
                 .map_err(err)?;
             chart
                 .configure_mesh()
@@ -386,7 +414,7 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
                     )
                     .x_label_area_size(32)
                     .y_label_area_size(52)
-                    .build_cartesian_2d(x0..x1, 0.0..top)
+                    .build_cartesian_2d(span(x0, x1)?, span(0.0, top)?)
                     .map_err(err)?;
                 chart
                     .configure_mesh()
@@ -449,7 +477,7 @@ pub fn residuals_by_factor(
                 .margin(10)
                 .x_label_area_size(40)
                 .y_label_area_size(70)
-                .build_cartesian_2d(x0..x1, -m..m)
+                .build_cartesian_2d(span(x0, x1)?, span(-m, m)?)
                 .map_err(err)?;
             let cats = categories.map(|c| c.to_vec());
             chart
@@ -545,7 +573,7 @@ fn colour_bar(
         .margin_right(layout.margin_right)
         .y_label_area_size(0)
         .right_y_label_area_size(layout.labels_px)
-        .build_cartesian_2d(0.0..1.0, lo..hi)
+        .build_cartesian_2d(0.0..1.0, span(lo, hi)?)
         .map_err(err)?;
     chart
         .configure_mesh()
@@ -603,7 +631,7 @@ fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
         .caption(h.caption, ("sans-serif", 14))
         .x_label_area_size(34)
         .y_label_area_size(44)
-        .build_cartesian_2d(x0..x1, y0..y1)
+        .build_cartesian_2d(span(x0, x1)?, span(y0, y1)?)
         .map_err(err)?;
     chart
         .configure_mesh()
@@ -751,7 +779,7 @@ pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Re
                 .x_label_area_size(40)
                 .y_label_area_size(150)
                 // n segments, the first layout at the top.
-                .build_cartesian_2d(0.0..top, (0..n - 1).into_segmented())
+                .build_cartesian_2d(span(0.0, top)?, (0..n - 1).into_segmented())
                 .map_err(err)?;
             chart
                 .configure_mesh()
@@ -901,7 +929,7 @@ pub fn metric_lines(
             .caption(title, ("sans-serif", 22))
             .x_label_area_size(45)
             .y_label_area_size(70)
-            .build_cartesian_2d(x0..x1, y0..y1)
+            .build_cartesian_2d(span(x0, x1)?, span(y0, y1)?)
             .map_err(err)?;
         chart
             .configure_mesh()
@@ -964,7 +992,7 @@ pub fn grouped_bars(
             .caption(title, ("sans-serif", 20))
             .x_label_area_size(60)
             .y_label_area_size(70)
-            .build_cartesian_2d(-0.5..categories.len() as f64 - 0.5, lo..hi)
+            .build_cartesian_2d(-0.5..categories.len() as f64 - 0.5, span(lo, hi)?)
             .map_err(err)?;
         chart
             .configure_mesh()
@@ -1028,6 +1056,28 @@ pub fn grouped_bars(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Regression (issue 12): a value of f64::MAX on an axis made the
+    /// span ∞ and plotters' tick loop never ended; now it is refused.
+    #[test]
+    fn endless_loop_in_plots_is_an_undrawable_axis() {
+        let x = [0.0, 10.0, f64::MAX];
+        let r = [1.0, -1.0, 0.5];
+        let e = residuals_by_factor("t", "time_s", None, &x, [("a", &r), ("b", &r), ("c", &r)])
+            .unwrap_err();
+        assert!(e.downcast_ref::<Undrawable>().is_some(), "{e}");
+        let huge = [1.0, f64::MAX];
+        assert!(
+            residuals_by_factor(
+                "t",
+                "x",
+                None,
+                &x[..2],
+                [("a", &huge[..]), ("b", &r[..2]), ("c", &r[..2])]
+            )
+            .is_err()
+        );
+    }
 
     #[test]
     fn mesh_errors_svg_has_title_axes_and_points() {

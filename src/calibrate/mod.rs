@@ -96,6 +96,16 @@ fn weighting_u_mm(u_mm: Option<f64>) -> f64 {
 
 impl Network {
     pub fn from_campaign(c: &Campaign) -> Result<Network> {
+        // What would break the adjustment's numerics is named here, by its
+        // reading, rather than found as a singular or non-finite matrix.
+        let issues = c.calibration_issues();
+        if let Some(first) = issues.first() {
+            bail!(
+                "the campaign cannot be calibrated ({} problem{}); first: {first}",
+                issues.len(),
+                if issues.len() == 1 { "" } else { "s" }
+            );
+        }
         let stations = c.stations();
         let targets: Vec<String> = c.targets.iter().map(|t| t.id.clone()).collect();
         let index = |id: &str| targets.iter().position(|t| t == id);

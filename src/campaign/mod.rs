@@ -13,11 +13,15 @@
 
 mod check;
 mod read;
+mod usable;
 mod write;
 
 pub use crate::diagnostics::Problem;
 pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
-pub use read::{CampaignError, FILES, MAX_FILE_BYTES, content_hash, read};
+pub use read::{
+    CampaignError, FILES, MAX_FILE_BYTES, MAX_ROWS, content_hash, read, read_for_calibration,
+};
+pub use usable::{MAX_RANGE_MM, POLE_COS_EL, SIGMA_RANGE};
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};

@@ -11,6 +11,9 @@
 //! anything is returned, and a campaign with any problem is not returned at
 //! all: nothing is half-read.
 //!
+//! Limits: a file of at most [`MAX_FILE_BYTES`] and [`MAX_ROWS`] data rows;
+//! beyond either the file is refused (at its first excess row for rows).
+//!
 //! CSV is tokenized by `csv-core`, the parser under the `csv` crate, rather
 //! than by `csv` itself: `csv` tells where a record starts but not where each
 //! of its fields is, and every error must point at its cell. `csv-core`
@@ -65,6 +68,17 @@ impl std::error::Error for CampaignError {}
 /// Reads the campaign in `dir`; relative paths are relative to the current
 /// directory.
 pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
+    read_checked(dir, false)
+}
+
+/// Reads the campaign in `dir` for a calibration or diagnosis: besides the
+/// format's rules, what the format allows but a calibration cannot use
+/// ([`Campaign::calibration_issues`]) is refused at its `file:line:col`.
+pub fn read_for_calibration(dir: &Path) -> Result<Campaign, CampaignError> {
+    read_checked(dir, true)
+}
+
+fn read_checked(dir: &Path, for_calibration: bool) -> Result<Campaign, CampaignError> {
     let fail = |problems| CampaignError {
         dir: dir.to_path_buf(),
         problems,
@@ -121,7 +135,10 @@ pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
         targets,
         gauge,
     };
-    let issues = campaign.check();
+    let mut issues = campaign.check();
+    if for_calibration && issues.is_empty() {
+        issues = campaign.calibration_issues();
+    }
     if issues.is_empty() {
         return Ok(campaign);
     }
@@ -149,6 +166,13 @@ pub const FILES: [&str; 4] = ["campaign.toml", "readings.csv", "targets.csv", "g
 /// The largest campaign file ltcal reads: about ten million readings, far
 /// beyond any campaign measured by hand, and still held in memory at once.
 pub const MAX_FILE_BYTES: u64 = 1 << 30;
+
+/// The most data rows a campaign file may hold (readings, targets or gauge
+/// lengths). A million readings is about 100 MB of CSV — well inside
+/// [`MAX_FILE_BYTES`] — and a diagnosis of 200 000 already takes minutes:
+/// beyond this ltcal would run for hours or run out of memory holding every
+/// cell, so the file is refused at its first excess row instead.
+pub const MAX_ROWS: usize = 1_000_000;
 
 /// The blake3 hash of what [`read`] would read in `dir`: each of [`FILES`]
 /// by name, with its bytes or as absent. Two folders with the same hash read
@@ -441,6 +465,23 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> Vec<Vec<Cell>> {
             let cells = std::mem::take(&mut record);
             if !std::mem::take(&mut open_quote) {
                 records.push(cells);
+            }
+            // The header and MAX_ROWS rows: one more row is refused here,
+            // before the rest of the file is held as cells.
+            if records.len() > MAX_ROWS + 1 {
+                let row = records
+                    .last()
+                    .and_then(|r| r.first())
+                    .map_or(a, |c| c.span.start);
+                problems.push(Problem::At(src.error(
+                    row..row,
+                    format!(
+                        "more than {MAX_ROWS} rows: ltcal reads at most {MAX_ROWS} rows per \
+                         campaign file (about one million readings; a bundle adjustment of \
+                         that many already takes minutes)"
+                    ),
+                )));
+                return records;
             }
         }
     }

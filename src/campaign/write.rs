@@ -21,7 +21,7 @@ use anyhow::{Context as _, Result, anyhow, bail};
 use serde::Serialize;
 use std::collections::BTreeSet;
 use std::fs;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Writes `c` as the folder `dir`, which must not exist yet (or hold
 /// exactly this campaign already).
@@ -53,47 +53,7 @@ fn publish(c: &Campaign, dir: &Path, replace: bool) -> Result<()> {
         ),
         _ => {}
     }
-    let name = dir
-        .file_name()
-        .ok_or_else(|| anyhow!("{}: a campaign folder needs a name", dir.display()))?
-        .to_string_lossy()
-        .into_owned();
-    let parent = match dir.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
-    let suffix = crate::fs::temp_name();
-    let tmp = parent.join(format!(".{name}.{suffix}.tmp"));
-    let built = (|| -> std::io::Result<()> {
-        fs::create_dir(&tmp)?;
-        for (file, bytes) in &files {
-            crate::fs::write_staged(&tmp.join(file), bytes, true)?;
-        }
-        Ok(())
-    })();
-    if let Err(e) = built {
-        let _ = fs::remove_dir_all(&tmp);
-        bail!("writing {}: {e}", tmp.display());
-    }
-    let placed = if exists.is_some() {
-        let old = parent.join(format!(".{name}.{suffix}.old"));
-        fs::rename(dir, &old)
-            .and_then(|()| {
-                fs::rename(&tmp, dir).inspect_err(|_| {
-                    let _ = fs::rename(&old, dir);
-                })
-            })
-            .map(|()| {
-                let _ = fs::remove_dir_all(&old);
-            })
-    } else {
-        fs::rename(&tmp, dir)
-    };
-    placed.map_err(|e| {
-        let _ = fs::remove_dir_all(&tmp);
-        anyhow!("moving the campaign into {}: {e}", dir.display())
-    })
+    crate::fs::publish_folder(dir, &files)
 }
 
 /// Whether `dir` holds exactly `files`, byte for byte, and nothing else.

@@ -5,8 +5,6 @@
 //! is significant (F test, Bonferroni-corrected over all factors and
 //! components).
 
-use statrs::distribution::{ContinuousCDF, FisherSnedecor};
-
 /// One reading's residual and the factor values it is grouped by.
 #[derive(Clone, Debug)]
 pub struct ResidualRow {
@@ -199,9 +197,7 @@ pub fn analyse(rows: &[ResidualRow], factors: &[Factor], alpha: f64) -> Vec<Fact
                 .sum();
             let ss_within = (ss_total - ss_between).max(1e-300);
             let f_stat = (ss_between / (g - 1) as f64) / (ss_within / (n - g) as f64);
-            let p = FisherSnedecor::new((g - 1) as f64, (n - g) as f64)
-                .map(|d| d.sf(f_stat))
-                .unwrap_or(1.0);
+            let p = super::f_test::p_value((g - 1) as f64, (n - g) as f64, f_stat);
             let (worst, mean) = sums
                 .iter()
                 .map(|(k, (s, m))| (k.to_string(), s / *m as f64))
@@ -244,6 +240,26 @@ mod tests {
             elevation_deg: 0.0,
             time_s: None,
             temperature_c: None,
+        }
+    }
+
+    /// Regression (issue 12): residuals of ±1e308 made the sums of squares
+    /// ∞ − ∞ = NaN and the F test panicked; now the test is simply not
+    /// significant.
+    #[test]
+    fn f_test_panic_on_extreme_residuals_is_not_significant() {
+        let rows: Vec<ResidualRow> = (0..12)
+            .map(|i| {
+                let sign = if i % 2 == 0 { 1.0 } else { -1.0 };
+                row(if i % 3 == 0 { "S1" } else { "S2" }, sign * 1e308)
+            })
+            .collect();
+        let f = vec![categorical(
+            "station",
+            rows.iter().map(|r| Some(r.station.clone())).collect(),
+        )];
+        for t in analyse(&rows, &f, 0.01) {
+            assert!(!t.significant && t.p == 1.0, "{t:?}");
         }
     }
 

@@ -281,8 +281,7 @@ impl LinearModel {
             .map(|f| {
                 let train = |b: usize| b >= n_read || fold_of[b] != f;
                 let test: Vec<usize> = (0..n_read).filter(|&i| fold_of[i] == f).collect();
-                let factor = Normal::assemble(&j, None, train)
-                    .factor(0.0)
+                let factor = fold_factor(&Normal::assemble(&j, None, train))
                     .ok_or(Singular(" on a cross-validation fold"))?;
                 let y = solve_ls(&j, &factor, &r, &train);
                 let res = &r - j.mul(&y);
@@ -451,6 +450,20 @@ impl LinearModel {
         each.iter().sum::<f64>() / draws.len() as f64
     }
 }
+
+/// A fold's factorisation. Holding readings out can leave a direction
+/// undetermined — with two folds, reflectors left with one training reading
+/// each tell nothing of their station's pose — where the full model was
+/// determined. The fit is then the damped (ridge) limit of the
+/// minimum-norm one: `N + 1e-12·diag(N)`, which moves determined
+/// directions by 1e-12 of themselves and holds the undetermined ones at
+/// the base solution.
+fn fold_factor(n: &Normal) -> Option<Factor> {
+    n.factor(0.0).or_else(|| n.factor(FOLD_RIDGE))
+}
+
+/// The relative ridge of [`fold_factor`].
+const FOLD_RIDGE: f64 = 1e-12;
 
 /// Reading i's `K_i = J_iA − J_iX·H_XX⁻¹·H_XA` on the fold's factor, into
 /// `out` (3 × n_a, zero outside `nz`), and its non-zero columns `nz`.

@@ -9,7 +9,8 @@
 //! 3. **Which** — [`candidates`], scored on the linearised adjustment
 //!    ([`linear`]): for every effect of `effects.md` (and the per-station and
 //!    per-reflector variants), the χ² it explains, its F test
-//!    (Bonferroni-corrected over every alternative tried), the Bayesian
+//!    (Bonferroni-corrected over every alternative tried; [`f_test`], safe on
+//!    any statistic), the Bayesian
 //!    information criterion, and the share of *held-out* residual it
 //!    predicts (k-fold cross-validation, the `score`). A candidate is
 //!    significant when all three agree; significant candidates are ranked
@@ -23,6 +24,7 @@
 
 pub mod blind;
 pub mod candidates;
+pub mod f_test;
 pub mod factors;
 pub mod linear;
 pub mod output;
@@ -38,7 +40,6 @@ use factors::{FactorTest, ResidualRow};
 use linear::LinearModel;
 use nalgebra::{DVector, Matrix3, Vector3};
 use rayon::prelude::*;
-use statrs::distribution::{ContinuousCDF, FisherSnedecor};
 
 /// How to diagnose.
 #[derive(Clone, Debug)]
@@ -365,9 +366,7 @@ fn score(
             let rest = (chi2 - fit.delta_chi2).max(1e-300);
             let dof_aug = dof.saturating_sub(k).max(1);
             let f_stat = (fit.delta_chi2 / k as f64) / (rest / dof_aug as f64);
-            let p = FisherSnedecor::new(k as f64, dof_aug as f64)
-                .map(|d| d.sf(f_stat))
-                .unwrap_or(1.0);
+            let p = f_test::p_value(k as f64, dof_aug as f64, f_stat);
             let p_corrected = (p * tried as f64).min(1.0);
             let delta_bic = fit.delta_chi2 - k as f64 * m.ln();
             let rms_after = lm.cv_rms_um(&cand.columns);

@@ -309,15 +309,18 @@ pub fn report(d: &Diagnosis) -> String {
     s
 }
 
-/// One SVG per factor: the residuals against it.
-pub fn figures(d: &Diagnosis) -> Result<Vec<(String, Vec<u8>)>> {
-    let mut out = Vec::new();
+/// One SVG per factor: the residuals against it. A factor whose values
+/// (or residuals) span more than a figure can draw — a `time_s` of 1.8e308
+/// — gets no figure but a note for the report instead, so an extreme but
+/// valid value costs a figure, not the diagnosis.
+pub fn figures(d: &Diagnosis) -> Result<Figures> {
+    let mut out = Figures::default();
     for f in &d.factor_defs {
         let comp: Vec<Vec<f64>> = (0..3)
             .map(|c| d.residuals.iter().map(|r| r.physical[c]).collect())
             .collect();
         let categorical = matches!(f.name, "station" | "reflector" | "face");
-        let svg = plots::residuals_by_factor(
+        let drawn = plots::residuals_by_factor(
             &format!("{}: residuals by {}", d.campaign, f.name),
             f.name,
             categorical.then_some(&f.labels[..]),
@@ -327,8 +330,25 @@ pub fn figures(d: &Diagnosis) -> Result<Vec<(String, Vec<u8>)>> {
                 ("el residual (µrad)", &comp[1]),
                 ("d residual (µm)", &comp[2]),
             ],
-        )?;
-        out.push((format!("residuals-{}.svg", f.name), svg.into_bytes()));
+        );
+        match drawn {
+            Ok(svg) => out
+                .files
+                .push((format!("residuals-{}.svg", f.name), svg.into_bytes())),
+            Err(e) => match e.downcast_ref::<plots::Undrawable>() {
+                Some(u) => out
+                    .notes
+                    .push(format!("No figure of the residuals by {}: {u}.", f.name)),
+                None => return Err(e),
+            },
+        }
     }
     Ok(out)
+}
+
+/// The figures of a diagnosis, and a note for each one left out.
+#[derive(Default)]
+pub struct Figures {
+    pub files: Vec<(String, Vec<u8>)>,
+    pub notes: Vec<String>,
 }

@@ -294,6 +294,7 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
     if let Some((sw, _)) = &raw.sweep {
         pipeline.sweep = Some(resolve_sweep(raw, sw, &pipeline, overrides)?);
     }
+    check_columns(raw, &pipeline)?;
     if let Some((snap, header)) = &raw.snapshot {
         pipeline.snapshot = Some(snapshot::resolve(
             src,
@@ -610,6 +611,76 @@ fn fill_tables(stages: &mut [Stage], primary: &BTreeMap<String, &'static str>) {
                 }
             }
         }
+    }
+}
+
+/// Checks every input column a stage's settings name (a plot's `filter`,
+/// `x`, `y`, `series`) against the columns the producing stage's kind fixes
+/// for that table — a gathered table adds `point` and its axes — so a
+/// misspelt column is reported at load, at its place, not after a whole
+/// sweep has run. Tables whose columns depend on the data are checked when
+/// the stage runs.
+fn check_columns(raw: &RawPipeline, p: &Pipeline) -> Result<(), Vec<Problem>> {
+    let mut problems = Vec::new();
+    for s in &p.stages {
+        for u in s.config.columns_named() {
+            let Some(r) = s.inputs.get(u.slot) else {
+                continue;
+            };
+            let (producer, table, mut extra): (&str, String, Vec<&str>) =
+                if r.stage == sweep::PSEUDO_STAGE {
+                    let Some(sw) = &p.sweep else { continue };
+                    let Some(g) = sw.gather.iter().find(|g| g.to_string() == r.table) else {
+                        continue;
+                    };
+                    let axes = sw.axes.iter().map(|a| a.name.as_str());
+                    (
+                        &g.stage,
+                        g.table.clone(),
+                        std::iter::once("point").chain(axes).collect(),
+                    )
+                } else {
+                    (&r.stage, r.table.clone(), Vec::new())
+                };
+            let Some(fixed) = p
+                .stages
+                .iter()
+                .find(|x| x.name == producer)
+                .and_then(|x| x.config.columns(&table))
+            else {
+                continue;
+            };
+            if fixed.contains(&u.column.as_str()) || extra.contains(&u.column.as_str()) {
+                continue;
+            }
+            extra.extend(fixed);
+            let rs = raw.stages.iter().find(|x| x.name == s.name);
+            let span = rs
+                .and_then(|rs| {
+                    let top = u.field.split('.').next().unwrap_or_default();
+                    rs.fields
+                        .get(&u.field)
+                        .or_else(|| rs.fields.get(top))
+                        .or(Some(&rs.span))
+                })
+                .cloned()
+                .unwrap_or(0..0);
+            problems.push(Problem::At(raw.source.error(
+                span,
+                format!(
+                    "stage `{}`: `{}` names column `{}`, which `{r}` does not have; its columns are: {}",
+                    s.name,
+                    u.field,
+                    u.column,
+                    extra.join(", ")
+                ),
+            )));
+        }
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(problems)
     }
 }
 

@@ -96,15 +96,23 @@ impl DiagnoseStage {
 /// Every output of a diagnosis, as a stage (or `ltcal diagnose`) writes it.
 pub fn outputs(d: &Diagnosis) -> Result<StageOutput> {
     let table = output::diagnosis_table(d)?;
+    let figures = output::figures(d)?;
+    let mut report = output::report(d);
+    if !figures.notes.is_empty() {
+        report.push_str("\n## Figures left out\n\n");
+        for note in &figures.notes {
+            report.push_str(&format!("- {note}\n"));
+        }
+    }
     let mut out = StageOutput::default()
         .file("diagnosis.csv".into(), output::csv(&table)?)
-        .file("report.md".into(), output::report(d).into_bytes())
+        .file("report.md".into(), report.into_bytes())
         .table("diagnosis", table)
         .table("where", output::where_table(d)?)
         .table("residuals", output::residuals_table(d)?)
         .table("summary", output::summary_table(d)?)
         .table("skipped", output::skipped_table(d)?);
-    for (name, svg) in output::figures(d)? {
+    for (name, svg) in figures.files {
         out = out.file(name, svg);
     }
     Ok(out)

@@ -108,6 +108,30 @@ impl StageKind for EvaluateCampaignStage {
     ];
     const OUTPUTS: &'static [&'static str] = &["criteria", "table5", "table6", "table7", "terms"];
 
+    /// `table5` and `table6` have a column per station: not fixed.
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "criteria" => Some(&[
+                "criterion",
+                "station",
+                "statistic",
+                "before_um",
+                "after_um",
+                "improvement_pct",
+            ]),
+            "terms" => Some(&[
+                "criterion",
+                "station_a",
+                "station_b",
+                "target_a",
+                "target_b",
+                "before_um",
+                "after_um",
+            ]),
+            _ => None,
+        }
+    }
+
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let c = Campaign::from_inputs(inputs, "campaign")?;
         let net = Network::from_campaign(&c)?;

@@ -131,6 +131,15 @@ impl StageOutput {
     }
 }
 
+/// A column of an input table that a setting names.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColumnUse {
+    pub slot: &'static str,
+    /// The setting's dotted path (`filter.criterion`), for its location.
+    pub field: String,
+    pub column: String,
+}
+
 /// What a running stage knows about where it runs.
 pub struct Context<'a> {
     pub pipeline: &'a str,
@@ -155,6 +164,21 @@ pub trait StageKind: Serialize + DeserializeOwned + Clone + Debug + Send + Sync 
 
     /// Settings that cannot work, each naming its field.
     fn validate(&self) -> Vec<Invalid> {
+        Vec::new()
+    }
+
+    /// The columns of output `table` when the kind fixes them; `None` when
+    /// they depend on the data (one column per station) or are not
+    /// declared. Settings of other stages that name these columns are
+    /// checked at load ([`StageKind::columns_named`]); against an
+    /// undeclared table they are checked only when the stage runs.
+    fn columns(_table: &str) -> Option<&'static [&'static str]> {
+        None
+    }
+
+    /// The input columns the settings name, checked at load against the
+    /// producing stage's [`StageKind::columns`].
+    fn columns_named(&self) -> Vec<ColumnUse> {
         Vec::new()
     }
 
@@ -198,6 +222,13 @@ macro_rules! stage_kinds {
             }
             pub fn resolve(&mut self) {
                 match self { $(StageConfig::$variant(c) => c.resolve()),* }
+            }
+            /// The kind's fixed columns of output `table` ([`StageKind::columns`]).
+            pub fn columns(&self, table: &str) -> Option<&'static [&'static str]> {
+                match self { $(StageConfig::$variant(_) => <$ty as StageKind>::columns(table)),* }
+            }
+            pub fn columns_named(&self) -> Vec<ColumnUse> {
+                match self { $(StageConfig::$variant(c) => c.columns_named()),* }
             }
             /// The kind's own checks, then the bound on every count
             /// ([`counts`]) the kind has not already refused.

@@ -15,7 +15,7 @@
 //! file, and a table `figure` (`file`, `plot`, `title`, `rows`) that records it.
 
 use super::evaluate_campaign::CRITERIA;
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use super::{ColumnUse, Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::plots::{self, PointError};
 use crate::table::TableBuilder;
 use anyhow::Result;
@@ -215,6 +215,31 @@ impl StageKind for PlotStage {
                 }
             }
         }
+        out
+    }
+
+    /// `plot = "metric"` names its columns in `x`, `y`, `series` and
+    /// `filter`; the other plots read fixed columns, checked when they run.
+    fn columns_named(&self) -> Vec<ColumnUse> {
+        if self.plot != PlotKind::Metric {
+            return Vec::new();
+        }
+        let named = [("x", &self.x), ("y", &self.y), ("series", &self.series)];
+        let mut out: Vec<ColumnUse> = named
+            .into_iter()
+            .filter_map(|(field, c)| {
+                c.as_ref().map(|c| ColumnUse {
+                    slot: "table",
+                    field: field.into(),
+                    column: c.clone(),
+                })
+            })
+            .collect();
+        out.extend(self.filter.keys().map(|c| ColumnUse {
+            slot: "table",
+            field: format!("filter.{c}"),
+            column: c.clone(),
+        }));
         out
     }
 

@@ -217,3 +217,24 @@ fn paper_gap_scenarios_account_for_the_shortfall() {
     );
     assert!((46.0 / 1.5..46.0 * 1.5).contains(&init), "{init}");
 }
+
+/// Regression: with two folds, a fold left reflectors with one training
+/// reading each, its normal matrix was singular, and the diagnosis stopped
+/// ("singular on a cross-validation fold") where the dense core had taken
+/// the minimum-norm fit.
+#[test]
+fn two_folds_that_leave_a_pose_undetermined_still_diagnose() {
+    for (name, effect) in [
+        ("example-00-none", "none"),
+        ("example-05-station-drift", "station-drift"),
+    ] {
+        let dir = examples().into_iter().find(|p| p.ends_with(name)).unwrap();
+        let c = ltcal::campaign::read(&dir).unwrap();
+        let s = Settings {
+            folds: 2,
+            ..Settings::default()
+        };
+        let d = diagnose::diagnose(&c, &s).unwrap();
+        assert_eq!(d.best().effect, effect, "{name}: {:?}", d.best());
+    }
+}

@@ -7,6 +7,8 @@ mod cli;
 mod diagnose;
 mod effects;
 mod errors;
+mod fuzz;
+mod hostile;
 mod incidence;
 mod layering;
 mod layout_design;

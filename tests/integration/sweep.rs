@@ -87,6 +87,14 @@ fn a_sweep_of_200_points_gathers_and_an_immediate_rerun_recomputes_nothing() {
     // Per point: coordinates and distances × (4 stations + all) × (average,
     // maximum) = 20 rows.
     assert_eq!(g.height(), 200 * 20);
+    // The columns `evaluate_campaign` declares for `criteria` are the ones
+    // it writes: plot settings are checked against them at load.
+    let declared = <ltcal::stages::evaluate_campaign::EvaluateCampaignStage as ltcal::stages::StageKind>::columns("criteria").unwrap();
+    let names: Vec<String> = g.get_column_names().iter().map(|c| c.to_string()).collect();
+    assert_eq!(
+        names[4..],
+        declared.iter().map(|c| c.to_string()).collect::<Vec<_>>()[..]
+    );
     for c in [
         "point",
         "sigma_angle_urad",
@@ -436,4 +444,48 @@ gather = ["z.readings"]
             .starts_with("2 of 2 sweep points would run it"),
         "{z}"
     );
+}
+
+/// Regression (issue 12): a plot `filter` naming a column that does not
+/// exist was found only after the whole sweep had run. It is refused at
+/// load, at its place in the file, with the table's columns; so are `x`,
+/// `y` and `series`, and a table read directly rather than gathered.
+#[test]
+fn a_plot_filter_naming_a_missing_column_is_refused_at_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "typo", 4, 2);
+    let text = std::fs::read_to_string(&file)
+        .unwrap()
+        .replace("station = \"all\"", "statoin = \"all\"")
+        .replace("y = \"improvement_pct\"", "y = \"improvment_pct\"");
+    std::fs::write(&file, &text).unwrap();
+    let err = ltcal::pipeline::load(&file, &[]).unwrap_err().to_string();
+    let at = |needle: &str| {
+        let line = text.lines().position(|l| l.contains(needle)).unwrap();
+        let col = text.lines().nth(line).unwrap().find(needle).unwrap();
+        format!("typo.toml:{}:{}", line + 1, col + 1)
+    };
+    // The filter's value, where the column is named.
+    let filter_line = text.lines().position(|l| l.contains("statoin")).unwrap() + 1;
+    assert!(err.contains(&format!("typo.toml:{filter_line}:")), "{err}");
+    assert!(err.contains(&at("\"improvment_pct\"")), "{err}");
+    assert!(err.contains("column `statoin`"), "{err}");
+    assert!(
+        err.contains("sigma_angle_urad, sigma_range_um, seed, criterion"),
+        "{err}"
+    );
+
+    // Read directly from the stage, not gathered.
+    let direct = text
+        .replace(
+            "table = \"sweep.evaluation.criteria\"",
+            "table = \"evaluation.criteria\"",
+        )
+        .replace("x = \"sigma_angle_urad\"", "x = \"before_um\"");
+    let direct = direct[..direct.find("[[sweep.axis]]").unwrap()].to_string()
+        + &direct[direct.find("[stages.figure]").unwrap()..];
+    std::fs::write(&file, &direct).unwrap();
+    let err = ltcal::pipeline::load(&file, &[]).unwrap_err().to_string();
+    assert!(err.contains("column `improvment_pct`"), "{err}");
+    assert!(!err.contains("column `before_um`"), "{err}");
 }

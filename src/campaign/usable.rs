@@ -1,0 +1,109 @@
+//! What a calibration needs beyond the format: values `campaign-format.md`
+//! allows but that break the adjustment's numerics. Found before the
+//! adjustment and named by their reading (or key), instead of surfacing as
+//! "singular normal matrix" or "non-finite Jacobian" with nothing to fix.
+//!
+//! They are not [`Campaign::check`]'s rules: such a campaign still reads,
+//! converts and exports — only calibrating and diagnosing it refuses.
+//! [`super::read_for_calibration`] locates each issue at its
+//! `file:line:col`; a campaign built from tables names its table row.
+
+use super::Campaign;
+use super::check::{Issue, Place, Table};
+
+/// How close (in |cos el|) to the zenith or nadir a reading may come. At
+/// the pole the azimuth turns the beam about itself: the reading's azimuth
+/// is not determined by the point, and the adjustment's normal matrix is
+/// singular. 1e-6 is 0.2″ from the pole — well inside one reading's noise,
+/// so no usable reading is refused.
+pub const POLE_COS_EL: f64 = 1e-6;
+
+/// The longest distance reading a calibration takes, mm (10 km: a hundred
+/// times a tracker's range); a gauge length may be twice it. Beyond it the range noise and the Jacobian's
+/// products overflow (a `d_mm` of 1e15 gave a non-finite Jacobian).
+pub const MAX_RANGE_MM: f64 = 1e7;
+
+/// The range of a stated, non-zero σ (µrad, µm, ppm) a calibration can
+/// weight by: readings are divided by σ, so 1e-300 overflows the weights.
+/// (Zero means noise-free and is weighted by a floor, as before.)
+pub const SIGMA_RANGE: (f64, f64) = (1e-6, 1e9);
+
+impl Campaign {
+    /// The values the format allows but a calibration cannot use; empty
+    /// when the campaign can be calibrated.
+    pub fn calibration_issues(&self) -> Vec<Issue> {
+        let mut out = Vec::new();
+        let t = &self.meta.tracker;
+        let (lo, hi) = SIGMA_RANGE;
+        for (key, v) in [
+            ("tracker.sigma_angle_urad", t.sigma_angle_urad),
+            ("tracker.sigma_range_um", t.sigma_range_um),
+            ("tracker.sigma_range_ppm", t.sigma_range_ppm),
+        ] {
+            if let Some(v) = v.filter(|&v| v != 0.0 && !(lo..=hi).contains(&v)) {
+                out.push(Issue {
+                    place: Place::Meta(key),
+                    message: format!(
+                        "{v:e} is valid per campaign-format.md but unusable for calibration: \
+                         a stated noise must be 0 or lie in [{lo:e}, {hi:e}], or the weights \
+                         of the adjustment overflow"
+                    ),
+                });
+            }
+        }
+        for (i, r) in self.readings.iter().enumerate() {
+            let cell = |column: &'static str, message: String| Issue {
+                place: Place::Cell {
+                    table: Table::Readings,
+                    row: i,
+                    column,
+                },
+                message,
+            };
+            if r.el_deg.to_radians().cos().abs() < POLE_COS_EL {
+                out.push(cell(
+                    "el_deg",
+                    format!(
+                        "el_deg = {} points at the zenith or nadir: valid per \
+                         campaign-format.md but unusable for calibration (the azimuth of a \
+                         reading at the pole is undetermined, the adjustment singular); \
+                         remove the reading of {} from {}",
+                        r.el_deg, r.target, r.station
+                    ),
+                ));
+            }
+            if r.d_mm > MAX_RANGE_MM {
+                out.push(cell(
+                    "d_mm",
+                    format!(
+                        "d_mm = {:e} is valid per campaign-format.md but unusable for \
+                         calibration: ltcal calibrates distances up to {MAX_RANGE_MM:e} mm",
+                        r.d_mm
+                    ),
+                ));
+            }
+        }
+        // Both ends are seen from stations within MAX_RANGE_MM, so no
+        // usable gauge is longer than twice that (a fuzzed 1e23 mm one left
+        // the normal matrix singular).
+        for (i, g) in self.gauge.iter().enumerate() {
+            if g.distance_mm > 2.0 * MAX_RANGE_MM {
+                out.push(Issue {
+                    place: Place::Cell {
+                        table: Table::Gauge,
+                        row: i,
+                        column: "distance_mm",
+                    },
+                    message: format!(
+                        "distance_mm = {:e} is valid per campaign-format.md but unusable for \
+                         calibration: its reflectors are seen from at most {MAX_RANGE_MM:e} mm, \
+                         so a gauge is at most {:e} mm",
+                        g.distance_mm,
+                        2.0 * MAX_RANGE_MM
+                    ),
+                });
+            }
+        }
+        out
+    }
+}
