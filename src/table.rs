@@ -6,7 +6,7 @@
 //! names carry their unit (`d_mm`, `err_um`); each stage module documents the
 //! columns it writes.
 
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::{Context, Result, anyhow};
 use polars::prelude::*;
 use std::path::Path;
 
@@ -296,14 +296,4 @@ pub fn format_float(x: f64, digits: usize) -> String {
     } else {
         s
     }
-}
-
-/// Fails unless the table has every listed column.
-pub fn require_columns(t: &TableRef, cols: &[&str]) -> Result<()> {
-    for c in cols {
-        if !t.has(c) {
-            bail!("table `{}` lacks the column `{c}`", t.name);
-        }
-    }
-    Ok(())
 }
