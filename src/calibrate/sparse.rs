@@ -650,11 +650,6 @@ impl Factor {
     pub fn point_coupling(&self, i: usize) -> (&[usize], &DMatrix<f64>) {
         (&self.points[i].cols, &self.points[i].w)
     }
-
-    /// Size of the dense part.
-    pub fn n_a(&self) -> usize {
-        self.n_a
-    }
 }
 
 /// `x − J·N⁻¹·Jᵀ·x`: what of `x` no combination of `J`'s columns
