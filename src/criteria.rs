@@ -111,7 +111,7 @@ pub fn distances(net: &Network, params: &ErrorParams) -> Criterion {
 /// frame. `None` when the stations cannot be registered.
 pub fn coordinates(net: &Network, params: &ErrorParams) -> Option<Criterion> {
     let pts = net.station_points(params);
-    let a = align(&pts, None)?;
+    let a = align(&pts, None, 1e-10)?;
     let reg: Vec<BTreeMap<usize, Vector3<f64>>> = pts
         .iter()
         .zip(&a.poses)

@@ -465,29 +465,9 @@ impl ErrorParams {
         }
     }
     /// Section 5.1, measuring: the reading a tracker with these errors takes
-    /// when its beam reaches `target` — the joint values that solve Eq. (8)
-    /// exactly, found by Newton iteration from the nominal reading.
+    /// when its beam reaches `target` ([`Evaluator::reading_of`]).
     pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Result<Reading, InverseError> {
-        let mut r = kinematics::nominal_reading(target, face);
-        let mut last = f64::INFINITY;
-        for _ in 0..MAX_INVERSE_ITERS {
-            let miss = self.point(r.joints()) - target;
-            let m = miss.norm();
-            // Converged, or down to the rounding noise of coordinates of
-            // this size (which can sit just above the target tolerance).
-            if m <= INVERSE_TOL_MM || (m >= last && m <= INVERSE_MAX_MISS_MM) {
-                return Ok(r);
-            }
-            last = m;
-            // The nominal Jacobian differs from the true one by the error
-            // parameters (≈1e-5), so each step gains about five digits.
-            let j = kinematics::nominal_jacobian(r);
-            let step = j.lu().solve(&miss).ok_or(InverseError::Singular)?;
-            r.az -= step.x;
-            r.el -= step.y;
-            r.d -= step.z;
-        }
-        Err(InverseError::NoConvergence)
+        self.evaluator().reading_of(target, face)
     }
 }
 
@@ -517,6 +497,33 @@ impl Evaluator<'_> {
             Some(fr) => f(fr),
             None => f(&ErrorFrames::new(&self.params.base_at(q))),
         }
+    }
+
+    /// Section 5.1, measuring: the reading a tracker with these errors takes
+    /// when its beam reaches `target` — the joint values that solve Eq. (8)
+    /// exactly, found by Newton iteration from the nominal reading.
+    pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Result<Reading, InverseError> {
+        let mut r = kinematics::nominal_reading(target, face);
+        let mut last = f64::INFINITY;
+        for _ in 0..MAX_INVERSE_ITERS {
+            let q = r.joints();
+            let miss = self.point(q, &Links::new(q)) - target;
+            let m = miss.norm();
+            // Converged, or down to the rounding noise of coordinates of
+            // this size (which can sit just above the target tolerance).
+            if m <= INVERSE_TOL_MM || (m >= last && m <= INVERSE_MAX_MISS_MM) {
+                return Ok(r);
+            }
+            last = m;
+            // The nominal Jacobian differs from the true one by the error
+            // parameters (≈1e-5), so each step gains about five digits.
+            let j = kinematics::nominal_jacobian(r);
+            let step = j.lu().solve(&miss).ok_or(InverseError::Singular)?;
+            r.az -= step.x;
+            r.el -= step.y;
+            r.d -= step.z;
+        }
+        Err(InverseError::NoConvergence)
     }
 
     /// Eq. (8) at joints `q` whose link rotations are `links`.

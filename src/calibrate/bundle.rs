@@ -37,6 +37,7 @@ use argmin::core::{Error as ArgminError, Jacobian, Operator};
 use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
 
 /// `W·J(q)⁻¹` for a reading `r` with the σ of observation `o`.
 fn design_weight(o: &super::Observation, r: crate::kinematics::Reading) -> Matrix3<f64> {
@@ -112,7 +113,7 @@ impl Layout {
 }
 
 /// The bundle's normal equations, as the solver sees them.
-pub struct BundleNormal(Normal);
+pub struct BundleNormal(Arc<Normal>);
 
 impl NormalEquations for BundleNormal {
     fn gradient(&self) -> &DVector<f64> {
@@ -142,6 +143,9 @@ struct Bundle<'a> {
     free_index: &'a [usize],
     /// Error-parameter coordinates → free coefficients.
     basis: &'a DMatrix<f64>,
+    /// The basis row by row (free coefficient by free coefficient), for
+    /// the Jacobian's inner loop.
+    basis_rows: Vec<f64>,
     layout: &'a Layout,
     /// Initial pose of every station (the rotation updates are relative to it).
     poses0: &'a [Rigid],
@@ -149,6 +153,18 @@ struct Bundle<'a> {
     weights: &'a [Matrix3<f64>],
     /// Reference coordinates used as observations (when they fix the frame).
     use_references: bool,
+    /// Where the solver's last linearisation is kept, when asked.
+    last: Option<&'a Mutex<Option<Linearised>>>,
+}
+
+/// The linearisation the solver built last. Its last iteration linearises
+/// at the point it then returns (the step came out below tolerance), so
+/// the covariances at the solution take it instead of building it again.
+struct Linearised {
+    x: DVector<f64>,
+    jacobian: BlockJacobian,
+    residuals: DVector<f64>,
+    normal: Arc<Normal>,
 }
 
 impl<'a> Bundle<'a> {
@@ -177,6 +193,25 @@ impl<'a> Bundle<'a> {
         Vector3::new(x[o], x[o + 1], x[o + 2])
     }
 
+    /// Each station's pose at `x`, with what every reading's derivatives
+    /// by it share.
+    fn stations(&self, x: &DVector<f64>) -> Vec<StationAt> {
+        (0..self.net.stations.len())
+            .map(|s| {
+                let (r_s, c, w) = self.pose(x, s);
+                StationAt {
+                    to_station: *r_s.inverse().matrix(),
+                    c,
+                    free: self.layout.station[s],
+                    from_start: *self.poses0[s].rotation.inverse().matrix(),
+                    // ∂y/∂ω = Exp(−ω)·[v]×·J_r(−ω), v = R₀ᵀ(x − c).
+                    exp_minus_w: *Rotation3::new(-w).matrix(),
+                    jr_minus_w: right_jacobian(&(-w)),
+                }
+            })
+            .collect()
+    }
+
     /// One reading's residuals and, when `jac`, its Jacobian blocks. With
     /// `design`, the Jacobian is that of a consistent network — the
     /// reading's predicted point taken equal to its corrected one — so that
@@ -185,20 +220,19 @@ impl<'a> Bundle<'a> {
     fn reading_block(
         &self,
         x: &DVector<f64>,
-        params: &ErrorParams,
+        station: &StationAt,
         eval: &Evaluator,
         i: usize,
         jac: bool,
         design: bool,
     ) -> ReadingBlock {
         let o = &self.net.obs[i];
-        let (r_s, c, w) = self.pose(x, o.station);
         let xt = self.point(x, o.target);
-        let y = r_s.inverse() * (xt - c);
+        let y = station.to_station * (xt - station.c);
         // The design network reads exactly the predicted point: the joints
         // that reach `y` with the current parameters.
         let design_q = design
-            .then(|| params.reading_of(&y, o.face).ok())
+            .then(|| eval.reading_of(&y, o.face).ok())
             .flatten()
             .map(|r| (r.joints(), Links::new(r.joints()), design_weight(o, r)));
         let (q, links, m) = match &design_q {
@@ -217,23 +251,24 @@ impl<'a> Bundle<'a> {
         let p = eval.point_with_jacobian(q, links, &mut cols);
         // Error-parameter coordinates: 3 × n_free, then onto the basis.
         let nz = self.layout.n_z;
-        let jfree: Vec<Vector3<f64>> = self.free_index.iter().map(|&ci| m * cols[ci]).collect();
         let mut jz = vec![0.0; 3 * nz];
-        for row in 0..3 {
-            for c in 0..nz {
-                jz[row * nz + c] = jfree
-                    .iter()
-                    .enumerate()
-                    .map(|(k, j)| j[row] * self.basis[(k, c)])
-                    .sum();
+        // (`max(1)`: with no coordinate there is nothing to fill.)
+        for (&ci, basis_row) in self
+            .free_index
+            .iter()
+            .zip(self.basis_rows.chunks_exact(nz.max(1)))
+        {
+            let jk = m * cols[ci];
+            for (row, out) in jz.chunks_exact_mut(nz.max(1)).enumerate() {
+                for (o, b) in out.iter_mut().zip(basis_row) {
+                    *o += jk[row] * b;
+                }
             }
         }
-        let rt = r_s.inverse();
-        let rt = rt.matrix();
-        let station = self.layout.station[o.station].map(|so| {
-            // ∂y/∂ω = Exp(−ω)·[v]×·J_r(−ω); ∂y/∂c = −R_sᵀ.
-            let v = self.poses0[o.station].rotation.inverse() * (xt - c);
-            let dy_dw = Rotation3::new(-w).matrix() * v.cross_matrix() * right_jacobian(&(-w));
+        let rt = &station.to_station;
+        let station = station.free.map(|so| {
+            let v = station.from_start * (xt - station.c);
+            let dy_dw = station.exp_minus_w * v.cross_matrix() * station.jr_minus_w;
             let (a, b) = (-m * dy_dw, m * rt);
             let mut part = [0.0; 18];
             for row in 0..3 {
@@ -268,10 +303,14 @@ impl<'a> Bundle<'a> {
     ) {
         let params = self.params(x);
         let eval = params.evaluator();
+        let stations = self.stations(x);
         let blocks: Vec<ReadingBlock> = (0..self.net.obs.len())
             .into_par_iter()
             .with_min_len(256)
-            .map(|i| self.reading_block(x, &params, &eval, i, jac, design))
+            .map(|i| {
+                let s = &stations[self.net.obs[i].station];
+                self.reading_block(x, s, &eval, i, jac, design)
+            })
             .collect();
         for (o, b) in self.net.obs.iter().zip(&blocks) {
             if !jac {
@@ -340,6 +379,20 @@ impl<'a> Bundle<'a> {
     }
 }
 
+/// A station's pose at the current unknowns: `y = R_sᵀ·(x − c)` with
+/// `R_s = R₀·Exp(ω)`.
+struct StationAt {
+    /// `R_sᵀ`.
+    to_station: Matrix3<f64>,
+    c: Vector3<f64>,
+    /// The offset of its `(ω, c)` block, `None` when fixed.
+    free: Option<usize>,
+    /// `R₀ᵀ`.
+    from_start: Matrix3<f64>,
+    exp_minus_w: Matrix3<f64>,
+    jr_minus_w: Matrix3<f64>,
+}
+
 /// One reading's residuals (units of σ) and Jacobian blocks, row-major:
 /// on the error-parameter coordinates (3 × n_z), its station's pose
 /// (3 × 6, when free) and its reflector (3 × 3).
@@ -378,9 +431,30 @@ impl Jacobian for Bundle<'_> {
     type Jacobian = BundleNormal;
     fn jacobian(&self, x: &DVector<f64>) -> Result<BundleNormal, ArgminError> {
         let (j, r) = self.jacobian_at(x, false);
-        Ok(BundleNormal(Normal::assemble(&j, Some(&r), |_| true)))
+        let normal = Arc::new(Normal::assemble(&j, Some(&r), |_| true));
+        if let Some(last) = self.last {
+            *last.lock().unwrap_or_else(|e| e.into_inner()) = Some(Linearised {
+                x: x.clone(),
+                jacobian: j,
+                residuals: r,
+                normal: Arc::clone(&normal),
+            });
+        }
+        Ok(BundleNormal(normal))
     }
 }
+
+/// Marquardt's damping at the first step. The registration starts every
+/// pose and position close to the solution, where Gauss–Newton converges in
+/// two or three steps; a larger start (1e-4) damps the weakly determined
+/// directions — whose curvature lies decades below the diagonal — and
+/// stretches the fit to six to eight slowly converging steps (measured on
+/// the 605-reflector network). The damping still grows when a step fails.
+const INITIAL_LAMBDA: f64 = 1e-10;
+
+/// How closely the registration that starts the adjustment is refined: the
+/// adjustment itself takes the poses the rest of the way.
+const FIRST_GUESS_TOL_MM: f64 = 1e-4;
 
 /// What the analysis and the fit share: the free coefficients, the frame,
 /// the first guess of every pose and position, the reading weights.
@@ -397,7 +471,7 @@ impl Setup {
     fn new(net: &Network, start: &ErrorParams, free: &[bool]) -> Result<Setup> {
         let use_references = net.references_fix_frame();
         let anchor = use_references.then(|| net.reference_points());
-        let alignment = align(&net.station_points(start), anchor.as_ref())
+        let alignment = align(&net.station_points(start), anchor.as_ref(), FIRST_GUESS_TOL_MM)
             .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
         Ok(Setup {
             free_index: (0..free.len()).filter(|&i| free[i]).collect(),
@@ -445,10 +519,12 @@ impl Setup {
             start,
             free_index: &self.free_index,
             basis,
+            basis_rows: basis.transpose().as_slice().to_vec(),
             layout,
             poses0: &self.poses0,
             weights: &self.weights,
             use_references: self.use_references,
+            last: None,
         }
     }
 }
@@ -535,17 +611,28 @@ pub fn calibrate(
     let det = analyse_setup(net, start, &setup, settings.rank_tol)?;
     let basis = det.basis().clone();
     let layout = setup.layout(net, basis.ncols());
-    let problem = setup.problem(net, start, &basis, &layout);
+    let last = Mutex::new(None);
+    let problem = Bundle {
+        last: Some(&last),
+        ..setup.problem(net, start, &basis, &layout)
+    };
     let x0 = setup.initial(&layout);
     let r0 = problem.residuals(&x0);
     let fit = LevenbergMarquardt::new()
-        .with_initial_lambda(1e-4)
+        .with_initial_lambda(INITIAL_LAMBDA)
         .and_then(|lm| lm.minimize(problem, x0, settings.max_iters))
         .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?;
     let problem = setup.problem(net, start, &basis, &layout);
     let x = fit.x;
     let params = problem.params(&x);
-    let (jacobian, r) = problem.jacobian_at(&x, false);
+    let (jacobian, r, normal) = match last.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        Some(l) if l.x == x => (l.jacobian, l.residuals, l.normal),
+        _ => {
+            let (j, r) = problem.jacobian_at(&x, false);
+            let normal = Arc::new(Normal::assemble(&j, None, |_| true));
+            (j, r, normal)
+        }
+    };
     let m = r.len();
     let chi2 = r.norm_squared();
     let dof = m.saturating_sub(layout.n).max(1);
@@ -555,7 +642,7 @@ pub fn calibrate(
     // Covariance with the a-priori noise, inflated when the fit says the
     // noise was understated.
     let var_factor = (chi2 / dof as f64).max(1.0);
-    let factor = Normal::assemble(&jacobian, None, |_| true)
+    let factor = normal
         .factor(0.0)
         .ok_or_else(|| anyhow!("singular normal matrix at the solution"))?;
     let cov_a = factor.dense_covariance() * var_factor;
@@ -757,7 +844,7 @@ mod tests {
         let layout = setup.layout(&net, basis.ncols());
         let dense = Dense(setup.problem(&net, &start, &basis, &layout));
         let fit = LevenbergMarquardt::new()
-            .with_initial_lambda(1e-4)
+            .with_initial_lambda(INITIAL_LAMBDA)
             .and_then(|lm| lm.minimize(dense, setup.initial(&layout), 100))
             .unwrap();
         let problem = setup.problem(&net, &start, &basis, &layout);

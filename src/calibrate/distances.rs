@@ -412,7 +412,7 @@ pub fn calibrate(
     };
     let station_pts = net.station_points(&params);
     let anchor = net.references_fix_frame().then(|| net.reference_points());
-    let alignment = align(&station_pts, anchor.as_ref())
+    let alignment = align(&station_pts, anchor.as_ref(), 1e-10)
         .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
     Ok(Calibration {
         std,

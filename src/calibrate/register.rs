@@ -75,10 +75,14 @@ pub struct Alignment {
 /// frame. With `anchor`, the common frame is that of the given target
 /// positions (e.g. reference coordinates, at least 3 not on a line);
 /// without, it is station 0's frame. `None` when some station shares fewer
-/// than 3 targets (not on a line) with the stations placed before it.
+/// than 3 targets (not on a line) with the stations placed before it. The
+/// refinement stops when no station moves by more than `tol_mm`: a
+/// registration that is itself the result asks for round-off (1e-10 mm), a
+/// first guess that an adjustment refines needs far less.
 pub fn align(
     obs: &[BTreeMap<usize, Vector3<f64>>],
     anchor: Option<&BTreeMap<usize, Vector3<f64>>>,
+    tol_mm: f64,
 ) -> Option<Alignment> {
     let s_n = obs.len();
     let mut poses = vec![Rigid::identity(); s_n];
@@ -166,7 +170,7 @@ pub fn align(
                 poses[s] = p;
             }
         }
-        if moved < 1e-10 {
+        if moved < tol_mm {
             break;
         }
     }
@@ -233,7 +237,7 @@ mod tests {
                     .collect()
             })
             .collect();
-        let a = align(&obs, None).unwrap();
+        let a = align(&obs, None, 1e-10).unwrap();
         for (k, x) in &a.points {
             assert!((x - truth[*k]).norm() < 1e-9);
         }

@@ -274,22 +274,13 @@ impl BlockJacobian {
     }
 }
 
-/// Where a block's local column lands in the normal equations: a dense
-/// column (and its place among the block's position's columns), or one of
-/// the position's three.
-#[derive(Clone, Copy, Debug)]
-enum Dest {
-    Dense(usize, Option<usize>),
-    Point(usize),
-}
-
 /// One eliminated position's share of the normal equations.
 #[derive(Clone, Debug)]
 struct PointBlock {
     /// The dense-part columns its blocks touch, ascending.
     cols: Vec<usize>,
-    /// `H_AX` on those columns: `cols.len() × 3`.
-    h_ax: DMatrix<f64>,
+    /// `H_AX` on those columns: one row of three per column.
+    h_ax: Vec<[f64; 3]>,
     h_xx: Matrix3<f64>,
     /// Whether any admitted block touches it.
     seen: bool,
@@ -333,18 +324,22 @@ impl Normal {
             .into_iter()
             .zip(seen)
             .map(|(cols, seen)| PointBlock {
-                h_ax: DMatrix::zeros(cols.len(), 3),
+                h_ax: vec![[0.0; 3]; cols.len()],
                 cols,
                 h_xx: Matrix3::zeros(),
                 seen,
             })
             .collect();
-        let mut h_aa = DMatrix::zeros(n_a, n_a);
+        // H_AA column-major, accumulated on its upper triangle and
+        // mirrored once at the end.
+        let mut h_aa = vec![0.0; n_a * n_a];
         let mut g = DVector::zeros(j.n);
-        // Per block: its parts side by side (rows × w, row-major), where
-        // each local column goes, and the upper triangle of its JᵀJ.
+        // Per block: its dense columns side by side (column-major, `rows`
+        // values each), their global columns and their places among the
+        // position's columns.
         let mut local: Vec<f64> = Vec::new();
-        let mut dest: Vec<Dest> = Vec::new();
+        let mut global: Vec<usize> = Vec::new();
+        let mut place: Vec<usize> = Vec::new();
         for (b, blk) in j.blocks.iter().enumerate() {
             if !keep(b) {
                 continue;
@@ -353,61 +348,57 @@ impl Normal {
             if let Some(r) = r {
                 j.block_tr_mul(b, &r.as_slice()[blk.row..blk.row + rows], g.as_mut_slice());
             }
-            dest.clear();
-            let point = j.block_point(b);
-            for (col, w, _) in j.parts_of(blk) {
-                if col < n_a {
-                    let first =
-                        point.map(|p| points[p].cols.binary_search(&col).expect("collected above"));
-                    dest.extend((0..w).map(|c| Dest::Dense(col + c, first.map(|f| f + c))));
-                } else {
-                    dest.extend((0..3).map(Dest::Point));
-                }
-            }
-            let w = dest.len();
             local.clear();
-            local.resize(rows * w, 0.0);
-            let mut at = 0;
-            for (_, pw, v) in j.parts_of(blk) {
-                for k in 0..rows {
-                    local[k * w + at..k * w + at + pw].copy_from_slice(&v[k * pw..(k + 1) * pw]);
+            global.clear();
+            place.clear();
+            let point = j.block_point(b);
+            let mut x_part: Option<&[f64]> = None;
+            for (col, w, v) in j.parts_of(blk) {
+                if col >= n_a {
+                    x_part = Some(v);
+                    continue;
                 }
-                at += pw;
+                let first =
+                    point.map(|p| points[p].cols.binary_search(&col).expect("collected above"));
+                for c in 0..w {
+                    global.push(col + c);
+                    place.extend(first.map(|f| f + c));
+                    local.extend((0..rows).map(|k| v[k * w + c]));
+                }
             }
-            for a in 0..w {
-                for c in a..w {
-                    let mut h = 0.0;
-                    for k in 0..rows {
-                        h += local[k * w + a] * local[k * w + c];
+            let nd = global.len();
+            for a in 0..nd {
+                let la = &local[a * rows..(a + 1) * rows];
+                for c in a..nd {
+                    let h = dot(la, &local[c * rows..(c + 1) * rows]);
+                    let (lo, hi) = min_max(global[a], global[c]);
+                    h_aa[hi * n_a + lo] += h;
+                }
+            }
+            if let (Some(p), Some(x)) = (point, x_part) {
+                let pb = &mut points[p];
+                for a in 0..nd {
+                    let la = &local[a * rows..(a + 1) * rows];
+                    let row = &mut pb.h_ax[place[a]];
+                    for (c, out) in row.iter_mut().enumerate() {
+                        *out += (0..rows).map(|k| la[k] * x[k * 3 + c]).sum::<f64>();
                     }
-                    match (dest[a], dest[c]) {
-                        (Dest::Dense(ga, _), Dest::Dense(gc, _)) => {
-                            h_aa[(ga, gc)] += h;
-                            if ga != gc {
-                                h_aa[(gc, ga)] += h;
-                            }
+                }
+                for a in 0..3 {
+                    for c in a..3 {
+                        let h: f64 = (0..rows).map(|k| x[k * 3 + a] * x[k * 3 + c]).sum();
+                        pb.h_xx[(a, c)] += h;
+                        if a != c {
+                            pb.h_xx[(c, a)] += h;
                         }
-                        (Dest::Dense(_, Some(la)), Dest::Point(pc)) => {
-                            points[point.expect("a point column")].h_ax[(la, pc)] += h;
-                        }
-                        (Dest::Point(pa), Dest::Dense(_, Some(lc))) => {
-                            points[point.expect("a point column")].h_ax[(lc, pa)] += h;
-                        }
-                        (Dest::Point(pa), Dest::Point(pc)) => {
-                            let hx = &mut points[point.expect("a point column")].h_xx;
-                            hx[(pa, pc)] += h;
-                            if pa != pc {
-                                hx[(pc, pa)] += h;
-                            }
-                        }
-                        _ => unreachable!("a dense column beside a point has its local place"),
                     }
                 }
             }
         }
+        mirror_upper(&mut h_aa, n_a);
         Normal {
             n_a,
-            h_aa,
+            h_aa: DMatrix::from_vec(n_a, n_a, h_aa),
             points,
             g,
         }
@@ -425,8 +416,12 @@ impl Normal {
         let mut q = da.dot(&(&self.h_aa * da));
         for (i, p) in self.points.iter().enumerate() {
             let dx = d.fixed_rows::<3>(n_a + 3 * i);
-            let hx = &p.h_ax * dx;
-            let cross: f64 = p.cols.iter().zip(hx.iter()).map(|(&c, v)| d[c] * v).sum();
+            let cross: f64 = p
+                .cols
+                .iter()
+                .zip(&p.h_ax)
+                .map(|(&c, h)| d[c] * (h[0] * dx[0] + h[1] * dx[1] + h[2] * dx[2]))
+                .sum();
             q += 2.0 * cross + dx.dot(&(p.h_xx * dx));
         }
         q
@@ -462,32 +457,34 @@ impl Normal {
                 return None;
             }
             // W = H_AX·H_XX⁻¹ (cols × 3), then S −= W·H_XA on the upper
-            // triangle, mirrored: the small products written out, as they
-            // run once per reflector per factorisation.
-            let nc = p.cols.len();
-            let mut w = DMatrix::zeros(nc, 3);
-            for a in 0..nc {
-                for c in 0..3 {
-                    w[(a, c)] = (0..3).map(|k| p.h_ax[(a, k)] * inv[(k, c)]).sum();
-                }
-            }
-            for a in 0..nc {
-                let (wa0, wa1, wa2) = (w[(a, 0)], w[(a, 1)], w[(a, 2)]);
-                for b in a..nc {
-                    let v = wa0 * p.h_ax[(b, 0)] + wa1 * p.h_ax[(b, 1)] + wa2 * p.h_ax[(b, 2)];
-                    let (ca, cb) = (p.cols[a], p.cols[b]);
-                    s[(ca, cb)] -= v;
-                    if a != b {
-                        s[(cb, ca)] -= v;
+            // triangle (the columns ascend), mirrored once at the end: the
+            // small products written out, as they run once per reflector
+            // per factorisation.
+            let w: Vec<[f64; 3]> = p
+                .h_ax
+                .iter()
+                .map(|h| {
+                    let mut row = [0.0; 3];
+                    for (c, out) in row.iter_mut().enumerate() {
+                        *out = h[0] * inv[(0, c)] + h[1] * inv[(1, c)] + h[2] * inv[(2, c)];
                     }
+                    row
+                })
+                .collect();
+            let sm = s.as_mut_slice();
+            for (a, wa) in w.iter().enumerate() {
+                let ca = p.cols[a];
+                for (hb, &cb) in p.h_ax[a..].iter().zip(&p.cols[a..]) {
+                    sm[cb * n_a + ca] -= wa[0] * hb[0] + wa[1] * hb[1] + wa[2] * hb[2];
                 }
             }
             points.push(FactorPoint {
                 cols: p.cols.clone(),
                 inv,
-                w,
+                w: DMatrix::from_fn(w.len(), 3, |a, c| w[a][c]),
             });
         }
+        mirror_upper(s.as_mut_slice(), n_a);
         if !s.iter().all(|v| v.is_finite()) {
             return None;
         }
@@ -560,35 +557,56 @@ impl Factor {
 
     /// `N⁻¹·B` for the columns of `B` (n × k).
     pub fn solve_columns(&self, rhs: &DMatrix<f64>) -> DMatrix<f64> {
-        let n_a = self.n_a;
         let k = rhs.ncols();
-        let mut b = rhs.rows(0, n_a).into_owned();
+        let x = self.solve_rows(rhs.transpose().as_slice(), k);
+        DMatrix::from_row_slice(rhs.nrows(), k, &x)
+    }
+
+    /// `N⁻¹·B` with `B` (n × k) and the result row-major: a row's `k`
+    /// values side by side, so every inner loop runs over contiguous
+    /// memory.
+    fn solve_rows(&self, rhs: &[f64], k: usize) -> Vec<f64> {
+        let n_a = self.n_a;
+        // The dense part's right-hand side, reduced: b_A − Σ W_x·b_x.
+        let mut b = rhs[..n_a * k].to_vec();
         for (i, p) in self.points.iter().enumerate() {
-            if p.cols.is_empty() {
-                continue;
-            }
-            let wr = &p.w * rhs.rows(n_a + 3 * i, 3);
+            let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
             for (row, &c) in p.cols.iter().enumerate() {
-                for col in 0..k {
-                    b[(c, col)] -= wr[(row, col)];
+                let w = [p.w[(row, 0)], p.w[(row, 1)], p.w[(row, 2)]];
+                let out = &mut b[c * k..(c + 1) * k];
+                for (col, o) in out.iter_mut().enumerate() {
+                    *o -= w[0] * rx[col] + w[1] * rx[k + col] + w[2] * rx[2 * k + col];
                 }
             }
         }
-        for mut c in b.column_iter_mut() {
-            c.component_mul_assign(&self.d);
-        }
-        let mut xa = self.chol.solve(&b);
-        for mut c in xa.column_iter_mut() {
-            c.component_mul_assign(&self.d);
-        }
-        let mut x = DMatrix::zeros(rhs.nrows(), k);
-        x.rows_mut(0, n_a).copy_from(&xa);
-        for (i, p) in self.points.iter().enumerate() {
-            let mut xx = p.inv * rhs.rows(n_a + 3 * i, 3);
-            if !p.cols.is_empty() {
-                xx -= p.w.transpose() * xa.select_rows(&p.cols);
+        let scaled = DMatrix::from_fn(n_a, k, |r, c| b[r * k + c] * self.d[r]);
+        let xa = self.chol.solve(&scaled);
+        let mut x = vec![0.0; rhs.len()];
+        for r in 0..n_a {
+            for c in 0..k {
+                x[r * k + c] = xa[(r, c)] * self.d[r];
             }
-            x.rows_mut(n_a + 3 * i, 3).copy_from(&xx);
+        }
+        let (xa, xx) = x.split_at_mut(n_a * k);
+        for (i, p) in self.points.iter().enumerate() {
+            let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
+            let out = &mut xx[3 * i * k..(3 * i + 3) * k];
+            for a in 0..3 {
+                let inv = [p.inv[(a, 0)], p.inv[(a, 1)], p.inv[(a, 2)]];
+                for col in 0..k {
+                    out[a * k + col] =
+                        inv[0] * rx[col] + inv[1] * rx[k + col] + inv[2] * rx[2 * k + col];
+                }
+            }
+            for (row, &c) in p.cols.iter().enumerate() {
+                let xc = &xa[c * k..(c + 1) * k];
+                for a in 0..3 {
+                    let w = p.w[(row, a)];
+                    for (o, v) in out[a * k..(a + 1) * k].iter_mut().zip(xc) {
+                        *o -= w * v;
+                    }
+                }
+            }
         }
         x
     }
@@ -609,9 +627,23 @@ impl Factor {
     /// `v·H_XX⁻¹ + Wᵀ·C·W` with `W = H_AX·H_XX⁻¹` (the Schur blocks).
     pub fn point_covariance(&self, i: usize, dense_cov: &DMatrix<f64>, v: f64) -> Matrix3<f64> {
         let p = &self.points[i];
-        let sub = dense_cov.select_rows(&p.cols).select_columns(&p.cols);
-        let add = p.w.transpose() * sub * &p.w;
-        p.inv * v + Matrix3::from_iterator(add.iter().copied())
+        // Wᵀ·C·W over the position's columns, without gathering C.
+        let mut add = Matrix3::<f64>::zeros();
+        for (b, &cb) in p.cols.iter().enumerate() {
+            let mut cw = Vector3::<f64>::zeros();
+            for (a, &ca) in p.cols.iter().enumerate() {
+                let c = dense_cov[(ca, cb)];
+                for k in 0..3 {
+                    cw[k] += c * p.w[(a, k)];
+                }
+            }
+            for k in 0..3 {
+                for l in 0..3 {
+                    add[(k, l)] += cw[k] * p.w[(b, l)];
+                }
+            }
+        }
+        p.inv * v + add
     }
 
     /// `wᵀ·S⁻¹·v` pieces for sparse right-hand sides: the dense-part
@@ -688,9 +720,7 @@ pub fn project_out_columns(j: &BlockJacobian, f: &Factor, x: &DMatrix<f64>) -> D
                 }
             }
         }
-        let g = DMatrix::from_row_slice(j.n, k, &g);
-        let y = f.solve_columns(&g).transpose();
-        let y = y.as_slice(); // n × k row-major
+        let y = f.solve_rows(&g, k);
         // r −= J·y
         for blk in &j.blocks {
             for (col, w, v) in j.parts_of(blk) {
@@ -708,6 +738,24 @@ pub fn project_out_columns(j: &BlockJacobian, f: &Factor, x: &DMatrix<f64>) -> D
         }
     }
     DMatrix::from_row_slice(j.m, k, &r)
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+fn min_max(a: usize, b: usize) -> (usize, usize) {
+    if a <= b { (a, b) } else { (b, a) }
+}
+
+/// Copies the upper triangle of a column-major `n × n` matrix onto its
+/// lower one.
+fn mirror_upper(m: &mut [f64], n: usize) {
+    for c in 0..n {
+        for r in c + 1..n {
+            m[c * n + r] = m[r * n + c];
+        }
+    }
 }
 
 /// The unknowns mix mm, rad and µm-level parameters, so the normal matrix
