@@ -876,6 +876,33 @@ mod tests {
         }
     }
 
+    /// The assembly and the factorisation split the reflectors into a
+    /// fixed number of chunks and the readings are evaluated in parallel:
+    /// the numbers must not depend on how many threads do it.
+    #[test]
+    fn bundle_results_do_not_depend_on_the_number_of_threads() {
+        let net = corner_network();
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let settings = Settings {
+            objective: super::super::Objective::Bundle,
+            norm: Norm::L2,
+            rank_tol: crate::identifiability::DEFAULT_REL_TOL,
+            max_iters: 100,
+        };
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| calibrate(&net, &start, &[true; 18], &settings).unwrap())
+        };
+        let (one, three) = (run(1), run(3));
+        assert_eq!(one.params.values(), three.params.values());
+        assert_eq!(one.std, three.std);
+        assert_eq!(one.fit.chi2, three.fit.chi2);
+        assert_eq!(one.point_std, three.point_std);
+    }
+
     #[test]
     fn right_jacobian_matches_finite_differences() {
         let phi = Vector3::new(0.3, -0.2, 0.5);

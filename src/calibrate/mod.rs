@@ -32,7 +32,7 @@ use crate::noise::Noise;
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 
 /// Reading noise assumed when the campaign does not state it (FIELD.md,
 /// typical indoor values).
@@ -108,7 +108,18 @@ impl Network {
         }
         let stations = c.stations();
         let targets: Vec<String> = c.targets.iter().map(|t| t.id.clone()).collect();
-        let index = |id: &str| targets.iter().position(|t| t == id);
+        // Looked up once per reading: a map, so that thousands of
+        // reflectors cost no more per reading than ten.
+        let mut by_id: HashMap<&str, usize> = HashMap::with_capacity(targets.len());
+        for (i, t) in targets.iter().enumerate() {
+            by_id.entry(t.as_str()).or_insert(i);
+        }
+        let station_of: HashMap<&str, usize> = stations
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (s.as_str(), i))
+            .collect();
+        let index = |id: &str| by_id.get(id).copied();
         let t = &c.meta.tracker;
         let noise_stated = t.sigma_angle_urad.is_some() || t.sigma_range_um.is_some();
         let noise = Noise {
@@ -122,10 +133,7 @@ impl Network {
         for r in &c.readings {
             let target = index(&r.target)
                 .ok_or_else(|| anyhow!("reading of unknown reflector `{}`", r.target))?;
-            let station = stations
-                .iter()
-                .position(|s| *s == r.station)
-                .expect("listed");
+            let station = station_of[r.station.as_str()];
             let reading = r.reading();
             let q = reading.joints();
             obs.push(Observation {

@@ -33,6 +33,7 @@
 //! that of `JᵀJ`.
 
 use nalgebra::{DMatrix, DVector, Dyn, Matrix3, Vector3, linalg::Cholesky};
+use rayon::prelude::*;
 
 /// One Jacobian block of a residual block: `rows × width` values,
 /// row-major, starting at column `col`.
@@ -282,8 +283,104 @@ struct PointBlock {
     /// `H_AX` on those columns: one row of three per column.
     h_ax: Vec<[f64; 3]>,
     h_xx: Matrix3<f64>,
+    /// Its three entries of `Jᵀr`.
+    g_x: [f64; 3],
     /// Whether any admitted block touches it.
     seen: bool,
+}
+
+/// Parallel assembly and factorisation split the positions into this many
+/// chunks: fixed, so that the sums do not depend on the thread count.
+const CHUNKS: usize = 16;
+
+/// One chunk's share of the assembly: `H_AA` (column-major, upper
+/// triangle) and the dense part of `Jᵀr`, and the scratch space of a block.
+struct Accumulator<'a> {
+    j: &'a BlockJacobian,
+    r: Option<&'a DVector<f64>>,
+    h_aa: Vec<f64>,
+    g_a: Vec<f64>,
+    /// A block's dense columns side by side (column-major, `rows` values
+    /// each), their global columns and their places among the position's
+    /// columns.
+    local: Vec<f64>,
+    global: Vec<usize>,
+    place: Vec<usize>,
+}
+
+impl<'a> Accumulator<'a> {
+    fn new(j: &'a BlockJacobian, r: Option<&'a DVector<f64>>) -> Accumulator<'a> {
+        Accumulator {
+            j,
+            r,
+            h_aa: vec![0.0; j.n_a * j.n_a],
+            g_a: vec![0.0; j.n_a],
+            local: Vec::new(),
+            global: Vec::new(),
+            place: Vec::new(),
+        }
+    }
+
+    /// Adds block `b`'s `JᵀJ` and `Jᵀr`; `pb` is its position's share
+    /// (`None` for a block on the dense part alone).
+    fn add(&mut self, b: usize, pb: Option<&mut PointBlock>) {
+        let (j, n_a) = (self.j, self.j.n_a);
+        let blk = &j.blocks[b];
+        let rows = blk.rows;
+        self.local.clear();
+        self.global.clear();
+        self.place.clear();
+        let res = self.r.map(|r| &r.as_slice()[blk.row..blk.row + rows]);
+        let mut x_part: Option<&[f64]> = None;
+        for (col, w, v) in j.parts_of(blk) {
+            if col >= n_a {
+                x_part = Some(v);
+                continue;
+            }
+            let first = pb.as_ref().map(|p| {
+                p.cols
+                    .binary_search(&col)
+                    .expect("collected from these blocks")
+            });
+            for c in 0..w {
+                self.global.push(col + c);
+                self.place.extend(first.map(|f| f + c));
+                self.local.extend((0..rows).map(|k| v[k * w + c]));
+            }
+        }
+        let local = &self.local;
+        for (a, &ga) in self.global.iter().enumerate() {
+            let la = &local[a * rows..(a + 1) * rows];
+            if let Some(res) = res {
+                self.g_a[ga] += dot(la, res);
+            }
+            for (c, &gc) in self.global.iter().enumerate().skip(a) {
+                let h = dot(la, &local[c * rows..(c + 1) * rows]);
+                let (lo, hi) = min_max(ga, gc);
+                self.h_aa[hi * n_a + lo] += h;
+            }
+        }
+        if let (Some(pb), Some(x)) = (pb, x_part) {
+            for (a, &pa) in self.place.iter().enumerate() {
+                let la = &local[a * rows..(a + 1) * rows];
+                for (c, out) in pb.h_ax[pa].iter_mut().enumerate() {
+                    *out += (0..rows).map(|k| la[k] * x[k * 3 + c]).sum::<f64>();
+                }
+            }
+            for a in 0..3 {
+                if let Some(res) = res {
+                    pb.g_x[a] += (0..rows).map(|k| x[k * 3 + a] * res[k]).sum::<f64>();
+                }
+                for c in a..3 {
+                    let h: f64 = (0..rows).map(|k| x[k * 3 + a] * x[k * 3 + c]).sum();
+                    pb.h_xx[(a, c)] += h;
+                    if a != c {
+                        pb.h_xx[(c, a)] += h;
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// The normal equations `JᵀJ·δ = −Jᵀr` in arrow form.
@@ -298,107 +395,80 @@ pub struct Normal {
 
 impl Normal {
     /// `JᵀJ` and `Jᵀr` over the blocks `keep` admits (every block: `|_| true`).
+    ///
+    /// The positions are split into a fixed number of chunks ([`CHUNKS`])
+    /// assembled in parallel, each with its own share of `H_AA` and of the
+    /// dense gradient, added in chunk order: the same sums, in the same
+    /// order, whatever the number of threads.
     pub fn assemble(
         j: &BlockJacobian,
         r: Option<&DVector<f64>>,
-        keep: impl Fn(usize) -> bool,
+        keep: impl Fn(usize) -> bool + Sync,
     ) -> Normal {
         let n_a = j.n_a;
-        // Which dense columns each position's blocks touch.
-        let mut cols: Vec<Vec<usize>> = vec![Vec::new(); j.points()];
-        let mut seen = vec![false; j.points()];
-        for (b, blk) in j.blocks.iter().enumerate() {
+        // Each position's admitted blocks, in order; blocks on the dense
+        // part alone (gauge lengths between coupled reflectors, their
+        // readings and references) apart.
+        let mut by_point: Vec<Vec<usize>> = vec![Vec::new(); j.points()];
+        let mut dense_only = Vec::new();
+        for b in 0..j.blocks.len() {
             if !keep(b) {
                 continue;
             }
-            if let Some(p) = j.block_point(b) {
-                j.dense_cols(blk, &mut cols[p]);
-                seen[p] = true;
+            match j.block_point(b) {
+                Some(p) => by_point[p].push(b),
+                None => dense_only.push(b),
             }
         }
-        for c in &mut cols {
-            c.sort_unstable();
-            c.dedup();
-        }
-        let mut points: Vec<PointBlock> = cols
-            .into_iter()
-            .zip(seen)
-            .map(|(cols, seen)| PointBlock {
-                h_ax: vec![[0.0; 3]; cols.len()],
-                cols,
-                h_xx: Matrix3::zeros(),
-                seen,
+        let chunk = by_point.len().div_ceil(CHUNKS).max(1);
+        let shares: Vec<(Vec<f64>, Vec<f64>, Vec<PointBlock>)> = by_point
+            .par_chunks(chunk)
+            .map(|blocks_of| {
+                let mut acc = Accumulator::new(j, r);
+                let points = blocks_of
+                    .iter()
+                    .map(|blocks| {
+                        let mut cols = Vec::new();
+                        for &b in blocks {
+                            j.dense_cols(&j.blocks[b], &mut cols);
+                        }
+                        cols.sort_unstable();
+                        cols.dedup();
+                        let mut pb = PointBlock {
+                            h_ax: vec![[0.0; 3]; cols.len()],
+                            cols,
+                            h_xx: Matrix3::zeros(),
+                            g_x: [0.0; 3],
+                            seen: !blocks.is_empty(),
+                        };
+                        for &b in blocks {
+                            acc.add(b, Some(&mut pb));
+                        }
+                        pb
+                    })
+                    .collect();
+                (acc.h_aa, acc.g_a, points)
             })
             .collect();
-        // H_AA column-major, accumulated on its upper triangle and
-        // mirrored once at the end.
-        let mut h_aa = vec![0.0; n_a * n_a];
-        let mut g = DVector::zeros(j.n);
-        // Per block: its dense columns side by side (column-major, `rows`
-        // values each), their global columns and their places among the
-        // position's columns.
-        let mut local: Vec<f64> = Vec::new();
-        let mut global: Vec<usize> = Vec::new();
-        let mut place: Vec<usize> = Vec::new();
-        for (b, blk) in j.blocks.iter().enumerate() {
-            if !keep(b) {
-                continue;
-            }
-            let rows = blk.rows;
-            if let Some(r) = r {
-                j.block_tr_mul(b, &r.as_slice()[blk.row..blk.row + rows], g.as_mut_slice());
-            }
-            local.clear();
-            global.clear();
-            place.clear();
-            let point = j.block_point(b);
-            let mut x_part: Option<&[f64]> = None;
-            for (col, w, v) in j.parts_of(blk) {
-                if col >= n_a {
-                    x_part = Some(v);
-                    continue;
-                }
-                let first =
-                    point.map(|p| points[p].cols.binary_search(&col).expect("collected above"));
-                for c in 0..w {
-                    global.push(col + c);
-                    place.extend(first.map(|f| f + c));
-                    local.extend((0..rows).map(|k| v[k * w + c]));
-                }
-            }
-            let nd = global.len();
-            for a in 0..nd {
-                let la = &local[a * rows..(a + 1) * rows];
-                for c in a..nd {
-                    let h = dot(la, &local[c * rows..(c + 1) * rows]);
-                    let (lo, hi) = min_max(global[a], global[c]);
-                    h_aa[hi * n_a + lo] += h;
-                }
-            }
-            if let (Some(p), Some(x)) = (point, x_part) {
-                let pb = &mut points[p];
-                for a in 0..nd {
-                    let la = &local[a * rows..(a + 1) * rows];
-                    let row = &mut pb.h_ax[place[a]];
-                    for (c, out) in row.iter_mut().enumerate() {
-                        *out += (0..rows).map(|k| la[k] * x[k * 3 + c]).sum::<f64>();
-                    }
-                }
-                for a in 0..3 {
-                    for c in a..3 {
-                        let h: f64 = (0..rows).map(|k| x[k * 3 + a] * x[k * 3 + c]).sum();
-                        pb.h_xx[(a, c)] += h;
-                        if a != c {
-                            pb.h_xx[(c, a)] += h;
-                        }
-                    }
-                }
-            }
+        let mut acc = Accumulator::new(j, r);
+        for &b in &dense_only {
+            acc.add(b, None);
         }
-        mirror_upper(&mut h_aa, n_a);
+        let mut points = Vec::with_capacity(j.points());
+        for (h_aa, g_a, pts) in shares {
+            acc.h_aa.iter_mut().zip(&h_aa).for_each(|(a, b)| *a += b);
+            acc.g_a.iter_mut().zip(&g_a).for_each(|(a, b)| *a += b);
+            points.extend(pts);
+        }
+        mirror_upper(&mut acc.h_aa, n_a);
+        let mut g = DVector::zeros(j.n);
+        g.rows_mut(0, n_a).copy_from_slice(&acc.g_a);
+        for (i, p) in points.iter().enumerate() {
+            g.fixed_rows_mut::<3>(n_a + 3 * i).copy_from_slice(&p.g_x);
+        }
         Normal {
             n_a,
-            h_aa: DMatrix::from_vec(n_a, n_a, h_aa),
+            h_aa: DMatrix::from_vec(n_a, n_a, acc.h_aa),
             points,
             g,
         }
@@ -434,55 +504,33 @@ impl Normal {
     /// choice.
     pub fn factor(&self, lambda: f64) -> Option<Factor> {
         let n_a = self.n_a;
+        let chunk = self.points.len().div_ceil(CHUNKS).max(1);
+        // Each chunk of positions: their inverse blocks and their share of
+        // Σ H_AX·H_XX⁻¹·H_XA (upper triangle), subtracted in chunk order.
+        let shares: Vec<Option<(Vec<f64>, Vec<FactorPoint>)>> = self
+            .points
+            .par_chunks(chunk)
+            .map(|pts| {
+                let mut share = vec![0.0; n_a * n_a];
+                let factored = pts
+                    .iter()
+                    .map(|p| eliminate(p, lambda, &mut share, n_a))
+                    .collect::<Option<Vec<_>>>()?;
+                Some((share, factored))
+            })
+            .collect();
         let mut s = self.h_aa.clone();
         for i in 0..n_a {
             s[(i, i)] += lambda * self.h_aa[(i, i)].max(1e-300);
         }
         let mut points = Vec::with_capacity(self.points.len());
-        for p in &self.points {
-            if !p.seen {
-                points.push(FactorPoint {
-                    cols: Vec::new(),
-                    inv: Matrix3::zeros(),
-                    w: DMatrix::zeros(0, 3),
-                });
-                continue;
-            }
-            let mut d = p.h_xx;
-            for i in 0..3 {
-                d[(i, i)] += lambda * p.h_xx[(i, i)].max(1e-300);
-            }
-            let inv = d.try_inverse()?;
-            if !inv.iter().all(|v| v.is_finite()) {
-                return None;
-            }
-            // W = H_AX·H_XX⁻¹ (cols × 3), then S −= W·H_XA on the upper
-            // triangle (the columns ascend), mirrored once at the end: the
-            // small products written out, as they run once per reflector
-            // per factorisation.
-            let w: Vec<[f64; 3]> = p
-                .h_ax
-                .iter()
-                .map(|h| {
-                    let mut row = [0.0; 3];
-                    for (c, out) in row.iter_mut().enumerate() {
-                        *out = h[0] * inv[(0, c)] + h[1] * inv[(1, c)] + h[2] * inv[(2, c)];
-                    }
-                    row
-                })
-                .collect();
-            let sm = s.as_mut_slice();
-            for (a, wa) in w.iter().enumerate() {
-                let ca = p.cols[a];
-                for (hb, &cb) in p.h_ax[a..].iter().zip(&p.cols[a..]) {
-                    sm[cb * n_a + ca] -= wa[0] * hb[0] + wa[1] * hb[1] + wa[2] * hb[2];
-                }
-            }
-            points.push(FactorPoint {
-                cols: p.cols.clone(),
-                inv,
-                w: DMatrix::from_fn(w.len(), 3, |a, c| w[a][c]),
-            });
+        for share in shares {
+            let (share, factored) = share?;
+            s.as_mut_slice()
+                .iter_mut()
+                .zip(&share)
+                .for_each(|(a, b)| *a -= b);
+            points.extend(factored);
         }
         mirror_upper(s.as_mut_slice(), n_a);
         if !s.iter().all(|v| v.is_finite()) {
@@ -497,6 +545,51 @@ impl Normal {
             points,
         })
     }
+}
+
+/// Eliminates one position: its damped inverse block and
+/// `W = H_AX·H_XX⁻¹`, with `W·H_XA` added to `share` (column-major, upper
+/// triangle: the columns ascend); `None` when its block is singular. The
+/// small products are written out, as they run once per reflector per
+/// factorisation.
+fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Option<FactorPoint> {
+    if !p.seen {
+        return Some(FactorPoint {
+            cols: Vec::new(),
+            inv: Matrix3::zeros(),
+            w: DMatrix::zeros(0, 3),
+        });
+    }
+    let mut d = p.h_xx;
+    for i in 0..3 {
+        d[(i, i)] += lambda * p.h_xx[(i, i)].max(1e-300);
+    }
+    let inv = d.try_inverse()?;
+    if !inv.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let w: Vec<[f64; 3]> = p
+        .h_ax
+        .iter()
+        .map(|h| {
+            let mut row = [0.0; 3];
+            for (c, out) in row.iter_mut().enumerate() {
+                *out = h[0] * inv[(0, c)] + h[1] * inv[(1, c)] + h[2] * inv[(2, c)];
+            }
+            row
+        })
+        .collect();
+    for (a, wa) in w.iter().enumerate() {
+        let ca = p.cols[a];
+        for (hb, &cb) in p.h_ax[a..].iter().zip(&p.cols[a..]) {
+            share[cb * n_a + ca] += wa[0] * hb[0] + wa[1] * hb[1] + wa[2] * hb[2];
+        }
+    }
+    Some(FactorPoint {
+        cols: p.cols.clone(),
+        inv,
+        w: DMatrix::from_fn(w.len(), 3, |a, c| w[a][c]),
+    })
 }
 
 /// One eliminated position in a factorisation.
