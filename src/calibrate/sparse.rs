@@ -120,16 +120,6 @@ impl BlockJacobian {
         self.n
     }
 
-    /// Number of residual blocks.
-    pub fn blocks(&self) -> usize {
-        self.blocks.len()
-    }
-
-    /// The first row and the row count of block `b`.
-    pub fn block_rows(&self, b: usize) -> (usize, usize) {
-        (self.blocks[b].row, self.blocks[b].rows)
-    }
-
     fn parts_of(&self, b: &Block) -> impl Iterator<Item = (usize, usize, &[f64])> {
         self.parts[b.parts.0..b.parts.1]
             .iter()
@@ -178,8 +168,16 @@ impl BlockJacobian {
 
     /// `Jᵀ·r`.
     pub fn tr_mul(&self, r: &DVector<f64>) -> DVector<f64> {
+        self.tr_mul_kept(r, |_| true)
+    }
+
+    /// `Jᵀ·r` over the blocks `keep` admits (the others count as zero rows).
+    pub fn tr_mul_kept(&self, r: &DVector<f64>, keep: impl Fn(usize) -> bool) -> DVector<f64> {
         let mut out = DVector::zeros(self.n);
         for (b, blk) in self.blocks.iter().enumerate() {
+            if !keep(b) {
+                continue;
+            }
             self.block_tr_mul(
                 b,
                 &r.as_slice()[blk.row..blk.row + blk.rows],
@@ -187,6 +185,55 @@ impl BlockJacobian {
             );
         }
         out
+    }
+
+    /// `Jᵀ·X` over the blocks `keep` admits, for the `k` columns of `X`
+    /// (m × k, row-major: a row's `k` values side by side); n × k, row-major.
+    pub fn tr_mul_rows(&self, x: &[f64], k: usize, keep: impl Fn(usize) -> bool) -> Vec<f64> {
+        let mut g = vec![0.0; self.n * k];
+        for (b, blk) in self.blocks.iter().enumerate() {
+            if !keep(b) {
+                continue;
+            }
+            for (col, w, v) in self.parts_of(blk) {
+                for row in 0..blk.rows {
+                    let xr = &x[(blk.row + row) * k..(blk.row + row + 1) * k];
+                    for a in 0..w {
+                        let coef = v[row * w + a];
+                        let out = &mut g[(col + a) * k..(col + a + 1) * k];
+                        for (o, x) in out.iter_mut().zip(xr) {
+                            *o += coef * x;
+                        }
+                    }
+                }
+            }
+        }
+        g
+    }
+
+    /// `out −= J·Y` for the `k` columns of `Y` (n × k) and `out` (m × k),
+    /// both row-major.
+    pub fn sub_mul_rows(&self, y: &[f64], k: usize, out: &mut [f64]) {
+        for (b, blk) in self.blocks.iter().enumerate() {
+            self.block_sub_mul_rows(b, y, k, &mut out[blk.row * k..(blk.row + blk.rows) * k]);
+        }
+    }
+
+    /// `out −= J_b·Y`: block `b`'s rows only (`out` is rows × k).
+    pub fn block_sub_mul_rows(&self, b: usize, y: &[f64], k: usize, out: &mut [f64]) {
+        let blk = &self.blocks[b];
+        for (col, w, v) in self.parts_of(blk) {
+            for row in 0..blk.rows {
+                let o = &mut out[row * k..(row + 1) * k];
+                for a in 0..w {
+                    let coef = v[row * w + a];
+                    let ya = &y[(col + a) * k..(col + a + 1) * k];
+                    for (o, x) in o.iter_mut().zip(ya) {
+                        *o -= coef * x;
+                    }
+                }
+            }
+        }
     }
 
     /// The eliminated position a block touches, if any.
@@ -623,42 +670,13 @@ impl Factor {
 
     /// `N⁻¹·rhs`.
     pub fn solve(&self, rhs: &DVector<f64>) -> DVector<f64> {
-        let n_a = self.n_a;
-        let mut b = rhs.rows(0, n_a).into_owned();
-        for (i, p) in self.points.iter().enumerate() {
-            let rx = rhs.fixed_rows::<3>(n_a + 3 * i);
-            let wr = &p.w * rx;
-            for (k, &c) in p.cols.iter().enumerate() {
-                b[c] -= wr[k];
-            }
-        }
-        let xa = self.solve_schur(&b);
-        let mut x = DVector::zeros(rhs.len());
-        x.rows_mut(0, n_a).copy_from(&xa);
-        for (i, p) in self.points.iter().enumerate() {
-            let rx = rhs.fixed_rows::<3>(n_a + 3 * i);
-            let mut xx = p.inv * rx;
-            for (k, &c) in p.cols.iter().enumerate() {
-                for a in 0..3 {
-                    xx[a] -= p.w[(k, a)] * xa[c];
-                }
-            }
-            x.fixed_rows_mut::<3>(n_a + 3 * i).copy_from(&xx);
-        }
-        x
-    }
-
-    /// `N⁻¹·B` for the columns of `B` (n × k).
-    pub fn solve_columns(&self, rhs: &DMatrix<f64>) -> DMatrix<f64> {
-        let k = rhs.ncols();
-        let x = self.solve_rows(rhs.transpose().as_slice(), k);
-        DMatrix::from_row_slice(rhs.nrows(), k, &x)
+        DVector::from_vec(self.solve_rows(rhs.as_slice(), 1))
     }
 
     /// `N⁻¹·B` with `B` (n × k) and the result row-major: a row's `k`
     /// values side by side, so every inner loop runs over contiguous
     /// memory.
-    fn solve_rows(&self, rhs: &[f64], k: usize) -> Vec<f64> {
+    pub fn solve_rows(&self, rhs: &[f64], k: usize) -> Vec<f64> {
         let n_a = self.n_a;
         // The dense part's right-hand side, reduced: b_A − Σ W_x·b_x.
         let mut b = rhs[..n_a * k].to_vec();
@@ -780,13 +798,7 @@ impl Factor {
 /// `x − J·N⁻¹·Jᵀ·x`: what of `x` no combination of `J`'s columns
 /// reproduces, by the corrected semi-normal equations (see the module doc).
 pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f64> {
-    let mut r = x.clone();
-    // The solve, then one correction from the unsquared residual.
-    for _ in 0..2 {
-        let y = f.solve(&j.tr_mul(&r));
-        r -= j.mul(&y);
-    }
-    r
+    DVector::from_vec(project_out_rows(j, f, x.as_slice(), 1))
 }
 
 /// [`project_out`] for the `k` columns of `x` (m × k) at once: one pass
@@ -794,43 +806,39 @@ pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f
 /// identifiability analysis (18 columns) cost a few passes, not 18 × a few.
 pub fn project_out_columns(j: &BlockJacobian, f: &Factor, x: &DMatrix<f64>) -> DMatrix<f64> {
     let k = x.ncols();
-    // Row-major copies: a row's k values side by side.
-    let mut r: Vec<f64> = x.transpose().as_slice().to_vec();
-    for _ in 0..2 {
-        // Jᵀ·r, n × k row-major.
-        let mut g = vec![0.0; j.n * k];
-        for blk in &j.blocks {
-            for (col, w, v) in j.parts_of(blk) {
-                for row in 0..blk.rows {
-                    let rr = &r[(blk.row + row) * k..(blk.row + row + 1) * k];
-                    for a in 0..w {
-                        let coef = v[row * w + a];
-                        let out = &mut g[(col + a) * k..(col + a + 1) * k];
-                        for (o, x) in out.iter_mut().zip(rr) {
-                            *o += coef * x;
-                        }
-                    }
-                }
-            }
-        }
-        let y = f.solve_rows(&g, k);
-        // r −= J·y
-        for blk in &j.blocks {
-            for (col, w, v) in j.parts_of(blk) {
-                for row in 0..blk.rows {
-                    let out = &mut r[(blk.row + row) * k..(blk.row + row + 1) * k];
-                    for a in 0..w {
-                        let coef = v[row * w + a];
-                        let ya = &y[(col + a) * k..(col + a + 1) * k];
-                        for (o, x) in out.iter_mut().zip(ya) {
-                            *o -= coef * x;
-                        }
-                    }
-                }
-            }
-        }
-    }
+    let r = project_out_rows(j, f, x.transpose().as_slice(), k);
     DMatrix::from_row_slice(j.m, k, &r)
+}
+
+/// [`project_out`] for the `k` columns of `x` given row-major (a row's
+/// `k` values side by side), the result likewise.
+pub fn project_out_rows(j: &BlockJacobian, f: &Factor, x: &[f64], k: usize) -> Vec<f64> {
+    let mut r = x.to_vec();
+    // The solve, then one correction from the unsquared residual.
+    for _ in 0..2 {
+        let y = f.solve_rows(&j.tr_mul_rows(&r, k, |_| true), k);
+        j.sub_mul_rows(&y, k, &mut r);
+    }
+    r
+}
+
+/// `N⁻¹·Jᵀ·x` over the blocks `keep` admits (the normal matrix `f`
+/// factorises), for the `k` columns of `x` given row-major, refined once
+/// from the unsquared residual: the least-squares fit to `x` by the
+/// corrected semi-normal equations.
+pub fn solve_ls_rows(
+    j: &BlockJacobian,
+    f: &Factor,
+    x: &[f64],
+    k: usize,
+    keep: impl Fn(usize) -> bool,
+) -> Vec<f64> {
+    let mut y = f.solve_rows(&j.tr_mul_rows(x, k, &keep), k);
+    let mut res = x.to_vec();
+    j.sub_mul_rows(&y, k, &mut res);
+    let dy = f.solve_rows(&j.tr_mul_rows(&res, k, &keep), k);
+    y.iter_mut().zip(dy).for_each(|(a, b)| *a += b);
+    y
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {

@@ -60,7 +60,7 @@ fn categorical(name: &'static str, values: Vec<Option<String>>) -> Factor {
         .iter()
         .map(|v| {
             v.as_ref()
-                .and_then(|v| labels.iter().position(|l| l == v))
+                .and_then(|v| labels.binary_search(v).ok())
                 .map_or(f64::NAN, |i| i as f64)
         })
         .collect();

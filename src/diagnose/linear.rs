@@ -38,7 +38,7 @@
 //! readings alone; the sum of squares over all held-out readings is a
 //! quadratic form in `δ_A` whose matrix is accumulated once per fold.
 
-use crate::calibrate::sparse::{BlockJacobian, Factor, Normal, project_out};
+use crate::calibrate::sparse::{self, BlockJacobian, Factor, Normal, project_out};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
 /// A candidate's signature: `k` columns over the model's rows, non-zero
@@ -187,28 +187,20 @@ fn lstsq(gram: &DMatrix<f64>, rhs: &DVector<f64>, scale: f64) -> DVector<f64> {
 }
 
 /// `N⁻¹·Jᵀ·x` over the blocks `keep` admits, refined once from the
-/// unsquared residual (see [`crate::calibrate::sparse`]).
+/// unsquared residual ([`sparse::solve_ls_rows`] for one column).
 fn solve_ls(
     j: &BlockJacobian,
     f: &Factor,
     x: &DVector<f64>,
     keep: &dyn Fn(usize) -> bool,
 ) -> DVector<f64> {
-    let jt = |r: &DVector<f64>| {
-        let mut out = DVector::zeros(j.ncols());
-        for b in 0..j.blocks() {
-            if keep(b) {
-                let (row, rows) = j.block_rows(b);
-                j.block_tr_mul(b, &r.as_slice()[row..row + rows], out.as_mut_slice());
-            }
-        }
-        out
-    };
-    let mut y = f.solve(&jt(x));
-    let res = x - j.mul(&y);
-    y += f.solve(&jt(&res));
-    y
+    DVector::from_vec(sparse::solve_ls_rows(j, f, x.as_slice(), 1, keep))
 }
+
+/// Monte Carlo draws go through the folds this many at a time: one pass
+/// over the Jacobian serves them all, and a fixed batch keeps the sums the
+/// same on any number of threads.
+const DRAW_BATCH: usize = 16;
 
 struct Fold {
     /// Held-out readings (indices into the reading list, ascending).
@@ -413,25 +405,28 @@ impl LinearModel {
     }
 
     /// Root mean square of the held-out residuals in µm of the base model
-    /// for any residual vector `r` (refitting each fold).
-    fn cv_rms_um_of(&self, r: &DVector<f64>) -> f64 {
-        let mut sum = 0.0;
+    /// for each of the `k` residual vectors `r` holds (row-major: a
+    /// residual's `k` values side by side), refitting each fold.
+    fn cv_rms_um_of(&self, r: &[f64], k: usize) -> Vec<f64> {
+        let mut sums = vec![0.0; k];
         let n_read = self.fold_of.len();
+        let mut pred = vec![0.0; 3 * k];
         for (fi, f) in self.folds.iter().enumerate() {
             let train = |b: usize| b >= n_read || self.fold_of[b] != fi;
-            let y = solve_ls(&self.j, &f.factor, r, &train);
+            let y = sparse::solve_ls_rows(&self.j, &f.factor, r, k, train);
             for &i in &f.test {
-                let mut pred = [0.0; 3];
-                self.j.block_mul(i, y.as_slice(), &mut pred);
-                let res = Vector3::new(
-                    r[3 * i] - pred[0],
-                    r[3 * i + 1] - pred[1],
-                    r[3 * i + 2] - pred[2],
-                );
-                sum += (self.to_um[i] * res).norm_squared();
+                // The held-out residual: r − J·y on reading i's rows.
+                pred.copy_from_slice(&r[3 * i * k..(3 * i + 3) * k]);
+                self.j.block_sub_mul_rows(i, &y, k, &mut pred);
+                for (c, sum) in sums.iter_mut().enumerate() {
+                    let res = Vector3::new(pred[c], pred[k + c], pred[2 * k + c]);
+                    *sum += (self.to_um[i] * res).norm_squared();
+                }
             }
         }
-        (sum / n_read.max(1) as f64).sqrt()
+        sums.into_iter()
+            .map(|s| (s / n_read.max(1) as f64).sqrt())
+            .collect()
     }
 
     /// The held-out RMS (µm) that noise alone leaves in this geometry:
@@ -442,12 +437,23 @@ impl LinearModel {
         if draws.is_empty() {
             return 0.0;
         }
+        let m = self.j.nrows();
         // Summed in draw order whatever the threads: the same number on any machine.
-        let each: Vec<f64> = draws
-            .par_iter()
-            .map(|e| self.cv_rms_um_of(&project_out(&self.j, &self.full, e)))
+        let each: Vec<Vec<f64>> = draws
+            .par_chunks(DRAW_BATCH)
+            .map(|batch| {
+                let k = batch.len();
+                let mut x = vec![0.0; m * k];
+                for (c, e) in batch.iter().enumerate() {
+                    for (i, v) in e.iter().enumerate() {
+                        x[i * k + c] = *v;
+                    }
+                }
+                let e_perp = sparse::project_out_rows(&self.j, &self.full, &x, k);
+                self.cv_rms_um_of(&e_perp, k)
+            })
             .collect();
-        each.iter().sum::<f64>() / draws.len() as f64
+        each.iter().flatten().sum::<f64>() / draws.len() as f64
     }
 }
 
@@ -667,6 +673,6 @@ mod tests {
         let want = dense_cv(&jd, &r, Some(&c_part.dense(m)), &fold_of, 3);
         let got = lm.cv_rms_um(&c_part);
         assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
-        assert!((lm.cv_rms_um_of(&r) - base).abs() < 1e-9 * base);
+        assert!((lm.cv_rms_um_of(r.as_slice(), 1)[0] - base).abs() < 1e-9 * base);
     }
 }
