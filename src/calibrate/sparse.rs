@@ -126,67 +126,6 @@ impl BlockJacobian {
             .map(move |p| (p.col, p.width, &self.values[p.at..p.at + b.rows * p.width]))
     }
 
-    /// Block `b`'s rows times `x`, added to `out` (length `rows`).
-    pub fn block_mul(&self, b: usize, x: &[f64], out: &mut [f64]) {
-        let blk = &self.blocks[b];
-        for (col, w, v) in self.parts_of(blk) {
-            for (k, o) in out.iter_mut().enumerate().take(blk.rows) {
-                let row = &v[k * w..(k + 1) * w];
-                *o += row
-                    .iter()
-                    .zip(&x[col..col + w])
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>();
-            }
-        }
-    }
-
-    /// Block `b`'s rows transposed times `r` (its `rows` residuals), added to `out` (length n).
-    pub fn block_tr_mul(&self, b: usize, r: &[f64], out: &mut [f64]) {
-        let blk = &self.blocks[b];
-        for (col, w, v) in self.parts_of(blk) {
-            for (k, rk) in r.iter().enumerate().take(blk.rows) {
-                for (c, a) in v[k * w..(k + 1) * w].iter().enumerate() {
-                    out[col + c] += a * rk;
-                }
-            }
-        }
-    }
-
-    /// `J·x`.
-    pub fn mul(&self, x: &DVector<f64>) -> DVector<f64> {
-        let mut out = DVector::zeros(self.m);
-        for (b, blk) in self.blocks.iter().enumerate() {
-            self.block_mul(
-                b,
-                x.as_slice(),
-                &mut out.as_mut_slice()[blk.row..blk.row + blk.rows],
-            );
-        }
-        out
-    }
-
-    /// `Jᵀ·r`.
-    pub fn tr_mul(&self, r: &DVector<f64>) -> DVector<f64> {
-        self.tr_mul_kept(r, |_| true)
-    }
-
-    /// `Jᵀ·r` over the blocks `keep` admits (the others count as zero rows).
-    pub fn tr_mul_kept(&self, r: &DVector<f64>, keep: impl Fn(usize) -> bool) -> DVector<f64> {
-        let mut out = DVector::zeros(self.n);
-        for (b, blk) in self.blocks.iter().enumerate() {
-            if !keep(b) {
-                continue;
-            }
-            self.block_tr_mul(
-                b,
-                &r.as_slice()[blk.row..blk.row + blk.rows],
-                out.as_mut_slice(),
-            );
-        }
-        out
-    }
-
     /// `Jᵀ·X` over the blocks `keep` admits, for the `k` columns of `X`
     /// (m × k, row-major: a row's `k` values side by side); n × k, row-major.
     pub fn tr_mul_rows(&self, x: &[f64], k: usize, keep: impl Fn(usize) -> bool) -> Vec<f64> {
@@ -968,8 +907,11 @@ mod tests {
         let n = Normal::assemble(&j, None, |_| true);
         let d = DVector::from_fn(j.ncols(), |i, _| (i as f64).cos());
         assert!((n.quadratic(&d) - (&jd * &d).norm_squared()).abs() < 1e-10);
-        assert!(((j.mul(&d)) - &jd * &d).norm() < 1e-12);
+        let mut minus_jd = DVector::zeros(j.nrows());
+        j.sub_mul_rows(d.as_slice(), 1, minus_jd.as_mut_slice());
+        assert!((minus_jd + &jd * &d).norm() < 1e-12);
         let r = DVector::from_fn(j.nrows(), |i, _| (i as f64).sin());
-        assert!((j.tr_mul(&r) - jd.transpose() * r).norm() < 1e-12);
+        let jt_r = DVector::from_vec(j.tr_mul_rows(r.as_slice(), 1, |_| true));
+        assert!((jt_r - jd.transpose() * r).norm() < 1e-12);
     }
 }

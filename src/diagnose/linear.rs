@@ -276,7 +276,8 @@ impl LinearModel {
                 let factor = fold_factor(&Normal::assemble(&j, None, train))
                     .ok_or(Singular(" on a cross-validation fold"))?;
                 let y = solve_ls(&j, &factor, &r, &train);
-                let res = &r - j.mul(&y);
+                let mut res = r.clone();
+                j.sub_mul_rows(y.as_slice(), 1, res.as_mut_slice());
                 let n_a = j.n_a();
                 let mut g_k = DMatrix::zeros(n_a, n_a);
                 let mut h_k = DVector::zeros(n_a);
