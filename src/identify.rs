@@ -12,15 +12,33 @@
 //! right singular vectors at the start point, so the undetermined directions
 //! keep their start values (zero by default) — the minimum-norm solution —
 //! and the result says so, naming them.
+//!
+//! Eq. (11) weighs every coordinate alike, but the reading noise does not:
+//! an angular σ moves a point by `d·σ`, so far points scatter more, and
+//! across the line of sight more than along it. The textbook covariance
+//! `s²·(JᵀJ)⁻¹` assumes the opposite and misstates the uncertainty (by up to
+//! 1.7× on the sphere). With the reading noise stated, the uncertainty is
+//! that of the estimator actually used:
+//! - `Weighting::Unweighted` (Eq. 11 as printed): the sandwich
+//!   `(JᵀJ)⁻¹·(Σᵢ Jᵢᵀ·Σᵢ·Jᵢ)·(JᵀJ)⁻¹`, `Σᵢ = J_nom·diag(σ²)·J_nomᵀ` the
+//!   covariance of point i's coordinates that its reading's noise causes;
+//! - `Weighting::Noise`: each point's residual whitened by `Σᵢ^{-1/2} =
+//!   diag(1/σ)·J_nom⁻¹` — the maximum-likelihood fit, whose covariance
+//!   `(J_wᵀJ_w)⁻¹` is the Cramér–Rao bound.
+//!
+//! Without a stated noise, only the unweighted fit is possible and its
+//! uncertainty comes from the residuals' scatter, as before.
 
 use crate::determined::Determined;
 use crate::error_model::{ErrorParams, Links};
 use crate::identifiability::{Analysis, Combination};
-use crate::kinematics::{Joints, Reading};
+use crate::kinematics::{Joints, Reading, nominal_jacobian};
+use crate::noise::Noise;
 use crate::solver::{DenseNormal, LevenbergMarquardt};
 use anyhow::{Result, bail};
 use argmin::core::{Error as ArgminError, Jacobian, Operator};
-use nalgebra::{DMatrix, DVector, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
 
 /// A reading of a reflector whose true position is known.
 #[derive(Clone, Copy, Debug)]
@@ -30,12 +48,56 @@ pub struct KnownPoint {
     pub reference: Vector3<f64>,
 }
 
+/// How the points' residuals are weighed (see the module doc).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Weighting {
+    /// Eq. (11) as printed: every coordinate alike.
+    #[default]
+    Unweighted,
+    /// By the stated reading noise: the maximum-likelihood fit.
+    Noise,
+}
+
+impl Weighting {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Weighting::Unweighted => "unweighted",
+            Weighting::Noise => "noise",
+        }
+    }
+}
+
+/// Where the reported standard uncertainties come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StdFrom {
+    /// `s²·(JᵀJ)⁻¹` with `s²` the residuals' scatter: no noise was stated.
+    ResidualScatter,
+    /// The unweighted estimator's sandwich covariance with the stated noise.
+    Sandwich,
+    /// `(J_wᵀJ_w)⁻¹` of the noise-weighted fit.
+    StatedNoise,
+}
+
+impl StdFrom {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            StdFrom::ResidualScatter => "residual-scatter",
+            StdFrom::Sandwich => "sandwich",
+            StdFrom::StatedNoise => "stated-noise",
+        }
+    }
+}
+
 /// Settings of the identification.
 #[derive(Clone, Debug)]
 pub struct Settings {
     /// Relative singular-value threshold for the rank.
     pub rank_tol: f64,
     pub max_iters: u64,
+    pub weighting: Weighting,
+    /// The readings' noise, 1 σ, when known (required by `Weighting::Noise`).
+    pub noise: Option<Noise>,
 }
 
 impl Default for Settings {
@@ -43,6 +105,8 @@ impl Default for Settings {
         Settings {
             rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
+            weighting: Weighting::Unweighted,
+            noise: None,
         }
     }
 }
@@ -67,43 +131,90 @@ pub struct Identification {
     pub iterations: u64,
     pub stop_reason: &'static str,
     pub n_observations: usize,
+    pub weighting: Weighting,
+    pub std_from: StdFrom,
 }
 
-/// A known point prepared for repeated evaluation: its joints and nominal
-/// link rotations do not change while the parameters do.
+/// A known point prepared for repeated evaluation: its joints, nominal
+/// link rotations and weight do not change while the parameters do.
 struct Prepared {
     q: Joints,
     links: Links,
     reference: Vector3<f64>,
+    /// Point miss (mm) → residual: `1000·I` (µm) unweighted,
+    /// `diag(1/σ)·J_nom⁻¹` (units of σ) weighted.
+    weight: Matrix3<f64>,
+    /// The covariance of the point's coordinates its reading's noise
+    /// causes (µm²), when the noise is stated.
+    cov_um2: Option<Matrix3<f64>>,
 }
 
-fn prepare(obs: &[KnownPoint]) -> Vec<Prepared> {
+fn prepare(obs: &[KnownPoint], settings: &Settings) -> Result<Vec<Prepared>> {
     obs.iter()
-        .map(|o| {
+        .enumerate()
+        .map(|(i, o)| {
             let q = o.reading.joints();
-            Prepared {
+            // σ of az, el (rad) and d (mm) at this reading.
+            let sigma = settings.noise.map(|n| {
+                Vector3::new(
+                    n.sigma_angle_urad * 1e-6,
+                    n.sigma_angle_urad * 1e-6,
+                    n.sigma_range_at_um(o.reading.d) * 1e-3,
+                )
+            });
+            let j_nom = nominal_jacobian(o.reading);
+            let weight = match (settings.weighting, sigma) {
+                (Weighting::Unweighted, _) => Matrix3::identity() * 1e3,
+                (Weighting::Noise, None) => {
+                    bail!("weighting by the noise needs the readings' noise stated")
+                }
+                (Weighting::Noise, Some(s)) => {
+                    let inv = j_nom
+                        .try_inverse()
+                        .filter(|m| m.iter().all(|v| v.is_finite()));
+                    let inv = inv.ok_or_else(|| {
+                        anyhow::anyhow!("point {i} is read on the standing axis: no weight")
+                    })?;
+                    if s.iter().any(|v| *v <= 0.0) {
+                        bail!("weighting by the noise needs every σ > 0");
+                    }
+                    Matrix3::from_diagonal(&s.map(|v| 1.0 / v)) * inv
+                }
+            };
+            let cov_um2 = sigma.map(|s| {
+                let js = j_nom * Matrix3::from_diagonal(&s) * 1e3;
+                js * js.transpose()
+            });
+            Ok(Prepared {
                 q,
                 links: Links::new(q),
                 reference: o.reference,
-            }
+                weight,
+                cov_um2,
+            })
         })
         .collect()
 }
 
-/// Residuals `P(qᵢ; p) − Xᵢ` in µm, three per point.
-fn residuals(params: &ErrorParams, obs: &[Prepared]) -> DVector<f64> {
+/// Residuals `W·(P(qᵢ; p) − Xᵢ)`, three per point (`cartesian`: the
+/// misses themselves, in µm, whatever the weighting).
+fn residuals(params: &ErrorParams, obs: &[Prepared], cartesian: bool) -> DVector<f64> {
     let mut r = DVector::zeros(3 * obs.len());
     let eval = params.evaluator();
     for (i, o) in obs.iter().enumerate() {
-        let p = eval.point(o.q, &o.links);
-        r.fixed_rows_mut::<3>(3 * i)
-            .copy_from(&((p - o.reference) * 1e3));
+        let miss = eval.point(o.q, &o.links) - o.reference;
+        let ri = if cartesian {
+            miss * 1e3
+        } else {
+            o.weight * miss
+        };
+        r.fixed_rows_mut::<3>(3 * i).copy_from(&ri);
     }
     r
 }
 
 /// The Jacobian of [`residuals`] with respect to the listed coefficients,
-/// µm per display unit (3 rows per point).
+/// per display unit (3 rows per point).
 fn jacobian(params: &ErrorParams, obs: &[Prepared], columns: &[usize]) -> DMatrix<f64> {
     let mut j = DMatrix::zeros(3 * obs.len(), columns.len());
     let mut cols = Vec::new();
@@ -111,8 +222,9 @@ fn jacobian(params: &ErrorParams, obs: &[Prepared], columns: &[usize]) -> DMatri
     for (i, o) in obs.iter().enumerate() {
         eval.point_with_jacobian(o.q, &o.links, &mut cols);
         for (k, &c) in columns.iter().enumerate() {
+            let jc = o.weight * cols[c];
             for a in 0..3 {
-                j[(3 * i + a, k)] = cols[c][a] * 1e3;
+                j[(3 * i + a, k)] = jc[a];
             }
         }
     }
@@ -138,7 +250,7 @@ impl Operator for Eq11<'_> {
     type Param = DVector<f64>;
     type Output = DVector<f64>;
     fn apply(&self, z: &DVector<f64>) -> Result<DVector<f64>, ArgminError> {
-        Ok(residuals(&self.params(z), self.obs))
+        Ok(residuals(&self.params(z), self.obs, false))
     }
 }
 
@@ -158,9 +270,9 @@ impl Jacobian for Eq11<'_> {
         let eval = params.evaluator();
         for o in self.obs {
             let p = eval.point_with_jacobian(o.q, &o.links, &mut cols);
-            let r = (p - o.reference) * 1e3;
+            let r = o.weight * (p - o.reference);
             for (k, &c) in self.free_index.iter().enumerate() {
-                block[k] = cols[c] * 1e3;
+                block[k] = o.weight * cols[c];
             }
             for a in 0..f {
                 g[a] += block[a].dot(&r);
@@ -189,8 +301,8 @@ pub fn identify(
     if obs.is_empty() {
         bail!("no readings to identify from");
     }
-    let obs = &prepare(obs)[..];
-    let r0 = residuals(start, obs);
+    let obs = &prepare(obs, settings)?[..];
+    let r0 = residuals(start, obs, false);
     let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
     let det = Determined::analyse(
         &jacobian(start, obs, &free_index),
@@ -218,14 +330,25 @@ pub fn identify(
         (fit.x, fit.residuals, fit.iterations, fit.reason)
     };
     let params = det.params(start, &z);
+    let std_from = match (settings.weighting, settings.noise) {
+        (Weighting::Noise, _) => StdFrom::StatedNoise,
+        (Weighting::Unweighted, Some(_)) => StdFrom::Sandwich,
+        (Weighting::Unweighted, None) => StdFrom::ResidualScatter,
+    };
     let std = match rank {
         0 => vec![None; free.len()],
         _ => {
             let jz = jacobian(&params, obs, &free_index) * basis;
-            det.scatter_covariance(&jz, &r)
-                .map_or_else(|| vec![None; free.len()], |c| det.std(&c, free.len()))
+            let cov = match std_from {
+                StdFrom::ResidualScatter => det.scatter_covariance(&jz, &r),
+                StdFrom::StatedNoise => (jz.transpose() * &jz).try_inverse(),
+                StdFrom::Sandwich => sandwich(&jz, obs),
+            };
+            cov.map_or_else(|| vec![None; free.len()], |c| det.std(&c, free.len()))
         }
     };
+    // The RMS in µm whatever the weighting: the coordinates' misses.
+    let (r0, r) = (residuals(start, obs, true), residuals(&params, obs, true));
     let rms = |r: &DVector<f64>| (r.norm_squared() / obs.len() as f64).sqrt();
     Ok(Identification {
         params,
@@ -239,7 +362,23 @@ pub fn identify(
         iterations,
         stop_reason,
         n_observations: obs.len(),
+        weighting: settings.weighting,
+        std_from,
     })
+}
+
+/// The covariance of the unweighted estimator when each point's
+/// coordinates scatter by `Σᵢ` (µm²): `A·(Σᵢ Jᵢᵀ·Σᵢ·Jᵢ)·A`, `A = (JᵀJ)⁻¹`
+/// (`jz` in µm per coordinate, three rows per point).
+fn sandwich(jz: &DMatrix<f64>, obs: &[Prepared]) -> Option<DMatrix<f64>> {
+    let a = (jz.transpose() * jz).try_inverse()?;
+    let k = jz.ncols();
+    let mut meat = DMatrix::zeros(k, k);
+    for (i, o) in obs.iter().enumerate() {
+        let ji = jz.rows(3 * i, 3);
+        meat += ji.transpose() * o.cov_um2? * ji;
+    }
+    Some(&a * meat * &a)
 }
 
 impl Identification {
@@ -307,6 +446,77 @@ mod tests {
             id.rms_before_um,
             id.rms_after_um
         );
+    }
+
+    /// Issue 14: over noise seeds of the sphere (1 µrad, 2 µm), the spread
+    /// of every free coefficient matches the reported standard uncertainty
+    /// for both weightings (200 seeds: the spread itself is known to ±5 %,
+    /// so ±15 % is three of its σ), and the weighted fit is never less
+    /// precise than Eq. (11) as printed.
+    #[test]
+    fn reported_std_matches_the_spread_over_noise_seeds() {
+        let truth = ErrorParams::table2();
+        let pts = sphere();
+        let noise = Noise {
+            sigma_angle_urad: 1.0,
+            sigma_range_um: 2.0,
+            sigma_range_ppm: 0.0,
+        };
+        let exact: Vec<KnownPoint> = observe(&truth, &pts);
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let fixed = ["dz1", "dy2", "ez3"];
+        let free: Vec<bool> = (0..18)
+            .map(|i| !fixed.contains(&ParamId::from_index(i).id()))
+            .collect();
+        let seeds = 200;
+        let mut stds = Vec::new();
+        for weighting in [Weighting::Unweighted, Weighting::Noise] {
+            let settings = Settings {
+                weighting,
+                noise: Some(noise),
+                ..Settings::default()
+            };
+            let fits: Vec<Identification> = (0..seeds)
+                .map(|seed| {
+                    let mut rng = crate::random::stream(seed, "identify-spread");
+                    let noisy: Vec<KnownPoint> = exact
+                        .iter()
+                        .map(|o| KnownPoint {
+                            reading: noise.apply(o.reading, &mut rng),
+                            reference: o.reference,
+                        })
+                        .collect();
+                    identify(&noisy, &start, &free, &settings).unwrap()
+                })
+                .collect();
+            let reported = fits[0].std.clone();
+            for k in (0..18).filter(|&k| free[k]) {
+                let values: Vec<f64> = fits.iter().map(|f| f.params.values()[k]).collect();
+                let mean = values.iter().sum::<f64>() / seeds as f64;
+                let spread = (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>()
+                    / (seeds - 1) as f64)
+                    .sqrt();
+                let std = reported[k].unwrap();
+                if std < 1e-9 {
+                    continue;
+                }
+                let ratio = spread / std;
+                assert!(
+                    (0.85..=1.15).contains(&ratio),
+                    "{weighting:?} {}: spread {spread:.4} vs reported {std:.4} (×{ratio:.2})",
+                    ParamId::from_index(k)
+                );
+            }
+            stds.push(reported);
+        }
+        for k in (0..18).filter(|&k| free[k]) {
+            let (u, w) = (stds[0][k].unwrap(), stds[1][k].unwrap());
+            assert!(
+                w <= u * 1.0001,
+                "{}: weighted {w} > unweighted {u}",
+                ParamId::from_index(k)
+            );
+        }
     }
 
     #[test]

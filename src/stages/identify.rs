@@ -8,17 +8,27 @@
 //! fixed = ["dz1", "dy2", "ez3"]    # held at their start value (0), as in Table 3
 //! shapes = { ez1 = "fourier:1" }   # the model to fit; constants by default
 //! rank_tol = 1e-9                  # relative singular-value threshold
+//! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }   # the readings' noise, when known
+//! weighting = "unweighted"         # Eq. (11) as printed; "noise": weighted by `noise`
 //! ```
+//!
+//! With `noise` stated the reported `std` is that of the estimator used —
+//! the sandwich covariance of the unweighted fit, or the weighted fit's
+//! inverse normal matrix — and holds against the spread over noise seeds;
+//! without it, it comes from the residuals' scatter (see
+//! [`crate::identify`]).
 //!
 //! Outputs: `params` (the estimate with `free`, `std`, `determined`),
 //! `singular_values` (`index`, `sigma`, `sigma_rel`, `determined`),
 //! `combinations` (`direction`, `determined`, `value`, `sentence`: what the
 //! data cannot separate) and `fit` (one row: `n_readings`, `n_free`, `rank`,
-//! `iterations`, `stop`, `rms_before_um`, `rms_after_um`).
+//! `iterations`, `stop`, `rms_before_um`, `rms_after_um`, `weighting`,
+//! `std_from`).
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::error_model::{ParamId, Shape};
-use crate::identify::{self, KnownPoint, Settings};
+use crate::identify::{self, KnownPoint, Settings, Weighting};
+use crate::noise::Noise;
 use crate::schema;
 use crate::table::TableBuilder;
 use anyhow::Result;
@@ -36,6 +46,11 @@ pub struct IdentifyStage {
     pub rank_tol: f64,
     #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
+    #[serde(default)]
+    pub weighting: Weighting,
+    /// The readings' noise, 1 σ, when known.
+    #[serde(default)]
+    pub noise: Option<Noise>,
 }
 
 impl StageKind for IdentifyStage {
@@ -57,7 +72,29 @@ impl StageKind for IdentifyStage {
     const OUTPUTS: &'static [&'static str] = &["params", "singular_values", "combinations", "fit"];
 
     fn validate(&self) -> Vec<Invalid> {
-        fitting::check(&self.shapes, self.rank_tol, self.max_iters)
+        let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
+        if let Some(Err((f, v))) = self.noise.map(|n| n.check()) {
+            out.push(Invalid::new(
+                format!("noise.{f}"),
+                format!("`noise.{f}` must be a number ≥ 0, got {v}"),
+            ));
+        }
+        if self.weighting == Weighting::Noise {
+            match self.noise {
+                None => out.push(Invalid::new(
+                    "weighting",
+                    "`weighting = \"noise\"` needs the readings' noise: add `noise = { sigma_angle_urad = …, sigma_range_um = … }`",
+                )),
+                Some(n) if n.sigma_angle_urad <= 0.0 || (n.sigma_range_um <= 0.0 && n.sigma_range_ppm <= 0.0) => {
+                    out.push(Invalid::new(
+                        "noise",
+                        "`weighting = \"noise\"` needs a σ above zero for the angles and for the range",
+                    ))
+                }
+                Some(_) => {}
+            }
+        }
+        out
     }
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
@@ -75,6 +112,8 @@ impl StageKind for IdentifyStage {
         let settings = Settings {
             rank_tol: self.rank_tol,
             max_iters: self.max_iters,
+            weighting: self.weighting,
+            noise: self.noise,
         };
         let id = identify::identify(&obs, &start, &free, &settings)?;
         tables(&id)
@@ -99,6 +138,8 @@ fn tables(id: &identify::Identification) -> Result<StageOutput> {
         .str("stop", &[id.stop_reason])
         .f64("rms_before_um", vec![id.rms_before_um])
         .f64("rms_after_um", vec![id.rms_after_um])
+        .str("weighting", &[id.weighting.as_str()])
+        .str("std_from", &[id.std_from.as_str()])
         .build()?;
     Ok(StageOutput::default()
         .table("params", params)
