@@ -821,6 +821,49 @@ pub fn part3_mul(part: &[f64], v: &Vector3<f64>) -> Vector3<f64> {
     )
 }
 
+/// A random-ish arrow-structured problem for tests here and in the
+/// diagnosis: 2 dense unknowns, `n_pts` positions seen by three blocks of
+/// three rows each (`interleaved`: the blocks cycle through the positions;
+/// otherwise each position's three come together), every block touching
+/// the dense part and one position; `seed` in (0, 1), `boost` added to the
+/// position parts' diagonal. With its dense twin.
+#[cfg(test)]
+pub(crate) fn random_arrow(
+    n_pts: usize,
+    seed: f64,
+    boost: f64,
+    interleaved: bool,
+) -> (BlockJacobian, DMatrix<f64>) {
+    let n_a = 2;
+    let n = n_a + 3 * n_pts;
+    let mut j = BlockJacobian::new(n_a, n);
+    let mut rows = Vec::new();
+    let mut s = seed;
+    let mut next = || {
+        s = (s * 9301.0 + 49297.0) % 233280.0;
+        s / 233280.0 - 0.5
+    };
+    for i in 0..3 * n_pts {
+        let p = if interleaved { i % n_pts } else { i / 3 };
+        let a: Vec<f64> = (0..3 * n_a).map(|_| next()).collect();
+        let x: Vec<f64> = (0..9)
+            .map(|k| next() + if k % 4 == 0 { boost } else { 0.0 })
+            .collect();
+        j.push(3, &[(0, &a), (n_a + 3 * p, &x)]);
+        for k in 0..3 {
+            let mut row = vec![0.0; n];
+            row[0] = a[2 * k];
+            row[1] = a[2 * k + 1];
+            for c in 0..3 {
+                row[n_a + 3 * p + c] = x[3 * k + c];
+            }
+            rows.push(row);
+        }
+    }
+    let jd = DMatrix::from_fn(rows.len(), n, |i, k| rows[i][k]);
+    (j, jd)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -828,34 +871,7 @@ mod tests {
     /// A random-ish arrow-structured problem: 2 dense unknowns, 4 positions,
     /// blocks touching the dense part and one position each.
     fn problem() -> (BlockJacobian, DMatrix<f64>) {
-        let (n_a, n) = (2, 2 + 12);
-        let mut j = BlockJacobian::new(n_a, n);
-        let mut dense = Vec::new();
-        let mut s = 0.37_f64;
-        let mut next = || {
-            s = (s * 9301.0 + 49297.0) % 233280.0;
-            s / 233280.0 - 0.5
-        };
-        for p in 0..4 {
-            for _ in 0..3 {
-                let a: Vec<f64> = (0..3 * 2).map(|_| next()).collect();
-                let x: Vec<f64> = (0..9)
-                    .map(|k| next() + if k % 4 == 0 { 2.0 } else { 0.0 })
-                    .collect();
-                j.push(3, &[(0, &a), (n_a + 3 * p, &x)]);
-                for k in 0..3 {
-                    let mut row = vec![0.0; n];
-                    row[0] = a[2 * k];
-                    row[1] = a[2 * k + 1];
-                    for c in 0..3 {
-                        row[n_a + 3 * p + c] = x[3 * k + c];
-                    }
-                    dense.push(row);
-                }
-            }
-        }
-        let jd = DMatrix::from_fn(dense.len(), n, |i, k| dense[i][k]);
-        (j, jd)
+        random_arrow(4, 0.37, 2.0, false)
     }
 
     #[test]

@@ -543,34 +543,7 @@ mod tests {
     /// A small network: 2 dense unknowns (an offset per axis pair), 6
     /// reflectors seen by 3 readings each, 3 rows per reading.
     fn network() -> (BlockJacobian, DMatrix<f64>) {
-        let (n_a, n_pts) = (2, 6);
-        let n = n_a + 3 * n_pts;
-        let mut j = BlockJacobian::new(n_a, n);
-        let mut rows = Vec::new();
-        let mut s = 0.61_f64;
-        let mut next = || {
-            s = (s * 9301.0 + 49297.0) % 233280.0;
-            s / 233280.0 - 0.5
-        };
-        for i in 0..3 * n_pts {
-            let p = i % n_pts;
-            let a: Vec<f64> = (0..6).map(|_| next()).collect();
-            let x: Vec<f64> = (0..9)
-                .map(|k| next() + if k % 4 == 0 { 1.5 } else { 0.0 })
-                .collect();
-            j.push(3, &[(0, &a), (n_a + 3 * p, &x)]);
-            for k in 0..3 {
-                let mut row = vec![0.0; n];
-                row[0] = a[2 * k];
-                row[1] = a[2 * k + 1];
-                for c in 0..3 {
-                    row[n_a + 3 * p + c] = x[3 * k + c];
-                }
-                rows.push(row);
-            }
-        }
-        let jd = DMatrix::from_fn(rows.len(), n, |i, k| rows[i][k]);
-        (j, jd)
+        crate::calibrate::sparse::random_arrow(6, 0.61, 1.5, true)
     }
 
     fn projector(j: &DMatrix<f64>) -> DMatrix<f64> {
