@@ -8,12 +8,56 @@
 //! leaves the undetermined directions at their start value: the
 //! minimum-norm solution, with the undetermined combinations named in
 //! words. The covariance of `z` maps back to the free coefficients as
-//! `B·C_z·Bᵀ`.
+//! `B·C_z·Bᵀ`. Every such fit returns an [`Estimate`].
 
 use crate::error_model::ErrorParams;
 use crate::identifiability::{self, Analysis, Combination};
 use anyhow::Result;
 use nalgebra::{DMatrix, DVector};
+
+/// What every fit in the determined directions returns — identification
+/// and each calibration objective alike: the estimate, each coefficient's
+/// standard uncertainty and what the data determined.
+#[derive(Clone, Debug)]
+pub struct Estimate {
+    /// Free coefficients fitted, fixed ones at their start value.
+    pub params: ErrorParams,
+    pub free: Vec<bool>,
+    /// Standard uncertainty of each free coefficient's minimum-norm
+    /// estimate; `None` when fixed (or not estimable).
+    pub std: Vec<Option<f64>>,
+    /// Singular values of what determines the free coefficients.
+    pub analysis: Analysis,
+    /// The free-coefficient indices the analysis columns refer to.
+    pub free_index: Vec<usize>,
+    /// Undetermined directions, in free-coefficient indices.
+    pub combinations: Vec<Combination>,
+}
+
+impl Estimate {
+    /// Whether coefficient `i` is determined: free and in no undetermined
+    /// direction.
+    pub fn determined(&self) -> Vec<bool> {
+        let mut determined = self.free.clone();
+        for c in &self.combinations {
+            for &(k, _) in &c.direction {
+                determined[self.free_index[k]] = false;
+            }
+        }
+        determined
+    }
+
+    /// A combination's determined value for `params`, its free
+    /// coefficients mapped back to the full vector.
+    pub fn determined_value(&self, c: &Combination, params: &ErrorParams) -> Option<f64> {
+        let x: Vec<f64> = self
+            .free_index
+            .iter()
+            .map(|&i| params.values()[i])
+            .collect();
+        c.determined_value(&x)
+    }
+}
 
 /// The determined directions of a fit's free coefficients.
 #[derive(Clone, Debug)]
@@ -64,6 +108,18 @@ impl Determined {
     /// Number of determined directions.
     pub fn rank(&self) -> usize {
         self.analysis.rank
+    }
+
+    /// The [`Estimate`] these directions give `params` with `std`.
+    pub fn estimate(self, params: ErrorParams, free: &[bool], std: Vec<Option<f64>>) -> Estimate {
+        Estimate {
+            params,
+            free: free.to_vec(),
+            std,
+            analysis: self.analysis,
+            free_index: self.free_index,
+            combinations: self.combinations,
+        }
     }
 
     /// `p₀ + B·z` on the free coefficients.

@@ -29,9 +29,8 @@
 //! Without a stated noise, only the unweighted fit is possible and its
 //! uncertainty comes from the residuals' scatter, as before.
 
-use crate::determined::Determined;
+use crate::determined::{Determined, Estimate};
 use crate::error_model::{ErrorParams, Links};
-use crate::identifiability::{Analysis, Combination};
 use crate::kinematics::{Joints, Reading, nominal_jacobian};
 use crate::noise::Noise;
 use crate::solver::{DenseNormal, LevenbergMarquardt};
@@ -114,18 +113,9 @@ impl Default for Settings {
 /// What the identification found.
 #[derive(Clone, Debug)]
 pub struct Identification {
-    /// The estimate: free coefficients fitted, fixed ones at their start value.
-    pub params: ErrorParams,
-    pub free: Vec<bool>,
-    /// Standard uncertainty of each free coefficient's minimum-norm estimate
-    /// (from the residual variance and the covariance); `None` when fixed.
-    pub std: Vec<Option<f64>>,
-    /// Singular values of the Jacobian of the free coefficients (µm per unit).
-    pub analysis: Analysis,
-    /// The free-coefficient indices the analysis columns refer to.
-    pub free_index: Vec<usize>,
-    /// Undetermined directions, in free-coefficient indices.
-    pub combinations: Vec<Combination>,
+    /// The estimate; the analysis is of the Jacobian of the free
+    /// coefficients (µm per unit unweighted, σ per unit weighted).
+    pub estimate: Estimate,
     pub rms_before_um: f64,
     pub rms_after_um: f64,
     pub iterations: u64,
@@ -351,12 +341,7 @@ pub fn identify(
     let (r0, r) = (residuals(start, obs, true), residuals(&params, obs, true));
     let rms = |r: &DVector<f64>| (r.norm_squared() / obs.len() as f64).sqrt();
     Ok(Identification {
-        params,
-        free: free.to_vec(),
-        std,
-        analysis: det.analysis,
-        free_index: det.free_index,
-        combinations: det.combinations,
+        estimate: det.estimate(params, free, std),
         rms_before_um: rms(&r0),
         rms_after_um: rms(&r),
         iterations,
@@ -379,19 +364,6 @@ fn sandwich(jz: &DMatrix<f64>, obs: &[Prepared]) -> Option<DMatrix<f64>> {
         meat += ji.transpose() * o.cov_um2? * ji;
     }
     Some(&a * meat * &a)
-}
-
-impl Identification {
-    /// A combination's determined value for the estimate, with its free
-    /// coefficients mapped back to the full vector.
-    pub fn determined_value(&self, c: &Combination, params: &ErrorParams) -> Option<f64> {
-        let x: Vec<f64> = self
-            .free_index
-            .iter()
-            .map(|&i| params.values()[i])
-            .collect();
-        c.determined_value(&x)
-    }
 }
 
 #[cfg(test)]
@@ -420,8 +392,17 @@ mod tests {
         let obs = observe(&truth, &sphere());
         let start = ErrorParams::zero(&ErrorModel::constant());
         let id = identify(&obs, &start, &[true; 18], &Settings::default()).unwrap();
-        assert_eq!(id.analysis.rank, 13, "{:?}", id.analysis.singular_values);
-        let mut texts: Vec<String> = id.combinations.iter().map(|c| c.sentence()).collect();
+        assert_eq!(
+            id.estimate.analysis.rank, 13,
+            "{:?}",
+            id.estimate.analysis.singular_values
+        );
+        let mut texts: Vec<String> = id
+            .estimate
+            .combinations
+            .iter()
+            .map(|c| c.sentence())
+            .collect();
         texts.sort();
         assert!(
             texts.iter().any(|t| t == "εz3 has no effect on the data"),
@@ -489,9 +470,9 @@ mod tests {
                     identify(&noisy, &start, &free, &settings).unwrap()
                 })
                 .collect();
-            let reported = fits[0].std.clone();
+            let reported = fits[0].estimate.std.clone();
             for k in (0..18).filter(|&k| free[k]) {
-                let values: Vec<f64> = fits.iter().map(|f| f.params.values()[k]).collect();
+                let values: Vec<f64> = fits.iter().map(|f| f.estimate.params.values()[k]).collect();
                 let mean = values.iter().sum::<f64>() / seeds as f64;
                 let spread = (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>()
                     / (seeds - 1) as f64)
@@ -525,13 +506,20 @@ mod tests {
         let start = ErrorParams::zero(&ErrorModel::constant());
         let id = identify(&obs0, &start, &[true; 18], &Settings::default()).unwrap();
         // Project Table 2 onto the determined directions and measure again.
-        let b = &id.analysis.row_basis;
+        let b = &id.estimate.analysis.row_basis;
         let t = DVector::from_vec(vec![10.0; 18]);
         let proj = b * (b.transpose() * t);
         let truth = ErrorParams::from_parts(start.coefs().to_vec(), proj.iter().copied().collect());
         let obs = observe(&truth, &sphere());
         let id = identify(&obs, &start, &[true; 18], &Settings::default()).unwrap();
-        for (k, (a, b)) in id.params.values().iter().zip(truth.values()).enumerate() {
+        for (k, (a, b)) in id
+            .estimate
+            .params
+            .values()
+            .iter()
+            .zip(truth.values())
+            .enumerate()
+        {
             assert!(
                 (a - b).abs() < 1e-6,
                 "{}: {a} vs {b}",

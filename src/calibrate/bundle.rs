@@ -686,11 +686,9 @@ pub fn calibrate(
     let rms = |r: &DVector<f64>| (r.norm_squared() / m as f64).sqrt();
     let mean_abs = |r: &DVector<f64>| r.iter().map(|v| v.abs()).sum::<f64>() / m as f64;
     let (rms_after, mean_abs_after) = (rms(&r), mean_abs(&r));
+    let (rank, gauge_scale_ppm) = (det.analysis.rank, gauge_scale_ppm(net, &params));
     Ok(Calibration {
-        free: free.to_vec(),
-        std,
-        free_index: det.free_index,
-        combinations: det.combinations,
+        estimate: det.estimate(params, free, std),
         poses,
         pose_std,
         points,
@@ -701,7 +699,7 @@ pub fn calibrate(
             n_readings: net.obs.len(),
             n_residuals: m,
             n_unknowns: layout.n,
-            rank: det.analysis.rank,
+            rank,
             iterations: fit.iterations,
             stop: fit.reason,
             rms_before: rms(&r0),
@@ -711,10 +709,8 @@ pub fn calibrate(
             chi2: Some(chi2),
             dof: Some(dof),
             chi2_p,
-            gauge_scale_ppm: gauge_scale_ppm(net, &params),
+            gauge_scale_ppm,
         },
-        analysis: det.analysis,
-        params,
         residuals,
         linearisation: Some(Linearisation {
             jacobian,
@@ -850,7 +846,7 @@ mod tests {
         let problem = setup.problem(&net, &start, &basis, &layout);
         let params = problem.params(&fit.x);
         let scale = params.values().iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        for (p, q) in cal.params.values().iter().zip(params.values()) {
+        for (p, q) in cal.estimate.params.values().iter().zip(params.values()) {
             assert!((p - q).abs() < 1e-9 * scale, "{p} vs {q}");
         }
         // Standard uncertainties from the dense inverse of JᵀJ.
@@ -860,7 +856,7 @@ mod tests {
         let v = (r.norm_squared() / dof).max(1.0);
         let cov = (jd.transpose() * &jd).try_inverse().unwrap() * v;
         let cov_p = &basis * cov.view((0, 0), (basis.ncols(), basis.ncols())) * basis.transpose();
-        for (k, s) in cal.std.iter().enumerate() {
+        for (k, s) in cal.estimate.std.iter().enumerate() {
             let want = cov_p[(k, k)].max(0.0).sqrt();
             let got = s.unwrap();
             assert!(
@@ -897,8 +893,8 @@ mod tests {
                 .install(|| calibrate(&net, &start, &[true; 18], &settings).unwrap())
         };
         let (one, three) = (run(1), run(3));
-        assert_eq!(one.params.values(), three.params.values());
-        assert_eq!(one.std, three.std);
+        assert_eq!(one.estimate.params.values(), three.estimate.params.values());
+        assert_eq!(one.estimate.std, three.estimate.std);
         assert_eq!(one.fit.chi2, three.fit.chi2);
         assert_eq!(one.point_std, three.point_std);
     }

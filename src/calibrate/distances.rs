@@ -414,12 +414,10 @@ pub fn calibrate(
     let anchor = net.references_fix_frame().then(|| net.reference_points());
     let alignment = align(&station_pts, anchor.as_ref(), 1e-10)
         .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
+    let gauge_scale_ppm = gauge_scale_ppm(net, &params);
+    let residuals = super::reading_residuals(net, &params, &alignment.poses, &alignment.points);
     Ok(Calibration {
-        std,
-        free: free.to_vec(),
-        analysis: det.analysis,
-        free_index,
-        combinations: det.combinations,
+        estimate: det.estimate(params, free, std),
         pose_std: vec![None; alignment.poses.len()],
         poses: alignment.poses.clone(),
         points: alignment.points.clone(),
@@ -440,10 +438,9 @@ pub fn calibrate(
             chi2: None,
             dof: None,
             chi2_p: None,
-            gauge_scale_ppm: gauge_scale_ppm(net, &params),
+            gauge_scale_ppm,
         },
-        residuals: super::reading_residuals(net, &params, &alignment.poses, &alignment.points),
+        residuals,
         linearisation: None,
-        params,
     })
 }

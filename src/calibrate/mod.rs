@@ -25,8 +25,8 @@ pub mod register;
 pub mod sparse;
 
 use crate::campaign::Campaign;
+use crate::determined::Estimate;
 use crate::error_model::{ErrorParams, Links};
-use crate::identifiability::{Analysis, Combination};
 use crate::kinematics::{Face, Joints, Reading};
 use crate::noise::Noise;
 use anyhow::{Result, anyhow, bail};
@@ -279,13 +279,9 @@ pub struct Settings {
 /// A calibration's outcome.
 #[derive(Clone, Debug)]
 pub struct Calibration {
-    pub params: ErrorParams,
-    pub free: Vec<bool>,
-    pub std: Vec<Option<f64>>,
-    /// Singular values of what determines the free coefficients.
-    pub analysis: Analysis,
-    pub free_index: Vec<usize>,
-    pub combinations: Vec<Combination>,
+    /// The error parameters; the analysis is of their Jacobian with
+    /// whatever the objective also estimates projected out.
+    pub estimate: Estimate,
     /// Station → campaign frame.
     pub poses: Vec<register::Rigid>,
     /// Standard uncertainty of each pose: position (mm) and rotation (rad),

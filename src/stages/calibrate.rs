@@ -124,14 +124,7 @@ impl StageKind for CalibrateStage {
 
 /// The output tables of a calibration.
 pub fn tables(net: &Network, cal: &Calibration) -> Result<StageOutput> {
-    let [params, singular_values, combinations] = fitting::tables(&fitting::Determined {
-        params: &cal.params,
-        free: &cal.free,
-        std: &cal.std,
-        analysis: &cal.analysis,
-        free_index: &cal.free_index,
-        combinations: &cal.combinations,
-    })?;
+    let [params, singular_values, combinations] = fitting::tables(&cal.estimate)?;
     Ok(StageOutput::default()
         .table("params", params)
         .table("singular_values", singular_values)

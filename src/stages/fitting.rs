@@ -3,8 +3,8 @@
 //! say what the data determined.
 
 use super::{Invalid, StageInputs};
+use crate::determined::Estimate;
 use crate::error_model::{ErrorModel, ErrorParams, ParamId, Shape};
-use crate::identifiability::{Analysis, Combination};
 use crate::schema::{self, IdentifiedColumns};
 use crate::table::TableBuilder;
 use anyhow::Result;
@@ -75,31 +75,14 @@ pub fn check(shapes: &BTreeMap<ParamId, Shape>, rank_tol: f64, max_iters: u64) -
     out
 }
 
-/// An estimate and what the data determined about it.
-pub struct Determined<'a> {
-    pub params: &'a ErrorParams,
-    pub free: &'a [bool],
-    pub std: &'a [Option<f64>],
-    pub analysis: &'a Analysis,
-    /// The free coefficients the analysis columns refer to.
-    pub free_index: &'a [usize],
-    pub combinations: &'a [Combination],
-}
-
 /// `params`, `singular_values` and `combinations` (see the `identify` stage).
-pub fn tables(d: &Determined) -> Result<[DataFrame; 3]> {
-    let mut determined = d.free.to_vec();
-    for c in d.combinations {
-        for &(k, _) in &c.direction {
-            determined[d.free_index[k]] = false;
-        }
-    }
+pub fn tables(d: &Estimate) -> Result<[DataFrame; 3]> {
     let params = schema::params_table(
-        d.params,
+        &d.params,
         Some(&IdentifiedColumns {
-            free: d.free.to_vec(),
-            std: d.std.to_vec(),
-            determined,
+            free: d.free.clone(),
+            std: d.std.clone(),
+            determined: d.determined(),
         }),
     )?;
     let sv = &d.analysis.singular_values;
@@ -119,7 +102,7 @@ pub fn tables(d: &Determined) -> Result<[DataFrame; 3]> {
         )
         .build()?;
     let x: Vec<f64> = d.free_index.iter().map(|&i| d.params.values()[i]).collect();
-    let combos = d.combinations;
+    let combos = &d.combinations;
     let combinations = TableBuilder::new()
         .str(
             "direction",

@@ -122,18 +122,11 @@ impl StageKind for IdentifyStage {
 
 /// The four output tables of an identification.
 fn tables(id: &identify::Identification) -> Result<StageOutput> {
-    let [params, singular_values, combinations] = fitting::tables(&fitting::Determined {
-        params: &id.params,
-        free: &id.free,
-        std: &id.std,
-        analysis: &id.analysis,
-        free_index: &id.free_index,
-        combinations: &id.combinations,
-    })?;
+    let [params, singular_values, combinations] = fitting::tables(&id.estimate)?;
     let fit = TableBuilder::new()
         .i64("n_readings", vec![id.n_observations as i64])
-        .i64("n_free", vec![id.free_index.len() as i64])
-        .i64("rank", vec![id.analysis.rank as i64])
+        .i64("n_free", vec![id.estimate.free_index.len() as i64])
+        .i64("rank", vec![id.estimate.analysis.rank as i64])
         .i64("iterations", vec![id.iterations as i64])
         .str("stop", &[id.stop_reason])
         .f64("rms_before_um", vec![id.rms_before_um])

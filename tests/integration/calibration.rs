@@ -68,9 +68,13 @@ fn bundle_recovers_the_identifiable_part_and_the_poses() {
     let t = DVector::from_column_slice(truth.values());
     let s = settings(Objective::Bundle, Norm::L2);
     let mut cal = run(&net, &zero, &s);
-    assert_eq!(cal.analysis.rank, 7, "{:?}", cal.analysis.singular_values);
+    assert_eq!(
+        cal.estimate.analysis.rank, 7,
+        "{:?}",
+        cal.estimate.analysis.singular_values
+    );
     for _ in 0..4 {
-        let n = &cal.analysis.null_basis;
+        let n = &cal.estimate.analysis.null_basis;
         let start = ErrorParams::from_parts(
             zero.coefs().to_vec(),
             (n * (n.transpose() * &t)).iter().copied().collect(),
@@ -80,7 +84,7 @@ fn bundle_recovers_the_identifiable_part_and_the_poses() {
     for (c, (a, b)) in truth
         .coefs()
         .iter()
-        .zip(cal.params.values().iter().zip(truth.values()))
+        .zip(cal.estimate.params.values().iter().zip(truth.values()))
     {
         assert!((a - b).abs() < 1e-6, "{}: {a} vs {b}", c.name());
     }
@@ -120,9 +124,11 @@ fn noise_free_calibration_reduces_both_criteria_by_98_percent() {
     ] {
         let cal = run(&net, &zero, &settings(objective, norm));
         let d0 = criteria::distances(&net, &zero).overall.mean_um;
-        let d1 = criteria::distances(&net, &cal.params).overall.mean_um;
+        let d1 = criteria::distances(&net, &cal.estimate.params)
+            .overall
+            .mean_um;
         let c0 = criteria::coordinates(&net, &zero).unwrap().overall.mean_um;
-        let c1 = criteria::coordinates(&net, &cal.params)
+        let c1 = criteria::coordinates(&net, &cal.estimate.params)
             .unwrap()
             .overall
             .mean_um;
@@ -203,8 +209,8 @@ fn two_face_data_improve_identifiability() {
         let sim = simulate(REALISTIC, faces, &truth, 7);
         let net = Network::from_campaign(&sim.campaign).unwrap();
         let cal = run(&net, &zero, &settings(Objective::Bundle, Norm::L2));
-        assert_eq!(cal.analysis.rank, 7);
-        cal.analysis.singular_values[cal.analysis.rank - 1]
+        assert_eq!(cal.estimate.analysis.rank, 7);
+        cal.estimate.analysis.singular_values[cal.estimate.analysis.rank - 1]
     };
     let one = smallest(&[Face::Front]);
     let two = smallest(&[Face::Front, Face::Back]);

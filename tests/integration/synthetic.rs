@@ -89,7 +89,7 @@ fn table2_identifiable_part_is_recovered_to_1e_6() {
         let mut start = zero.clone();
         let mut id = identify::identify(&obs, &start, &[true; 18], &Settings::default()).unwrap();
         for _ in 0..4 {
-            let n = &id.analysis.null_basis;
+            let n = &id.estimate.analysis.null_basis;
             let undetermined = n * (n.transpose() * &t);
             start = ErrorParams::from_parts(
                 zero.coefs().to_vec(),
@@ -100,7 +100,7 @@ fn table2_identifiable_part_is_recovered_to_1e_6() {
         for (c, (a, b)) in truth
             .coefs()
             .iter()
-            .zip(id.params.values().iter().zip(truth.values()))
+            .zip(id.estimate.params.values().iter().zip(truth.values()))
         {
             assert!((a - b).abs() < 1e-6, "{name} {}: {a} vs {b}", c.name());
         }
@@ -123,15 +123,15 @@ fn table2_minimum_norm_combinations_match_up_to_second_order() {
             &Settings::default(),
         )
         .unwrap();
-        assert_eq!(id.analysis.rank, 13, "{name}");
-        let b = &id.analysis.row_basis;
+        assert_eq!(id.estimate.analysis.rank, 13, "{name}");
+        let b = &id.estimate.analysis.row_basis;
         let dev = b.transpose()
-            * (DVector::from_column_slice(id.params.values())
+            * (DVector::from_column_slice(id.estimate.params.values())
                 - DVector::from_column_slice(truth.values()));
         assert!(dev.amax() < 2e-4, "{name}: {}", dev.amax());
-        for c in &id.combinations {
-            if let Some(v) = id.determined_value(c, &id.params) {
-                let t = id.determined_value(c, &truth).unwrap();
+        for c in &id.estimate.combinations {
+            if let Some(v) = id.estimate.determined_value(c, &id.estimate.params) {
+                let t = id.estimate.determined_value(c, &truth).unwrap();
                 assert!((v - t).abs() < 2e-4, "{name} {}: {v} vs {t}", c.sentence());
             }
         }
