@@ -226,13 +226,12 @@ fn jacobian(params: &ErrorParams, obs: &[Prepared], columns: &[usize]) -> DMatri
 struct Eq11<'a> {
     start: &'a ErrorParams,
     obs: &'a [Prepared],
-    free_index: &'a [usize],
-    basis: &'a DMatrix<f64>,
+    det: &'a Determined,
 }
 
 impl Eq11<'_> {
     fn params(&self, z: &DVector<f64>) -> ErrorParams {
-        self.start.plus(self.free_index, &(self.basis * z))
+        self.det.params(self.start, z)
     }
 }
 
@@ -252,7 +251,7 @@ impl Jacobian for Eq11<'_> {
     /// never formed.
     fn jacobian(&self, z: &DVector<f64>) -> Result<DenseNormal, ArgminError> {
         let params = self.params(z);
-        let f = self.free_index.len();
+        let f = self.det.free_index.len();
         let mut jtj = DMatrix::<f64>::zeros(f, f);
         let mut g = DVector::<f64>::zeros(f);
         let mut cols = Vec::new();
@@ -261,7 +260,7 @@ impl Jacobian for Eq11<'_> {
         for o in self.obs {
             let p = eval.point_with_jacobian(o.q, &o.links, &mut cols);
             let r = o.weight * (p - o.reference);
-            for (k, &c) in self.free_index.iter().enumerate() {
+            for (k, &c) in self.det.free_index.iter().enumerate() {
                 block[k] = o.weight * cols[c];
             }
             for a in 0..f {
@@ -276,8 +275,8 @@ impl Jacobian for Eq11<'_> {
                 jtj[(a, b)] = jtj[(b, a)];
             }
         }
-        let bt = self.basis.transpose();
-        Ok(DenseNormal::new(&bt * jtj * self.basis, bt * g))
+        let bt = self.det.basis().transpose();
+        Ok(DenseNormal::new(&bt * jtj * self.det.basis(), bt * g))
     }
 }
 
@@ -306,8 +305,7 @@ pub fn identify(
     let problem = Eq11 {
         start,
         obs,
-        free_index: &free_index,
-        basis,
+        det: &det,
     };
     let (z, r, iterations, stop_reason) = if rank == 0 {
         (DVector::zeros(0), r0.clone(), 0, "nothing-to-estimate")

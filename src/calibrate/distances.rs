@@ -281,15 +281,14 @@ struct Weighted<'a> {
     views: &'a [View],
     terms: &'a [Term],
     start: &'a ErrorParams,
-    free_index: &'a [usize],
-    basis: &'a DMatrix<f64>,
+    det: &'a Determined,
     /// √w per term.
     sqrt_w: &'a DVector<f64>,
 }
 
 impl Weighted<'_> {
     fn params(&self, z: &DVector<f64>) -> ErrorParams {
-        self.start.plus(self.free_index, &(self.basis * z))
+        self.det.params(self.start, z)
     }
 }
 
@@ -302,7 +301,7 @@ impl Operator for Weighted<'_> {
             self.views,
             self.terms,
             &self.params(z),
-            self.free_index,
+            &self.det.free_index,
             false,
         );
         Ok(e.r.component_mul(self.sqrt_w))
@@ -318,10 +317,10 @@ impl Jacobian for Weighted<'_> {
             self.views,
             self.terms,
             &self.params(z),
-            self.free_index,
+            &self.det.free_index,
             true,
         );
-        let mut j = e.j.expect("requested") * self.basis;
+        let mut j = e.j.expect("requested") * self.det.basis();
         for (i, mut row) in j.row_iter_mut().enumerate() {
             row *= self.sqrt_w[i];
         }
@@ -367,8 +366,7 @@ pub fn calibrate(
                 views: &views,
                 terms: &terms,
                 start,
-                free_index: &free_index,
-                basis,
+                det: &det,
                 sqrt_w: &sqrt_w,
             };
             let fit = LevenbergMarquardt::new()
