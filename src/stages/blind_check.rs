@@ -124,6 +124,43 @@ impl StageKind for BlindCheckStage {
     const INPUTS: &'static [Slot] = &[];
     const OUTPUTS: &'static [&'static str] = &["summary", "cases", "confusion"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "cases" => Some(&[
+                "case",
+                "layout",
+                "stations",
+                "readings",
+                "sigma_angle_urad",
+                "sigma_range_um",
+                "true_effect",
+                "true_where",
+                "true_magnitude",
+                "signal_chi2",
+                "detectable",
+                "named_effect",
+                "named_where",
+                "named_magnitude",
+                "effect_correct",
+                "where_correct",
+                "magnitude_ratio",
+            ]),
+            "confusion" => Some(&["subset", "true_effect", "named_effect", "count"]),
+            "summary" => Some(&[
+                "subset",
+                "cases",
+                "effect_accuracy_pct",
+                "where_accuracy_pct",
+                "none_accuracy_pct",
+                "median_magnitude_error_pct",
+                "with_effect",
+                "with_place",
+                "effect_free",
+            ]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
         if !(1..=100_000).contains(&self.cases) {

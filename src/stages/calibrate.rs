@@ -104,6 +104,47 @@ impl StageKind for CalibrateStage {
         "residuals",
     ];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "fit" => Some(&[
+                "objective",
+                "norm",
+                "n_readings",
+                "n_residuals",
+                "n_unknowns",
+                "rank",
+                "iterations",
+                "stop",
+                "rms_before",
+                "rms_after",
+                "mean_abs_before",
+                "mean_abs_after",
+                "chi2",
+                "dof",
+                "chi2_p",
+                "gauge_scale_ppm",
+                "noise_stated",
+            ]),
+            "residuals" => Some(&[
+                "station", "target", "face", "az_urad", "el_urad", "d_um", "az_sigma", "el_sigma",
+                "d_sigma",
+            ]),
+            "stations" => Some(&[
+                "station",
+                "x_mm",
+                "y_mm",
+                "z_mm",
+                "roll_urad",
+                "pitch_urad",
+                "yaw_deg",
+                "std_position_mm",
+                "std_rotation_urad",
+            ]),
+            "targets" => Some(&["target", "x_mm", "y_mm", "z_mm", "std_mm"]),
+            _ => fitting::columns(table),
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
         if self.objective == Objective::Bundle && self.norm == Norm::L1 {

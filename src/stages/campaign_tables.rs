@@ -229,3 +229,37 @@ fn meta_from(t: &TableRef) -> Result<Meta> {
         smr_radius_mm: t.opt_f64("smr_radius_mm")?[0],
     })
 }
+
+/// The columns of a campaign's tables as stages pass them on.
+pub fn columns(table: &str) -> Option<&'static [&'static str]> {
+    match table {
+        "readings" => Some(&[
+            "station",
+            "target",
+            "az_deg",
+            "el_deg",
+            "d_mm",
+            "face",
+            "time_s",
+            "temperature_c",
+            "pressure_hpa",
+            "humidity_pct",
+        ]),
+        "targets" => Some(&[
+            "target", "x_mm", "y_mm", "z_mm", "u_mm", "aim_x_mm", "aim_y_mm", "aim_z_mm",
+        ]),
+        "gauge" => Some(&["target_a", "target_b", "distance_mm", "u_mm"]),
+        "meta" => Some(&[
+            "format",
+            "name",
+            "description",
+            "tracker_model",
+            "sigma_angle_urad",
+            "sigma_range_um",
+            "sigma_range_ppm",
+            "smr_aim",
+            "smr_radius_mm",
+        ]),
+        _ => None,
+    }
+}

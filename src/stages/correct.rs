@@ -32,6 +32,13 @@ impl StageKind for CorrectStage {
     ];
     const OUTPUTS: &'static [&'static str] = &["corrected"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "corrected" => Some(&["target", "face", "x_mm", "y_mm", "z_mm"]),
+            _ => None,
+        }
+    }
+
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let readings = schema::readings_from(&inputs.get("readings")?)?;
         let params = schema::params_from(&inputs.get("params")?)?;

@@ -130,6 +130,70 @@ impl StageKind for DiagnoseStage {
     const OUTPUTS: &'static [&'static str] =
         &["diagnosis", "where", "residuals", "summary", "skipped"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "diagnosis" => Some(&[
+                "rank",
+                "effect",
+                "where",
+                "magnitude",
+                "unit",
+                "score",
+                "significant",
+                "rms_before_um",
+                "rms_after_um",
+                "gap_before_um",
+                "gap_after_um",
+                "gap_shrink_pct",
+                "k",
+                "delta_chi2",
+                "p_corrected",
+                "delta_bic",
+                "detail",
+            ]),
+            "where" => Some(&[
+                "factor",
+                "component",
+                "groups",
+                "eta2",
+                "f",
+                "p",
+                "significant",
+                "worst_group",
+                "worst_mean_sigma",
+            ]),
+            "residuals" => Some(&[
+                "station",
+                "target",
+                "face",
+                "az_urad",
+                "el_urad",
+                "d_um",
+                "az_sigma",
+                "el_sigma",
+                "d_sigma",
+                "incidence_deg",
+                "range_mm",
+                "azimuth_deg",
+                "elevation_deg",
+                "time_s",
+                "temperature_c",
+            ]),
+            "summary" => Some(&[
+                "campaign",
+                "chi2",
+                "dof",
+                "chi2_p",
+                "noise_stated",
+                "noise_floor_um",
+                "tried",
+                "verdict",
+            ]),
+            "skipped" => Some(&["effect", "reason"]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out: Vec<Invalid> = fitting::model(&self.shapes).err().into_iter().collect();
         if !(2..=20).contains(&self.folds) {

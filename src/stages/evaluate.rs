@@ -55,6 +55,22 @@ impl StageKind for EvaluateStage {
     ];
     const OUTPUTS: &'static [&'static str] = &["summary", "points"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "points" => Some(&[
+                "target",
+                "face",
+                "x_ref_mm",
+                "y_ref_mm",
+                "z_ref_mm",
+                "err_before_um",
+                "err_after_um",
+            ]),
+            "summary" => Some(&["statistic", "before_um", "after_um", "reduction_pct"]),
+            _ => None,
+        }
+    }
+
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let rt = inputs.get("readings")?;
         let ct = inputs.get("corrected")?;

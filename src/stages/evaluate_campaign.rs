@@ -119,6 +119,15 @@ impl StageKind for EvaluateCampaignStage {
                 "after_um",
                 "improvement_pct",
             ]),
+            "table7" => Some(&[
+                "error",
+                "statistic",
+                "coordinates_um",
+                "distances_um",
+                "reference_coordinates_um",
+                "reference_distances_um",
+            ]),
+            // table5 and table6 have one column per station: the data's.
             "terms" => Some(&[
                 "criterion",
                 "station_a",

@@ -51,6 +51,13 @@ impl StageKind for ExportCampaignStage {
     )];
     const OUTPUTS: &'static [&'static str] = &["export"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "export" => Some(&["path", "readings", "targets", "gauge_rows"]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         if self.path.as_os_str().is_empty() || self.path.file_name().is_none() {
             return vec![Invalid::new(

@@ -75,6 +75,25 @@ pub fn check(shapes: &BTreeMap<ParamId, Shape>, rank_tol: f64, max_iters: u64) -
     out
 }
 
+/// The columns of the tables [`tables`] makes, by table name.
+pub fn columns(table: &str) -> Option<&'static [&'static str]> {
+    match table {
+        "params" => Some(&[
+            "coef",
+            "param",
+            "symbol",
+            "unit",
+            "value",
+            "free",
+            "std",
+            "determined",
+        ]),
+        "singular_values" => Some(&["index", "sigma", "sigma_rel", "determined"]),
+        "combinations" => Some(&["direction", "determined", "value", "sentence"]),
+        _ => None,
+    }
+}
+
 /// `params`, `singular_values` and `combinations` (see the `identify` stage).
 pub fn tables(d: &Estimate) -> Result<[DataFrame; 3]> {
     let params = schema::params_table(

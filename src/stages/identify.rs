@@ -71,6 +71,23 @@ impl StageKind for IdentifyStage {
     ];
     const OUTPUTS: &'static [&'static str] = &["params", "singular_values", "combinations", "fit"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "fit" => Some(&[
+                "n_readings",
+                "n_free",
+                "rank",
+                "iterations",
+                "stop",
+                "rms_before_um",
+                "rms_after_um",
+                "weighting",
+                "std_from",
+            ]),
+            _ => fitting::columns(table),
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
         if let Some(Err((f, v))) = self.noise.map(|n| n.check()) {

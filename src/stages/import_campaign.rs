@@ -49,6 +49,10 @@ impl StageKind for ImportCampaignStage {
     const INPUTS: &'static [Slot] = &[];
     const OUTPUTS: &'static [&'static str] = campaign::TABLES;
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        super::campaign_tables::columns(table)
+    }
+
     fn resolve(&mut self) {
         self.content_hash = campaign::content_hash(&self.path).ok();
     }

@@ -333,6 +333,22 @@ impl StageKind for IncidenceFitStage {
     const INPUTS: &'static [Slot] = &[];
     const OUTPUTS: &'static [&'static str] = &["fits", "residuals", "grid", "effect"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "effect" => Some(&["model", "toml"]),
+            "fits" => Some(&["model", "parameter", "value", "unit", "std"]),
+            "grid" => Some(&[
+                "alpha_v_deg",
+                "alpha_h_deg",
+                "data_um",
+                "vertex_um",
+                "poly_um",
+            ]),
+            "residuals" => Some(&["model", "rms_um", "max_um", "n"]),
+            _ => None,
+        }
+    }
+
     fn resolve(&mut self) {
         self.content_hash = read_data(&self.path).ok().map(|b| hash(&b));
     }

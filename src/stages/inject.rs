@@ -114,6 +114,13 @@ impl StageKind for InjectStage {
     const INPUTS: &'static [Slot] = &[];
     const OUTPUTS: &'static [&'static str] = &["params"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "params" => Some(&["coef", "param", "symbol", "unit", "value"]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
         if !self.scale.is_finite() {

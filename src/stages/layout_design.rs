@@ -199,6 +199,28 @@ impl StageKind for LayoutDesignStage {
     )];
     const OUTPUTS: &'static [&'static str] = &["layouts", "singular_values"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "layouts" => Some(&[
+                "name",
+                "n_stations",
+                "n_reflectors",
+                "n_readings",
+                "rank",
+                "sigma_min",
+                "condition_number",
+                "o1",
+                "o2",
+                "o3",
+                "o4",
+                "o5",
+                "undetermined",
+            ]),
+            "singular_values" => Some(&["layout", "index", "sigma"]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
         for (i, l) in self.layouts.iter().enumerate() {

@@ -66,6 +66,16 @@ impl StageKind for MeasureStage {
     ];
     const OUTPUTS: &'static [&'static str] = &["readings"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "readings" => Some(&[
+                "target", "face", "az_deg", "el_deg", "d_mm", "x_mm", "y_mm", "z_mm", "x_ref_mm",
+                "y_ref_mm", "z_ref_mm",
+            ]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         match self.noise.check() {
             Ok(()) => Vec::new(),

@@ -74,6 +74,13 @@ impl StageKind for MeshStage {
     const INPUTS: &'static [Slot] = &[];
     const OUTPUTS: &'static [&'static str] = &["points"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "points" => Some(&["target", "x_mm", "y_mm", "z_mm"]),
+            _ => None,
+        }
+    }
+
     fn resolve(&mut self) {
         match self.shape {
             Shape::Plane => {

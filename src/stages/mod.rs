@@ -259,6 +259,16 @@ macro_rules! stage_kinds {
             }
         }
 
+        /// The columns kind `kind` declares for its output `table`
+        /// ([`StageKind::columns`]); `None` for an unknown kind or a table
+        /// whose columns depend on the data.
+        pub fn declared_columns(kind: &str, table: &str) -> Option<&'static [&'static str]> {
+            match kind {
+                $(<$ty as StageKind>::KIND => <$ty as StageKind>::columns(table),)*
+                _ => None,
+            }
+        }
+
         /// `(kind, summary)` of every stage kind.
         pub fn summaries() -> Vec<(&'static str, &'static str)> {
             vec![$((<$ty as StageKind>::KIND, <$ty as StageKind>::SUMMARY)),*]

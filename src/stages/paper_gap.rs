@@ -103,6 +103,32 @@ impl StageKind for PaperGapStage {
     ];
     const OUTPUTS: &'static [&'static str] = &["gap"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "gap" => Some(&[
+                "scenario",
+                "runs",
+                "table7_coordinates_initial_um",
+                "table7_coordinates_pct",
+                "table7_coordinates_sd_pct",
+                "table7_coordinates_share_pct",
+                "table7_distances_initial_um",
+                "table7_distances_pct",
+                "table7_distances_sd_pct",
+                "table7_distances_share_pct",
+                "table8_coordinates_initial_um",
+                "table8_coordinates_pct",
+                "table8_coordinates_sd_pct",
+                "table8_coordinates_share_pct",
+                "table8_distances_initial_um",
+                "table8_distances_pct",
+                "table8_distances_sd_pct",
+                "table8_distances_share_pct",
+            ]),
+            _ => None,
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         if self.scenario.is_empty() {
             vec![Invalid::new("scenario", "`scenario` names a column")]

@@ -149,6 +149,13 @@ impl StageKind for PlotStage {
     const INPUTS: &'static [Slot] = &[Slot::table("table", true, "the table to draw")];
     const OUTPUTS: &'static [&'static str] = &["figure"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "figure" => Some(&["file", "plot", "title", "rows"]),
+            _ => None,
+        }
+    }
+
     fn resolve(&mut self) {
         if self.file.is_empty() {
             self.file = format!("{}.svg", self.plot.name());

@@ -80,6 +80,36 @@ impl StageKind for SensitivityStage {
     const INPUTS: &'static [Slot] = &[];
     const OUTPUTS: &'static [&'static str] = &["classification", "field", "extremes"];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "classification" => Some(&[
+                "parameter",
+                "symbol",
+                "min_um",
+                "max_um",
+                "mean_um",
+                "varies_theta",
+                "varies_phi",
+                "varies_d",
+                "ours",
+                "paper",
+                "agrees",
+                "note",
+            ]),
+            "extremes" => Some(&[
+                "parameter",
+                "symbol",
+                "d_mm",
+                "max_um",
+                "min_um",
+                "extremes",
+                "as_paper",
+            ]),
+            "field" => Some(&["parameter", "target", "az_deg", "el_deg", "d_mm", "err_um"]),
+            _ => None,
+        }
+    }
+
     fn resolve(&mut self) {
         self.h_deg.get_or_insert(mesh::SPHERE_H_DEG);
         self.v_deg.get_or_insert(mesh::SPHERE_V_DEG);

@@ -153,6 +153,23 @@ impl StageKind for SimulateCampaignStage {
         "truth_effects",
     ];
 
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "truth_effects" => Some(&["effect", "where", "parameter", "value"]),
+            "truth_stations" => Some(&[
+                "station",
+                "x_mm",
+                "y_mm",
+                "z_mm",
+                "roll_urad",
+                "pitch_urad",
+                "yaw_deg",
+            ]),
+            "truth_targets" => Some(&["target", "x_mm", "y_mm", "z_mm"]),
+            _ => super::campaign_tables::columns(table),
+        }
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out: Vec<Invalid> = self
             .layout

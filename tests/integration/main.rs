@@ -4,6 +4,7 @@ mod cache_safety;
 mod calibration;
 mod campaign_io;
 mod cli;
+mod columns;
 mod diagnose;
 mod effects;
 mod errors;
