@@ -51,6 +51,10 @@ pub struct KeyFields {
     pub params: serde_json::Value,
     /// Slot → content hash of the table wired to it.
     pub inputs: BTreeMap<String, String>,
+    /// Content hash of the file or folder the stage reads
+    /// ([`crate::stages::StageFile`]), when it reads one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<String>,
 }
 
 impl KeyFields {
@@ -74,6 +78,13 @@ impl KeyFields {
             out.push(format!("kind: {} → {}", old.kind, self.kind));
         }
         json_diff("", &old.params, &self.params, &mut out);
+        if self.file != old.file {
+            out.push(format!(
+                "its file changed ({} → {})",
+                old.file.as_deref().map_or("none", short),
+                self.file.as_deref().map_or("none", short)
+            ));
+        }
         for (slot, h) in &self.inputs {
             match old.inputs.get(slot) {
                 None => out.push(format!("input `{slot}`: newly connected")),
@@ -548,6 +559,7 @@ mod tests {
             kind: "measure".into(),
             params: serde_json::json!({"seed": seed, "noise": {"sigma_angle_urad": 1.0}}),
             inputs: BTreeMap::from([("points".to_string(), "abc".to_string())]),
+            file: None,
         }
     }
 

@@ -70,6 +70,7 @@ pub fn key_fields(stage: &Stage, input_hashes: BTreeMap<String, String>) -> KeyF
         kind: stage.config.kind().to_string(),
         params: stage.config.to_json(),
         inputs: input_hashes,
+        file: stage.file_hash.clone(),
     }
 }
 

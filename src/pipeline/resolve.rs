@@ -9,11 +9,12 @@ use super::raw::{RawPipeline, RawStage};
 use super::snapshot::{self, Snapshot};
 use super::{Problem, sweep};
 use crate::diagnostics::Source;
-use crate::stages::StageConfig;
+use crate::stages::{Invalid, StageConfig};
 use anyhow::{Result, anyhow, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::ops::Range;
+use std::path::PathBuf;
 
 /// One `--set path=value`: `path` is dotted (`stages.measure.seed`), with
 /// double quotes around a segment that contains dots; `value` is a TOML
@@ -142,7 +143,14 @@ pub struct Stage {
     pub name: String,
     pub config: StageConfig,
     pub inputs: BTreeMap<String, InputRef>,
+    /// Content hash of the file or folder the stage reads, checked when
+    /// the pipeline loaded ([`crate::stages::StageFile`]).
+    pub file_hash: Option<String>,
 }
+
+/// The files stages read, checked once per load: `(kind, path)` → content
+/// hash, or why it cannot be used.
+type FileChecks = BTreeMap<(&'static str, PathBuf), Result<String, String>>;
 
 impl Stage {
     /// Every table the stage reads, as `(input name, producer table)`: a
@@ -246,9 +254,10 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
             )),
         }
     }
+    let mut files = FileChecks::new();
     let mut stages = Vec::new();
     for rs in &raw.stages {
-        match resolve_stage(src, rs, overrides) {
+        match resolve_stage(src, rs, overrides, &mut files) {
             Ok(s) => stages.push(s),
             Err(mut p) => problems.append(&mut p),
         }
@@ -292,7 +301,7 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
         raw.sweep.is_some().then_some(&gather_names[..]),
     )?;
     if let Some((sw, _)) = &raw.sweep {
-        pipeline.sweep = Some(resolve_sweep(raw, sw, &pipeline, overrides)?);
+        pipeline.sweep = Some(resolve_sweep(raw, sw, &pipeline, overrides, &mut files)?);
     }
     check_columns(raw, &pipeline)?;
     if let Some((snap, header)) = &raw.snapshot {
@@ -310,6 +319,7 @@ fn resolve_stage(
     src: &Source,
     rs: &RawStage,
     overrides: &[Override],
+    files: &mut FileChecks,
 ) -> Result<Stage, Vec<Problem>> {
     let mut problems = Vec::new();
     let mut json = rs.config.to_json();
@@ -386,7 +396,20 @@ fn resolve_stage(
         })?
     };
     config.resolve();
-    for inv in config.validate() {
+    let mut invalid = config.validate();
+    let file_hash = config.file().and_then(|f| {
+        let checked = files
+            .entry((config.kind(), f.path.to_path_buf()))
+            .or_insert_with(|| (f.check)(f.path));
+        match checked {
+            Ok(hash) => Some(hash.clone()),
+            Err(why) => {
+                invalid.push(Invalid::new(f.field, why.clone()));
+                None
+            }
+        }
+    });
+    for inv in invalid {
         let overridden = mine.iter().find(|(_, rest)| {
             let p = rest.join(".");
             inv.field == p
@@ -430,6 +453,7 @@ fn resolve_stage(
         name: rs.name.clone(),
         config,
         inputs,
+        file_hash,
     })
 }
 
@@ -691,6 +715,7 @@ fn resolve_sweep(
     sw: &sweep::RawSweep,
     p: &Pipeline,
     overrides: &[Override],
+    files: &mut FileChecks,
 ) -> Result<Sweep, Vec<Problem>> {
     let src = &raw.source;
     let mut problems = Vec::new();
@@ -765,7 +790,7 @@ fn resolve_sweep(
         all.extend(v.overrides(&axes));
         let mut stages = Vec::new();
         for rs in raw.stages.iter().filter(|rs| per_point(&rs.name)) {
-            match resolve_stage(src, rs, &all) {
+            match resolve_stage(src, rs, &all, files) {
                 Ok(s) => stages.push(s),
                 Err(mut e) => problems.append(&mut e),
             }

@@ -511,6 +511,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
     let ctx = Context {
         pipeline: runner.pipeline,
         stage: &s.name,
+        file_hash: s.file_hash.as_deref(),
     };
     let output = match panics::catch(|| s.config.run(&ctx, &stage_inputs)) {
         Ok(Ok(o)) => o,

@@ -17,29 +17,32 @@
 //!
 //! Cache: a stage's key covers its settings and input tables, and this
 //! stage's real input is the folder, which is neither. So that an edited
-//! file is not answered from the cache, `resolve` adds the setting
-//! `content_hash` — the blake3 hash of the files the reader reads
-//! ([`crate::campaign::content_hash`]) — which the key then covers. ltcal
-//! fills it in; it cannot be written in the pipeline file. `run` hashes the
-//! folder again before and after reading it and fails if it changed since
-//! the pipeline was loaded, rather than cache one content under another's
-//! key.
+//! file is not answered from the cache, the stage declares the folder
+//! ([`super::StageFile`]): the runner reads and checks it once when the
+//! pipeline loads, however many sweep points name it, and puts the blake3
+//! hash of the files the reader reads ([`crate::campaign::content_hash`])
+//! in the key. `run` hashes the folder again before and after reading it
+//! and fails if it changed since the pipeline was loaded, rather than cache
+//! one content under another's key.
 
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use super::{Context, Slot, StageFile, StageInputs, StageKind, StageOutput};
 use crate::campaign::{self, Campaign};
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImportCampaignStage {
     /// The campaign folder.
     pub path: PathBuf,
-    /// Filled in by `resolve`: the hash of the folder's campaign files, or
-    /// `None` when the folder cannot be read (then `validate` says why).
-    #[serde(default, skip_deserializing, skip_serializing_if = "Option::is_none")]
-    pub content_hash: Option<String>,
+}
+
+/// The folder's check when the pipeline loads: it reads as a campaign, and
+/// the hash of its files.
+fn check(path: &Path) -> Result<String, String> {
+    campaign::read(path).map_err(|e| e.to_string())?;
+    campaign::content_hash(path).map_err(|e| format!("`path`: {}: {e}", path.display()))
 }
 
 impl StageKind for ImportCampaignStage {
@@ -53,19 +56,16 @@ impl StageKind for ImportCampaignStage {
         super::campaign_tables::columns(table)
     }
 
-    fn resolve(&mut self) {
-        self.content_hash = campaign::content_hash(&self.path).ok();
+    fn file(&self) -> Option<StageFile<'_>> {
+        Some(StageFile {
+            field: "path",
+            path: &self.path,
+            check,
+        })
     }
 
-    fn validate(&self) -> Vec<Invalid> {
-        match campaign::read(&self.path) {
-            Ok(_) => Vec::new(),
-            Err(e) => vec![Invalid::new("path", e.to_string())],
-        }
-    }
-
-    fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
-        let unchanged = || campaign::content_hash(&self.path).ok() == self.content_hash;
+    fn run(&self, ctx: &Context, _: &StageInputs) -> Result<StageOutput> {
+        let unchanged = || campaign::content_hash(&self.path).ok().as_deref() == ctx.file_hash;
         let before = unchanged();
         let c: Campaign = campaign::read(&self.path)?;
         if !(before && unchanged()) {

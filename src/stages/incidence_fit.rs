@@ -13,9 +13,9 @@
 //! ```
 //!
 //! The file is a grid: `#` comment lines, a header `alpha_v_deg,<α_h>…`,
-//! then one row per α_v (degrees; µm in the cells). Its blake3 hash enters
-//! the resolved settings as `content_hash` (filled in by ltcal, not
-//! writable), so an edited file is not answered from the cache.
+//! then one row per α_v (degrees; µm in the cells). ltcal reads it when
+//! the pipeline loads and its blake3 hash enters the cache key
+//! ([`super::StageFile`]), so an edited file is not answered from the cache.
 //!
 //! **Vertex-offset model** (effects.md, `incidence`):
 //! `Δd = e_axial·(1 − cos α) + e_h·sin α_h + e_v·sin α_v`. A cell gives
@@ -45,7 +45,7 @@
 //! same snippet) and `table9-fits.svg` (data, fits and residuals as heat
 //! maps).
 
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use super::{Context, Invalid, Slot, StageFile, StageInputs, StageKind, StageOutput};
 use crate::effects::DEFAULT_MAX_ANGLE_DEG;
 use crate::plots::{self, FitMaps};
 use crate::table::TableBuilder;
@@ -64,10 +64,19 @@ pub struct IncidenceFitStage {
     pub poly_order: usize,
     #[serde(default = "default_snippet_stage")]
     pub snippet_stage: String,
-    /// Filled in by `resolve`: the blake3 hash of the file, or `None` when it
-    /// cannot be read (then `validate` says why).
-    #[serde(default, skip_deserializing, skip_serializing_if = "Option::is_none")]
-    pub content_hash: Option<String>,
+}
+
+/// The file's check when the pipeline loads: a readable grid, and its hash.
+fn check(path: &Path) -> Result<String, String> {
+    let bytes = read_data(path).map_err(|e| format!("`path`: {e}"))?;
+    let text = std::str::from_utf8(&bytes).map_err(|_| {
+        format!(
+            "`path`: cannot read {}: stream did not contain valid UTF-8",
+            path.display()
+        )
+    })?;
+    read_grid(path, text).map_err(|e| e.to_string())?;
+    Ok(hash(&bytes))
 }
 
 fn default_path() -> PathBuf {
@@ -349,27 +358,16 @@ impl StageKind for IncidenceFitStage {
         }
     }
 
-    fn resolve(&mut self) {
-        self.content_hash = read_data(&self.path).ok().map(|b| hash(&b));
+    fn file(&self) -> Option<StageFile<'_>> {
+        Some(StageFile {
+            field: "path",
+            path: &self.path,
+            check,
+        })
     }
 
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
-        match read_data(&self.path).map(String::from_utf8) {
-            Ok(Ok(text)) => {
-                if let Err(e) = read_grid(&self.path, &text) {
-                    out.push(Invalid::new("path", e.to_string()));
-                }
-            }
-            Ok(Err(_)) => out.push(Invalid::new(
-                "path",
-                format!(
-                    "`path`: cannot read {}: stream did not contain valid UTF-8",
-                    self.path.display()
-                ),
-            )),
-            Err(e) => out.push(Invalid::new("path", format!("`path`: {e}"))),
-        }
         if !(1..=4).contains(&self.poly_order) {
             out.push(Invalid::new(
                 "poly_order",
@@ -393,10 +391,10 @@ impl StageKind for IncidenceFitStage {
         out
     }
 
-    fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
+    fn run(&self, ctx: &Context, _: &StageInputs) -> Result<StageOutput> {
         let bytes = read_data(&self.path)
             .map_err(|e| anyhow!("reading {}: {}", e.path.display(), e.reason))?;
-        if Some(hash(&bytes)) != self.content_hash {
+        if Some(hash(&bytes).as_str()) != ctx.file_hash {
             bail!(
                 "{} changed since the pipeline was loaded: run it again",
                 self.path.display()

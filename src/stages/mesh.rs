@@ -45,7 +45,48 @@ pub struct MeshStage {
     pub r_mm: Option<Range>,
 }
 
+/// What a shape is built from, every default filled.
+enum Geometry {
+    Plane {
+        x_mm: f64,
+        y: Range,
+        z: Range,
+    },
+    Cube {
+        x: Range,
+        y: Range,
+        z: Range,
+    },
+    Sphere {
+        h_deg: Range,
+        v_deg: Range,
+        r_mm: Range,
+    },
+}
+
 impl MeshStage {
+    /// The shape's ranges as written, the paper's mesh where not.
+    fn geometry(&self) -> Geometry {
+        let or = |r: &Option<Range>, d: Range| r.unwrap_or(d);
+        match self.shape {
+            Shape::Plane => Geometry::Plane {
+                x_mm: self.x_mm.unwrap_or(mesh::PLANE_X_MM),
+                y: or(&self.y, mesh::PLANE_Y),
+                z: or(&self.z, mesh::PLANE_Z),
+            },
+            Shape::Cube => Geometry::Cube {
+                x: or(&self.x, mesh::CUBE_AXIS),
+                y: or(&self.y, mesh::CUBE_AXIS),
+                z: or(&self.z, mesh::CUBE_AXIS),
+            },
+            Shape::Sphere => Geometry::Sphere {
+                h_deg: or(&self.h_deg, mesh::SPHERE_H_DEG),
+                v_deg: or(&self.v_deg, mesh::SPHERE_V_DEG),
+                r_mm: or(&self.r_mm, mesh::SPHERE_R_MM),
+            },
+        }
+    }
+
     /// The fields each shape reads.
     fn fields(&self) -> &'static [&'static str] {
         match self.shape {
@@ -81,22 +122,19 @@ impl StageKind for MeshStage {
         }
     }
 
+    /// Writes the shape's defaults into the settings, so that the cache
+    /// key sees them: the same values [`MeshStage::geometry`] runs with.
     fn resolve(&mut self) {
-        match self.shape {
-            Shape::Plane => {
-                self.x_mm.get_or_insert(mesh::PLANE_X_MM);
-                self.y.get_or_insert(mesh::PLANE_Y);
-                self.z.get_or_insert(mesh::PLANE_Z);
+        match self.geometry() {
+            Geometry::Plane { x_mm, y, z } => {
+                self.x_mm = Some(x_mm);
+                (self.y, self.z) = (Some(y), Some(z));
             }
-            Shape::Cube => {
-                self.x.get_or_insert(mesh::CUBE_AXIS);
-                self.y.get_or_insert(mesh::CUBE_AXIS);
-                self.z.get_or_insert(mesh::CUBE_AXIS);
+            Geometry::Cube { x, y, z } => {
+                (self.x, self.y, self.z) = (Some(x), Some(y), Some(z));
             }
-            Shape::Sphere => {
-                self.h_deg.get_or_insert(mesh::SPHERE_H_DEG);
-                self.v_deg.get_or_insert(mesh::SPHERE_V_DEG);
-                self.r_mm.get_or_insert(mesh::SPHERE_R_MM);
+            Geometry::Sphere { h_deg, v_deg, r_mm } => {
+                (self.h_deg, self.v_deg, self.r_mm) = (Some(h_deg), Some(v_deg), Some(r_mm));
             }
         }
     }
@@ -149,15 +187,10 @@ impl StageKind for MeshStage {
     }
 
     fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
-        let (x, y, z) = (self.x.as_ref(), self.y.as_ref(), self.z.as_ref());
-        let points = match self.shape {
-            Shape::Plane => mesh::plane(self.x_mm.unwrap(), y.unwrap(), z.unwrap()),
-            Shape::Cube => mesh::cube(x.unwrap(), y.unwrap(), z.unwrap()),
-            Shape::Sphere => mesh::sphere(
-                self.h_deg.as_ref().unwrap(),
-                self.v_deg.as_ref().unwrap(),
-                self.r_mm.as_ref().unwrap(),
-            ),
+        let points = match self.geometry() {
+            Geometry::Plane { x_mm, y, z } => mesh::plane(x_mm, &y, &z),
+            Geometry::Cube { x, y, z } => mesh::cube(&x, &y, &z),
+            Geometry::Sphere { h_deg, v_deg, r_mm } => mesh::sphere(&h_deg, &v_deg, &r_mm),
         };
         Ok(StageOutput::default().table("points", schema::points_table(&points)?))
     }

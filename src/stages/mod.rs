@@ -34,6 +34,7 @@ use polars::prelude::DataFrame;
 use serde::{Serialize, de::DeserializeOwned};
 use std::collections::BTreeMap;
 use std::fmt::Debug;
+use std::path::Path;
 use std::sync::Arc;
 
 /// An input slot of a stage kind: one table, or a group of tables that
@@ -140,10 +141,29 @@ pub struct ColumnUse {
     pub column: String,
 }
 
+/// A file or folder a stage reads, named by one of its settings. The
+/// runner, not the stage, reads it when the pipeline loads — once per
+/// path, however many sweep points name it — refuses it at that setting's
+/// place when [`StageFile::check`] does, and puts the content hash it
+/// returns in the cache key, so an edited file is never answered from the
+/// cache.
+#[derive(Clone, Copy)]
+pub struct StageFile<'a> {
+    /// The setting that names it.
+    pub field: &'static str,
+    pub path: &'a Path,
+    /// Reads and checks it: its content hash, or why it cannot be used.
+    pub check: fn(&Path) -> Result<String, String>,
+}
+
 /// What a running stage knows about where it runs.
 pub struct Context<'a> {
     pub pipeline: &'a str,
     pub stage: &'a str,
+    /// The content hash the runner recorded for the stage's
+    /// [`StageKind::file`] when the pipeline loaded: what the stage checks
+    /// its file still has.
+    pub file_hash: Option<&'a str>,
 }
 
 /// A stage kind: its TOML table (with `deny_unknown_fields`), its slots and
@@ -161,6 +181,11 @@ pub trait StageKind: Serialize + DeserializeOwned + Clone + Debug + Send + Sync 
     /// Fills in defaults that depend on other settings, so that the cache
     /// key sees every value the stage will use.
     fn resolve(&mut self) {}
+
+    /// The file or folder the stage reads, if any ([`StageFile`]).
+    fn file(&self) -> Option<StageFile<'_>> {
+        None
+    }
 
     /// Settings that cannot work, each naming its field.
     fn validate(&self) -> Vec<Invalid> {
@@ -222,6 +247,9 @@ macro_rules! stage_kinds {
             }
             pub fn resolve(&mut self) {
                 match self { $(StageConfig::$variant(c) => c.resolve()),* }
+            }
+            pub fn file(&self) -> Option<StageFile<'_>> {
+                match self { $(StageConfig::$variant(c) => c.file()),* }
             }
             /// The kind's fixed columns of output `table` ([`StageKind::columns`]).
             pub fn columns(&self, table: &str) -> Option<&'static [&'static str]> {

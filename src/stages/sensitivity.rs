@@ -45,12 +45,12 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SensitivityStage {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub h_deg: Option<Range>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub v_deg: Option<Range>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub r_mm: Option<Range>,
+    #[serde(default = "sphere_h_deg")]
+    pub h_deg: Range,
+    #[serde(default = "sphere_v_deg")]
+    pub v_deg: Range,
+    #[serde(default = "sphere_r_mm")]
+    pub r_mm: Range,
     #[serde(default = "default_rel_tol")]
     pub rel_tol: f64,
 }
@@ -60,16 +60,27 @@ const VALUE: f64 = 1.0;
 /// The direction grid of the Figure 12 check, degrees.
 const GRID_STEP_DEG: f64 = 1.0;
 
+// The paper's sphere (NOTES item 7) unless the file says otherwise.
+fn sphere_h_deg() -> Range {
+    mesh::SPHERE_H_DEG
+}
+fn sphere_v_deg() -> Range {
+    mesh::SPHERE_V_DEG
+}
+fn sphere_r_mm() -> Range {
+    mesh::SPHERE_R_MM
+}
+
 fn default_rel_tol() -> f64 {
     1e-6
 }
 
 impl SensitivityStage {
-    fn ranges(&self) -> [(&'static str, Option<&Range>); 3] {
+    fn ranges(&self) -> [(&'static str, &Range); 3] {
         [
-            ("h_deg", self.h_deg.as_ref()),
-            ("v_deg", self.v_deg.as_ref()),
-            ("r_mm", self.r_mm.as_ref()),
+            ("h_deg", &self.h_deg),
+            ("v_deg", &self.v_deg),
+            ("r_mm", &self.r_mm),
         ]
     }
 }
@@ -110,34 +121,24 @@ impl StageKind for SensitivityStage {
         }
     }
 
-    fn resolve(&mut self) {
-        self.h_deg.get_or_insert(mesh::SPHERE_H_DEG);
-        self.v_deg.get_or_insert(mesh::SPHERE_V_DEG);
-        self.r_mm.get_or_insert(mesh::SPHERE_R_MM);
-    }
-
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
         for (name, r) in self.ranges() {
-            if let Some(Err((part, msg))) = r.map(Range::check) {
+            if let Err((part, msg)) = r.check() {
                 out.push(Invalid::new(
                     format!("{name}.{part}"),
                     format!("`{name}.{part}` {msg}"),
                 ));
             }
         }
-        if let Some(r) = self.r_mm.as_ref().filter(|r| r.from.min(r.to) <= 0.0) {
+        if let Some(r) = Some(&self.r_mm).filter(|r| r.from.min(r.to) <= 0.0) {
             out.push(Invalid::new(
                 "r_mm.from",
                 format!("`r_mm` must stay above zero, got {} … {}", r.from, r.to),
             ));
         }
         // At ±90° the azimuth of a point is undefined.
-        if let Some(v) = self
-            .v_deg
-            .as_ref()
-            .filter(|v| v.from.abs().max(v.to.abs()) >= 90.0)
-        {
+        if let Some(v) = Some(&self.v_deg).filter(|v| v.from.abs().max(v.to.abs()) >= 90.0) {
             out.push(Invalid::new(
                 "v_deg.from",
                 format!(
@@ -156,11 +157,7 @@ impl StageKind for SensitivityStage {
     }
 
     fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
-        let (h, v, r) = (
-            self.h_deg.as_ref().expect("resolved"),
-            self.v_deg.as_ref().expect("resolved"),
-            self.r_mm.as_ref().expect("resolved"),
-        );
+        let (h, v, r) = (&self.h_deg, &self.v_deg, &self.r_mm);
         let mesh = mesh::sphere(h, v, r);
         let pts: Vec<Vector3<f64>> = mesh.iter().map(|m| m.p).collect();
         let mut fields = Vec::new();

@@ -613,6 +613,7 @@ fn the_export_stage_writes_nothing_for_an_invalid_campaign() {
     let ctx = Context {
         pipeline: "test",
         stage: "export",
+        file_hash: None,
     };
     let e = stage.run(&ctx, &as_inputs(&c, "campaign")).err().unwrap();
     assert!(
@@ -796,6 +797,19 @@ fn an_edited_campaign_file_is_not_answered_from_the_cache() {
         text.replace("4610.10042", "4610.10043"),
     )
     .unwrap();
+    // The runner read the folder when the pipeline loaded: `plan` names it.
+    let plan = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args([
+            "plan",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    let said =
+        String::from_utf8_lossy(&plan.stdout).into_owned() + &String::from_utf8_lossy(&plan.stderr);
+    assert!(said.contains("its file changed"), "{said}");
     let err = run();
     assert!(err.contains("2 ran, 0 cached"), "{err}");
     assert_eq!(read_ok(&out).readings[0].d_mm, 4610.10043);

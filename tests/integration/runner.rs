@@ -318,6 +318,7 @@ fn typed_key(
             kind: kind.clone(),
             params: c.to_json(),
             inputs: BTreeMap::new(),
+            file: None,
         }
         .hash();
         Ok((c.to_json(), key))
@@ -466,15 +467,18 @@ fn changing_any_resolved_setting_of_any_stage_kind_changes_the_key() {
             covered[kind]
         );
     }
-    // The other key fields: version, code, kind and each input's content.
+    // The other key fields: version, code, kind, each input's content and
+    // the content of the file the stage reads.
     let k = KeyFields {
         ltcal_version: "0.1.0".into(),
         code: "c0de".into(),
         kind: "measure".into(),
         params: serde_json::json!({"seed": 1}),
         inputs: BTreeMap::from([("points".into(), "a".into()), ("errors".into(), "b".into())]),
+        file: None,
     };
-    let mut variants = vec![k.clone(); 5];
+    let mut variants = vec![k.clone(); 6];
+    variants[5].file = Some("f11e".into());
     variants[0].ltcal_version = "0.1.1".into();
     variants[4].code = "c0de2".into();
     variants[1].kind = "identify".into();
