@@ -19,7 +19,8 @@ mod write;
 pub use crate::diagnostics::Problem;
 pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
 pub use read::{
-    CampaignError, FILES, MAX_FILE_BYTES, MAX_ROWS, content_hash, read, read_for_calibration,
+    CampaignError, FILES, GAUGE_COLUMNS, MAX_FILE_BYTES, MAX_ROWS, READINGS_COLUMNS,
+    TARGETS_COLUMNS, content_hash, read, read_for_calibration,
 };
 pub use usable::{MAX_RANGE_MM, POLE_COS_EL, SIGMA_RANGE};
 pub use write::{overwrite, write};

@@ -323,7 +323,7 @@ struct Csv {
 
 /// The columns campaign-format.md defines for each file; any other column
 /// is ignored.
-const READINGS_COLUMNS: &[&str] = &[
+pub const READINGS_COLUMNS: &[&str] = &[
     "station",
     "target",
     "az_deg",
@@ -335,10 +335,10 @@ const READINGS_COLUMNS: &[&str] = &[
     "pressure_hpa",
     "humidity_pct",
 ];
-const TARGETS_COLUMNS: &[&str] = &[
+pub const TARGETS_COLUMNS: &[&str] = &[
     "target", "x_mm", "y_mm", "z_mm", "u_mm", "aim_x_mm", "aim_y_mm", "aim_z_mm",
 ];
-const GAUGE_COLUMNS: &[&str] = &["target_a", "target_b", "distance_mm", "u_mm"];
+pub const GAUGE_COLUMNS: &[&str] = &["target_a", "target_b", "distance_mm", "u_mm"];
 
 impl Csv {
     /// Tokenizes a file and checks its shape: none of the `known` columns

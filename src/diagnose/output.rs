@@ -12,8 +12,9 @@ use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use std::fmt::Write as _;
 
-/// The contract's columns, in order.
-pub const CONTRACT: [&str; 12] = [
+/// The columns of `diagnosis`, in order: the contract's twelve, then the
+/// test's numbers and the detail.
+pub const DIAGNOSIS_COLUMNS: &[&str] = &[
     "rank",
     "effect",
     "where",
@@ -26,6 +27,11 @@ pub const CONTRACT: [&str; 12] = [
     "gap_before_um",
     "gap_after_um",
     "gap_shrink_pct",
+    "k",
+    "delta_chi2",
+    "p_corrected",
+    "delta_bic",
+    "detail",
 ];
 
 pub fn diagnosis_table(d: &Diagnosis) -> Result<DataFrame> {

@@ -233,22 +233,9 @@ fn meta_from(t: &TableRef) -> Result<Meta> {
 /// The columns of a campaign's tables as stages pass them on.
 pub fn columns(table: &str) -> Option<&'static [&'static str]> {
     match table {
-        "readings" => Some(&[
-            "station",
-            "target",
-            "az_deg",
-            "el_deg",
-            "d_mm",
-            "face",
-            "time_s",
-            "temperature_c",
-            "pressure_hpa",
-            "humidity_pct",
-        ]),
-        "targets" => Some(&[
-            "target", "x_mm", "y_mm", "z_mm", "u_mm", "aim_x_mm", "aim_y_mm", "aim_z_mm",
-        ]),
-        "gauge" => Some(&["target_a", "target_b", "distance_mm", "u_mm"]),
+        "readings" => Some(crate::campaign::READINGS_COLUMNS),
+        "targets" => Some(crate::campaign::TARGETS_COLUMNS),
+        "gauge" => Some(crate::campaign::GAUGE_COLUMNS),
         "meta" => Some(&[
             "format",
             "name",

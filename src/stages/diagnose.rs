@@ -132,25 +132,7 @@ impl StageKind for DiagnoseStage {
 
     fn columns(table: &str) -> Option<&'static [&'static str]> {
         match table {
-            "diagnosis" => Some(&[
-                "rank",
-                "effect",
-                "where",
-                "magnitude",
-                "unit",
-                "score",
-                "significant",
-                "rms_before_um",
-                "rms_after_um",
-                "gap_before_um",
-                "gap_after_um",
-                "gap_shrink_pct",
-                "k",
-                "delta_chi2",
-                "p_corrected",
-                "delta_bic",
-                "detail",
-            ]),
+            "diagnosis" => Some(crate::diagnose::output::DIAGNOSIS_COLUMNS),
             "where" => Some(&[
                 "factor",
                 "component",
