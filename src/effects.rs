@@ -14,6 +14,7 @@
 //!
 //! Angles are radians inside formulas, lengths mm; parameters carry their unit.
 
+use crate::kinematics::Reading;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -138,7 +139,96 @@ pub struct TargetShift {
     pub shift_um: [f64; 3],
 }
 
-/// The effects a simulated campaign carries (at most one of each).
+/// The coordinate of a reading a blunder moves.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Coordinate {
+    Az,
+    El,
+    D,
+}
+
+fn face_one() -> u8 {
+    1
+}
+
+/// `blunder` (effects.md version 2) — one reading off by a gross amount in
+/// one coordinate: `Δaz = size_urad·1e-6`, `Δel = size_urad·1e-6` or
+/// `Δd = size_um·1e-3`. Applied last, after the noise.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Blunder {
+    pub station: String,
+    pub target: String,
+    /// 1 (front) or 2 (back).
+    #[serde(default = "face_one")]
+    pub face: u8,
+    pub coordinate: Coordinate,
+    /// For `coordinate = "az"` or `"el"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub size_urad: Option<f64>,
+    /// For `coordinate = "d"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub size_um: Option<f64>,
+}
+
+impl Blunder {
+    /// effects.md's name for the reading: `station/target/face`.
+    pub fn place(&self) -> String {
+        format!("{}/{}/{}", self.station, self.target, self.face)
+    }
+
+    /// The reading moved by the blunder.
+    pub fn apply(&self, mut r: Reading) -> Reading {
+        let (angle, range) = (self.size_urad.unwrap_or(0.0), self.size_um.unwrap_or(0.0));
+        match self.coordinate {
+            Coordinate::Az => r.az += angle * 1e-6,
+            Coordinate::El => r.el += angle * 1e-6,
+            Coordinate::D => r.d += range * 1e-3,
+        }
+        r
+    }
+
+    /// What is wrong with it, as `(field, message)` below `blunder[i]`.
+    fn check(&self, i: usize, out: &mut Vec<(String, String)>) {
+        let at = |f: &str| format!("blunder[{i}].{f}");
+        if !(self.face == 1 || self.face == 2) {
+            out.push((
+                at("face"),
+                format!("`face` must be 1 or 2, got {}", self.face),
+            ));
+        }
+        let (wanted, other) = match self.coordinate {
+            Coordinate::Az | Coordinate::El => {
+                (("size_urad", self.size_urad), ("size_um", self.size_um))
+            }
+            Coordinate::D => (("size_um", self.size_um), ("size_urad", self.size_urad)),
+        };
+        match wanted.1 {
+            None => out.push((
+                at(wanted.0),
+                format!("a blunder in this coordinate needs `{}`", wanted.0),
+            )),
+            Some(v) if !v.is_finite() => out.push((
+                at(wanted.0),
+                format!("`{}` must be finite, got {v}", wanted.0),
+            )),
+            Some(_) => {}
+        }
+        if other.1.is_some() {
+            out.push((
+                at(other.0),
+                format!(
+                    "`{}` does not apply to this coordinate (use `{}`)",
+                    other.0, wanted.0
+                ),
+            ));
+        }
+    }
+}
+
+/// The effects a simulated campaign carries (at most one of each, and any
+/// number of blunders).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Effects {
@@ -185,6 +275,9 @@ pub struct Effects {
         skip_serializing_if = "Option::is_none"
     )]
     pub target_shift: Option<TargetShift>,
+    /// Any number of gross errors, each on one reading.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub blunder: Vec<Blunder>,
 }
 
 impl Effects {
@@ -212,6 +305,7 @@ impl Effects {
         if self.target_shift.is_some() {
             v.push("target-shift");
         }
+        v.extend(self.blunder.iter().map(|_| "blunder"));
         v
     }
 
@@ -266,6 +360,9 @@ impl Effects {
             if let Some(&v) = t.shift_um.iter().find(|v| !v.is_finite()) {
                 finite("target-shift.shift_um", v);
             }
+        }
+        for (i, b) in self.blunder.iter().enumerate() {
+            b.check(i, &mut out);
         }
         if let Some(a) = self
             .air_refraction

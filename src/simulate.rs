@@ -235,7 +235,14 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                     }
                 }
                 r.d += dd_mm;
-                let r = spec.noise.apply(r, &mut noise_rng).wrapped();
+                let mut r = spec.noise.apply(r, &mut noise_rng);
+                // Gross errors last (effects.md, step 6).
+                for b in fx.blunder.iter().filter(|b| {
+                    b.station == pose.id && &b.target == tid && i64::from(b.face) == face.number()
+                }) {
+                    r = b.apply(r);
+                }
+                let r = r.wrapped();
                 readings.push(CampaignReading {
                     station: pose.id.clone(),
                     target: tid.clone(),
@@ -249,6 +256,17 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                     humidity_pct: None,
                 });
             }
+        }
+    }
+    for b in &fx.blunder {
+        let taken = readings.iter().any(|r| {
+            r.station == b.station && r.target == b.target && r.face.number() == i64::from(b.face)
+        });
+        if !taken {
+            return Err(format!(
+                "blunder {}: the campaign takes no such reading (station, reflector and face)",
+                b.place()
+            ));
         }
     }
     let mut ref_rng = random::stream(spec.seed, "references");

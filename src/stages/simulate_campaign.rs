@@ -24,12 +24,13 @@
 //! truth a calibration must not see: `truth_stations` (`station`, `x_mm`,
 //! `y_mm`, `z_mm`, `roll_urad`, `pitch_urad`, `yaw_deg`), `truth_targets`
 //! (`target`, `x_mm`, `y_mm`, `z_mm`) and `truth_effects` (`effect`,
-//! `where`, `parameter`, `value`).
+//! `where`, `parameter`, `value`; a blunder's `where` is its reading,
+//! `station/target/face`, and its parameter `az_urad`, `el_urad` or `d_um`).
 
 use super::measure::Faces;
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::campaign::Aim;
-use crate::effects::Effects;
+use crate::effects::{Coordinate, Effects};
 use crate::layout::{self, Spec};
 use crate::noise::Noise;
 use crate::schema;
@@ -274,7 +275,23 @@ fn truth_targets(sim: &SimulatedCampaign) -> Result<DataFrame> {
 fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Result<DataFrame> {
     let mut rows: Vec<(String, String, String, f64)> = Vec::new();
     let fx = serde_json::to_value(&stage.effects)?;
+    for b in &stage.effects.blunder {
+        let (parameter, value) = match b.coordinate {
+            Coordinate::Az => ("az_urad", b.size_urad),
+            Coordinate::El => ("el_urad", b.size_urad),
+            Coordinate::D => ("d_um", b.size_um),
+        };
+        rows.push((
+            "blunder".into(),
+            b.place(),
+            parameter.into(),
+            value.unwrap_or(f64::NAN),
+        ));
+    }
     for (id, params) in fx.as_object().into_iter().flatten() {
+        if id == "blunder" {
+            continue;
+        }
         let place = params
             .get("station")
             .or_else(|| params.get("target"))

@@ -3,8 +3,8 @@
 
 use ltcal::campaign::{Aim, CampaignReading};
 use ltcal::effects::{
-    AirRefraction, Axis, Effects, EncoderHarmonic, Incidence, IncidenceTable9, RangeScale,
-    StationDrift, TargetShift,
+    AirRefraction, Axis, Blunder, Coordinate, Effects, EncoderHarmonic, Incidence, IncidenceTable9,
+    RangeScale, StationDrift, TargetShift,
 };
 use ltcal::kinematics::{Face, nominal_reading};
 use ltcal::layout::Layout;
@@ -334,6 +334,95 @@ fn target_shift() {
     );
 }
 
+/// `blunder` (effects.md version 2): after the noise, the named reading —
+/// and only it — moves by exactly the stated size in its coordinate; two
+/// blunders act independently.
+#[test]
+fn blunder() {
+    let noise = Noise {
+        sigma_angle_urad: 1.0,
+        sigma_range_um: 2.0,
+        sigma_range_ppm: 0.0,
+    };
+    let clean = simulate(&Effects::default(), noise);
+    let blunders = vec![
+        Blunder {
+            station: "S2".into(),
+            target: "T03".into(),
+            face: 1,
+            coordinate: Coordinate::El,
+            size_urad: Some(-38.0),
+            size_um: None,
+        },
+        Blunder {
+            station: "S1".into(),
+            target: "T02".into(),
+            face: 1,
+            coordinate: Coordinate::D,
+            size_urad: None,
+            size_um: Some(250.0),
+        },
+    ];
+    let fx = Effects {
+        blunder: blunders.clone(),
+        ..Effects::default()
+    };
+    assert_eq!(fx.ids(), ["blunder", "blunder"]);
+    let s = simulate(&fx, noise);
+    let mut moved = 0;
+    for (a, b) in clean.campaign.readings.iter().zip(&s.campaign.readings) {
+        let place = (a.station.as_str(), a.target.as_str());
+        let (daz, del, dd) = (
+            (b.az_deg - a.az_deg).to_radians() * 1e6,
+            (b.el_deg - a.el_deg).to_radians() * 1e6,
+            (b.d_mm - a.d_mm) * 1e3,
+        );
+        match place {
+            ("S2", "T03") => {
+                assert_close("Δel (µrad)", del, -38.0, 1e-6);
+                assert_eq!((daz, dd), (0.0, 0.0));
+                moved += 1;
+            }
+            ("S1", "T02") => {
+                assert_close("Δd (µm)", dd, 250.0, 1e-6);
+                assert_eq!((daz, del), (0.0, 0.0));
+                moved += 1;
+            }
+            _ => assert_eq!((daz, del, dd), (0.0, 0.0, 0.0), "{place:?}"),
+        }
+    }
+    assert_eq!(moved, 2);
+    assert_eq!(blunders[0].place(), "S2/T03/1");
+    // A blunder on a reading the campaign does not take is refused.
+    let nowhere = Effects {
+        blunder: vec![Blunder {
+            station: "S9".into(),
+            ..blunders[0].clone()
+        }],
+        ..Effects::default()
+    };
+    let l = layout();
+    let err = simulate_campaign(&CampaignSpec {
+        name: "effects".into(),
+        layout: &l,
+        errors: None,
+        faces: &[Face::Front],
+        aim: Aim::StationsCentroid,
+        max_angle_deg: 90.0,
+        noise,
+        effects: &nowhere,
+        gauge_u_mm: 0.0,
+        reference_u_mm: 0.0,
+        level_urad: 1000.0,
+        interval_s: 20.0,
+        record_time: true,
+        record_temperature: true,
+        seed: 11,
+    })
+    .unwrap_err();
+    assert!(err.contains("blunder S9/T03/1"), "{err}");
+}
+
 /// `noise`: the reading minus the exact one, over σ, is standard normal.
 #[test]
 fn noise() {
@@ -387,4 +476,20 @@ fn noise() {
         assert!(mean.abs() < 4.0 / n.sqrt(), "component {k}: mean {mean}");
         assert!((sd - 1.0).abs() < 0.15, "component {k}: sd {sd}");
     }
+}
+
+/// A blunder as a pipeline writes it: an array of tables under the stage's
+/// `effects`; one without the size its coordinate needs is refused at load.
+#[test]
+fn a_blunder_without_its_size_is_refused_at_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("b.toml");
+    let text = "[stages.corner]\nkind = \"simulate_campaign\"\nlayout = { kind = \"corner\" }\n\n\
+                [[stages.corner.effects.blunder]]\nstation = \"S1\"\ntarget = \"T01\"\ncoordinate = \"d\"\nsize_urad = 30.0\n";
+    std::fs::write(&file, text).unwrap();
+    let err = ltcal::pipeline::load(&file, &[]).unwrap_err().to_string();
+    assert!(err.contains("needs `size_um`"), "{err}");
+    assert!(err.contains("`size_urad` does not apply"), "{err}");
+    std::fs::write(&file, text.replace("size_urad", "size_um")).unwrap();
+    ltcal::pipeline::load(&file, &[]).unwrap();
 }
