@@ -815,8 +815,10 @@ fn an_edited_campaign_file_is_not_answered_from_the_cache() {
     assert_eq!(read_ok(&out).readings[0].d_mm, 4610.10043);
 }
 
+/// The folder's hash is the runner's (the key's `file` field), never a
+/// setting a user could write and so lie about.
 #[test]
-fn content_hash_is_filled_in_by_ltcal_not_by_the_user() {
+fn content_hash_is_not_a_setting() {
     let tmp = tempfile::tempdir().unwrap();
     let file = tmp.path().join("p.toml");
     std::fs::write(

@@ -292,8 +292,8 @@ fn typed_key(
     move |top: &str, v: &Value| {
         let mut json = params.clone();
         json[top] = v.clone();
-        // Settings that `resolve` derives (`content_hash` of a folder) are
-        // not accepted as input: drop them, `resolve` fills them in again.
+        // Settings that `resolve` derives and the file cannot hold are not
+        // accepted as input: drop them, `resolve` fills them in again.
         let mut c = loop {
             match StageConfig::from_json(&kind, json.clone()) {
                 Ok(c) => break c,
