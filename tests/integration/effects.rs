@@ -34,6 +34,14 @@ fn simulate(effects: &Effects, noise: Noise) -> SimulatedCampaign {
 
 /// With the stage's SMR acceptance `max_angle_deg`.
 fn simulate_accepting(effects: &Effects, noise: Noise, max_angle_deg: f64) -> SimulatedCampaign {
+    try_simulate(effects, noise, max_angle_deg).unwrap()
+}
+
+fn try_simulate(
+    effects: &Effects,
+    noise: Noise,
+    max_angle_deg: f64,
+) -> Result<SimulatedCampaign, String> {
     let l = layout();
     simulate_campaign(&CampaignSpec {
         name: "effects".into(),
@@ -52,7 +60,6 @@ fn simulate_accepting(effects: &Effects, noise: Noise, max_angle_deg: f64) -> Si
         record_temperature: true,
         seed: 11,
     })
-    .unwrap()
 }
 
 fn reading<'a>(s: &'a SimulatedCampaign, station: &str, target: &str) -> &'a CampaignReading {
@@ -401,25 +408,7 @@ fn blunder() {
         }],
         ..Effects::default()
     };
-    let l = layout();
-    let err = simulate_campaign(&CampaignSpec {
-        name: "effects".into(),
-        layout: &l,
-        errors: None,
-        faces: &[Face::Front],
-        aim: Aim::StationsCentroid,
-        max_angle_deg: 90.0,
-        noise,
-        effects: &nowhere,
-        gauge_u_mm: 0.0,
-        reference_u_mm: 0.0,
-        level_urad: 1000.0,
-        interval_s: 20.0,
-        record_time: true,
-        record_temperature: true,
-        seed: 11,
-    })
-    .unwrap_err();
+    let err = try_simulate(&nowhere, noise, 90.0).unwrap_err();
     assert!(err.contains("blunder S9/T03/1"), "{err}");
 }
 
