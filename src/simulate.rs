@@ -254,6 +254,7 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                     temperature_c: spec.record_temperature.then_some(temperature),
                     pressure_hpa: None,
                     humidity_pct: None,
+                    line: None,
                 });
             }
         }

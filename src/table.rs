@@ -32,6 +32,10 @@ impl TableBuilder {
         self.columns.push(Column::new(name.into(), values));
         self
     }
+    pub fn opt_i64(mut self, name: &str, values: Vec<Option<i64>>) -> Self {
+        self.columns.push(Column::new(name.into(), values));
+        self
+    }
     pub fn str<S: AsRef<str>>(mut self, name: &str, values: &[S]) -> Self {
         let v: Vec<&str> = values.iter().map(|s| s.as_ref()).collect();
         self.columns.push(Column::new(name.into(), v));
@@ -188,6 +192,15 @@ impl<'a> TableRef<'a> {
             .cast(&DataType::Int64)
             .map_err(|_| anyhow!("table `{}`, column `{col}` is not an integer", self.name))?;
         self.required(col, c.i64()?.iter())
+    }
+
+    /// An integer column with missing values.
+    pub fn opt_i64(&self, col: &str) -> Result<Vec<Option<i64>>> {
+        let c = self
+            .column(col)?
+            .cast(&DataType::Int64)
+            .map_err(|_| anyhow!("table `{}`, column `{col}` is not an integer", self.name))?;
+        Ok(c.i64()?.iter().collect())
     }
 
     pub fn str(&self, col: &str) -> Result<Vec<String>> {

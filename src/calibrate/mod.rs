@@ -22,6 +22,7 @@
 pub mod bundle;
 pub mod distances;
 pub mod register;
+pub mod snooping;
 pub mod sparse;
 
 use crate::campaign::Campaign;
@@ -78,6 +79,10 @@ pub struct Network {
     /// Whether `noise` was stated in the campaign (rather than assumed).
     pub noise_stated: bool,
 }
+
+/// What a coordinate rejected as a blunder has its σ multiplied by: its
+/// weight falls by 1e12, so a 1 000 σ blunder still pulls like 1e-3 σ.
+pub const REJECTED_SIGMA_FACTOR: f64 = 1e6;
 
 /// Standard uncertainty assumed for reference coordinates and gauge lengths
 /// that give none (mm).
@@ -181,6 +186,42 @@ impl Network {
             noise,
             noise_stated,
         })
+    }
+
+    /// The network with reading `i` moved by `−shift` for each `(i, shift)`
+    /// (Δaz, Δel in rad, Δd in mm: what an effect added, taken off) and
+    /// each `(i, coordinate)` of `rejected` down-weighted by
+    /// [`REJECTED_SIGMA_FACTOR`]: a coordinate rejected as a blunder keeps
+    /// its place (the readings keep their indices) but no longer pulls.
+    pub fn adjusted(
+        &self,
+        shifts: &[(usize, Vector3<f64>)],
+        rejected: &[(usize, usize)],
+    ) -> Network {
+        let mut net = self.clone();
+        for &(i, s) in shifts {
+            let o = &mut net.obs[i];
+            o.reading.az -= s.x;
+            o.reading.el -= s.y;
+            o.reading.d -= s.z;
+            o.q = o.reading.joints();
+            o.links = Links::new(o.q);
+        }
+        for &(i, c) in rejected {
+            net.obs[i].sigma[c] *= REJECTED_SIGMA_FACTOR;
+        }
+        net
+    }
+
+    /// The network without the readings `drop` (indices, any order).
+    pub fn without_readings(&self, drop: &[usize]) -> Network {
+        let mut net = self.clone();
+        let mut i = 0;
+        net.obs.retain(|_| {
+            i += 1;
+            !drop.contains(&(i - 1))
+        });
+        net
     }
 
     /// The corrected point of every reading in its station's frame.

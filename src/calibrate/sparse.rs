@@ -734,6 +734,32 @@ impl Factor {
     }
 }
 
+/// `J_b·N⁻¹·J_bᵀ`: block `b`'s diagonal block of the hat matrix (rows ×
+/// rows), the share of its own residuals the fit absorbs. One minus it is
+/// the block's redundancy (Baarda's `Q_vv` in units of the a-priori
+/// variance). Costs `rows` Schur solves: the network's size does not enter.
+pub fn leverage(j: &BlockJacobian, f: &Factor, b: usize) -> DMatrix<f64> {
+    let rows = j.blocks[b].rows;
+    let mut u_a = DMatrix::zeros(j.n_a, rows);
+    for (col, w, part) in j.dense_parts(b) {
+        for r in 0..rows {
+            for c in 0..w {
+                u_a[(col + c, r)] += part[r * w + c];
+            }
+        }
+    }
+    let u_x: Vec<(usize, DMatrix<f64>)> = match (j.block_point(b), j.point_part(b)) {
+        (Some(p), Some(part)) => vec![(p, DMatrix::from_row_slice(rows, 3, part).transpose())],
+        _ => Vec::new(),
+    };
+    let v = f.reduce_sparse(&u_a, &u_x);
+    let mut h = v.tr_mul(&f.solve_schur_columns(&v));
+    for (p, ux) in &u_x {
+        h += ux.tr_mul(&(f.point_inverse(*p) * ux));
+    }
+    h
+}
+
 /// `x − J·N⁻¹·Jᵀ·x`: what of `x` no combination of `J`'s columns
 /// reproduces, by the corrected semi-normal equations (see the module doc).
 pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f64> {
@@ -895,6 +921,17 @@ mod tests {
         assert!((ca - inv.view((0, 0), (2, 2))).norm() < 1e-10);
         let cp = f.point_covariance(2, &f.dense_covariance(), 1.0);
         assert!((cp - inv.fixed_view::<3, 3>(2 + 6, 2 + 6)).norm() < 1e-10);
+    }
+
+    #[test]
+    fn leverage_is_the_hat_matrix_block() {
+        let (j, jd) = problem();
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let hat = &jd * (jd.transpose() * &jd).try_inverse().unwrap() * jd.transpose();
+        for b in [0, 5, 11] {
+            let h = leverage(&j, &f, b);
+            assert!((h - hat.view((3 * b, 3 * b), (3, 3))).norm() < 1e-10);
+        }
     }
 
     #[test]

@@ -91,6 +91,9 @@ pub struct CampaignReading {
     pub temperature_c: Option<f64>,
     pub pressure_hpa: Option<f64>,
     pub humidity_pct: Option<f64>,
+    /// The line of `readings.csv` the reading was read from (1: the
+    /// header); `None` for a reading ltcal made.
+    pub line: Option<usize>,
 }
 
 impl CampaignReading {

@@ -717,7 +717,21 @@ fn parse_readings(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<Campaign
     let face = c.optional("face");
     let [time, temperature, pressure, humidity] =
         ["time_s", "temperature_c", "pressure_hpa", "humidity_pct"].map(|n| c.optional(n));
+    // Each record's line, from one pass over the line starts (a search
+    // per record: `Source::line_col` from the top would cost the file's
+    // length per record).
+    let newlines: Vec<usize> = csv
+        .src
+        .text
+        .bytes()
+        .enumerate()
+        .filter_map(|(i, b)| (b == b'\n').then_some(i))
+        .collect();
     let readings = rows(&csv, problems, |r| {
+        let line = r
+            .row
+            .first()
+            .map(|cell| newlines.partition_point(|&n| n < cell.span.start) + 1);
         let (az, el, d) = (r.number(az), r.number(el), r.number(d));
         let face = r.face(face);
         let (time_s, temperature_c, pressure_hpa, humidity_pct) = (
@@ -737,6 +751,7 @@ fn parse_readings(csv: Csv, problems: &mut Vec<Problem>) -> Option<(Vec<Campaign
             temperature_c,
             pressure_hpa,
             humidity_pct,
+            line,
         })
     })?;
     Some((readings, csv))

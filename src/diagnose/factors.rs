@@ -21,6 +21,9 @@ pub struct ResidualRow {
     pub elevation_deg: f64,
     pub time_s: Option<f64>,
     pub temperature_c: Option<f64>,
+    /// Baarda's w and the redundancy of az, el and d (the base model's;
+    /// `None` where not tested).
+    pub w: Option<[(f64, f64); 3]>,
 }
 
 pub const COMPONENTS: [&str; 3] = ["az", "el", "d"];
@@ -240,6 +243,7 @@ mod tests {
             elevation_deg: 0.0,
             time_s: None,
             temperature_c: None,
+            w: None,
         }
     }
 

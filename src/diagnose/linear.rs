@@ -38,6 +38,7 @@
 //! readings alone; the sum of squares over all held-out readings is a
 //! quadratic form in `δ_A` whose matrix is accumulated once per fold.
 
+use crate::calibrate::snooping::{self, Absorbed, WTest};
 use crate::calibrate::sparse::{self, BlockJacobian, Factor, Normal, project_out};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
@@ -79,11 +80,57 @@ impl Signature {
         self.values[at + axis * self.k + col] += v;
     }
 
+    /// `a`'s columns, then `b`'s.
+    pub fn concat(a: &Signature, b: &Signature) -> Signature {
+        let k = a.k + b.k;
+        let mut out = Signature::new(k);
+        let (mut ia, mut ib) = (a.blocks().peekable(), b.blocks().peekable());
+        loop {
+            let next = match (ia.peek(), ib.peek()) {
+                (None, None) => break,
+                (Some(x), Some(y)) => x.0.min(y.0),
+                (Some(x), None) => x.0,
+                (None, Some(y)) => y.0,
+            };
+            out.readings.push(next);
+            let at = out.values.len();
+            out.values.extend(std::iter::repeat_n(0.0, 3 * k));
+            for (src, off, width) in [(&mut ia, 0, a.k), (&mut ib, a.k, b.k)] {
+                if let Some((_, v)) = src.next_if(|(i, _)| *i == next) {
+                    for row in 0..3 {
+                        out.values[at + row * k + off..at + row * k + off + width]
+                            .copy_from_slice(&v[row * width..(row + 1) * width]);
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// `C_i·β` for every affected reading `i` (units of σ).
+    pub fn times(&self, beta: &[f64]) -> Vec<(usize, Vector3<f64>)> {
+        self.blocks()
+            .map(|(i, v)| {
+                let dot = |row: usize| (0..self.k).map(|c| v[row * self.k + c] * beta[c]).sum();
+                (i, Vector3::new(dot(0), dot(1), dot(2)))
+            })
+            .collect()
+    }
+
+    /// The columns over all `rows` rows, row-major (`k` values per row).
+    fn dense_rows(&self, rows: usize) -> Vec<f64> {
+        let mut out = vec![0.0; rows * self.k];
+        for (i, v) in self.blocks() {
+            out[3 * i * self.k..3 * (i + 1) * self.k].copy_from_slice(v);
+        }
+        out
+    }
+
     /// Reading `i`'s block (3 × k, row-major) and the reading.
     fn blocks(&self) -> impl Iterator<Item = (usize, &[f64])> {
         self.readings
             .iter()
-            .zip(self.values.chunks(3 * self.k))
+            .zip(self.values.chunks(3 * self.k.max(1)))
             .map(|(&i, v)| (i, v))
     }
 
@@ -170,6 +217,28 @@ impl Products {
         }
         (&self.ctc - q, v)
     }
+}
+
+/// The fit of `c` to `r_perp` (the residuals, `J`'s span removed) on the
+/// factor `full` of all data.
+fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signature) -> Fit {
+    let pr = products(j, c, r_perp, |_| true);
+    let (gram, _) = pr.projected_gram(full);
+    let beta = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
+    let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
+    Fit {
+        beta: beta.iter().copied().collect(),
+        delta_chi2,
+    }
+}
+
+/// The fit of `c` to the residuals `r` of the model linearised as `j`,
+/// without the cross-validation folds: what a refit needs.
+pub fn fit_once(j: &BlockJacobian, r: &DVector<f64>, c: &Signature) -> Result<Fit, Singular> {
+    let full = Normal::assemble(j, None, |_| true)
+        .factor(0.0)
+        .ok_or(Singular(""))?;
+    Ok(fit_with(j, &full, &project_out(j, &full, r), c))
 }
 
 /// Least squares by the normal equations of a few projected columns, with a
@@ -341,14 +410,36 @@ impl LinearModel {
 
     /// The fit of `c` to the residuals over all data.
     pub fn fit(&self, c: &Signature) -> Fit {
-        let pr = products(&self.j, c, &self.r_perp, |_| true);
-        let (gram, _) = pr.projected_gram(&self.full);
-        let beta = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
-        let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
-        Fit {
-            beta: beta.iter().copied().collect(),
-            delta_chi2,
+        fit_with(&self.j, &self.full, &self.r_perp, c)
+    }
+
+    /// Baarda's w-test of every reading coordinate ([`snooping`]) against
+    /// the base model with the columns of `members` fitted beside it.
+    pub fn w_tests(&self, members: &Signature) -> Vec<[WTest; 3]> {
+        let n_read = self.fold_of.len();
+        if members.k == 0 {
+            return snooping::w_tests(&self.j, &self.full, self.r_perp.as_slice(), n_read, None);
         }
+        let k = members.k;
+        let pc = sparse::project_out_rows(&self.j, &self.full, &members.dense_rows(self.rows()), k);
+        let pcm = DMatrix::from_row_slice(self.rows(), k, &pc);
+        let gram = pcm.tr_mul(&pcm);
+        let scale = members.column_scale(|_| true);
+        let mut ridged = gram.clone();
+        for i in 0..k {
+            ridged[(i, i)] += 1e-10 * scale.max(1e-300);
+        }
+        let Some(inverse) = ridged.try_inverse() else {
+            return snooping::w_tests(&self.j, &self.full, self.r_perp.as_slice(), n_read, None);
+        };
+        let beta = &inverse * pcm.tr_mul(&self.r_perp);
+        let v = &self.r_perp - &pcm * beta;
+        let absorbed = Absorbed {
+            projected: &pc,
+            k,
+            gram_inverse: &inverse,
+        };
+        snooping::w_tests(&self.j, &self.full, v.as_slice(), n_read, Some(&absorbed))
     }
 
     /// Root mean square of the held-out residuals in µm of the base model

@@ -5,22 +5,36 @@
 //! 1. The campaign is calibrated with the base model (a bundle adjustment;
 //!    the paper's 18 constant parameters unless a pipeline says otherwise).
 //! 2. **Where** — [`factors`]: residuals by station, reflector, incidence,
-//!    range, azimuth, elevation, time, temperature.
+//!    range, azimuth, elevation, time, temperature; each reading
+//!    coordinate's w-test and redundancy.
 //! 3. **Which** — [`candidates`], scored on the linearised adjustment
 //!    ([`linear`]): for every effect of `effects.md` (and the per-station and
 //!    per-reflector variants), the χ² it explains, its F test
 //!    (Bonferroni-corrected over every alternative tried; [`f_test`], safe on
-//!    any statistic), the Bayesian
-//!    information criterion, and the share of *held-out* residual it
-//!    predicts (k-fold cross-validation, the `score`). A candidate is
-//!    significant when all three agree; significant candidates are ranked
-//!    by the information criterion. With none significant, the answer is `none` — if the
-//!    residual is consistent with the stated noise (χ² test); otherwise
+//!    any statistic), the Bayesian information criterion, and the share of
+//!    *held-out* residual it predicts (k-fold cross-validation, the
+//!    `score`). A candidate is significant when all three agree. Gross
+//!    errors are candidates too: every reading coordinate's w-test (Baarda's
+//!    data snooping, [`crate::calibrate::snooping`]), Bonferroni-corrected
+//!    over the coordinates tested.
+//! 4. **The explanation set**, step by step: the significant candidate with
+//!    the best information criterion joins the model — an effect as its
+//!    columns, a blunder by down-weighting its coordinate — and the campaign
+//!    is adjusted again with it (a nonlinear refit: the members' effects
+//!    taken off the readings, the bundle adjustment redone, the members'
+//!    parameters refitted until they settle). Every remaining candidate is
+//!    then tested against the augmented model, so a large effect no longer
+//!    drowns a small one. The search stops when nothing more is significant
+//!    or (from the second step) the residual is consistent with the stated
+//!    noise. α is spent as α·2⁻ˢ at step s, so the family-wise error rate
+//!    over all steps stays under α. One member per effect id (blunders:
+//!    one per reading coordinate). With no member, the answer is `none` — if
+//!    the residual is consistent with the stated noise (χ² test); otherwise
 //!    `none` with "unexplained structure" and where it lies.
-//! 4. **How far** — the gap is the held-out residual (µm) minus the one
+//! 5. **How far** — the gap is the held-out residual (µm) minus the one
 //!    noise alone leaves in the same geometry (Monte Carlo draws of the
-//!    stated noise through the same linearised adjustment), before and
-//!    after adding the effect.
+//!    stated noise through the base model's linearised adjustment), before
+//!    and after each member, and for the set as a whole.
 
 pub mod blind;
 pub mod candidates;
@@ -29,6 +43,7 @@ pub mod factors;
 pub mod linear;
 pub mod output;
 
+use crate::calibrate::snooping::{self, WTest};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
 use crate::campaign::{Aim, Campaign};
 use crate::error_model::{ErrorModel, ErrorParams, ParamId};
@@ -37,7 +52,7 @@ use crate::random;
 use anyhow::{Result, anyhow};
 use candidates::{Candidate, ReadingInfo, Skipped};
 use factors::{FactorTest, ResidualRow};
-use linear::LinearModel;
+use linear::{LinearModel, Signature};
 use nalgebra::{DVector, Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -53,10 +68,16 @@ pub struct Settings {
     pub mc_draws: usize,
     /// Family-wise significance level.
     pub alpha: f64,
-    /// Effect ids to try (empty: all).
+    /// Effect ids to try (empty: all; `blunder` names the w-tests).
     pub effects: Vec<String>,
     pub seed: u64,
+    /// Members of the explanation set at most.
+    pub max_steps: usize,
 }
+
+/// The default of [`Settings::max_steps`]: more effects than any real
+/// campaign carries, and a handful of blunders.
+pub const DEFAULT_MAX_STEPS: usize = 8;
 
 impl Default for Settings {
     fn default() -> Self {
@@ -68,6 +89,7 @@ impl Default for Settings {
             alpha: 0.01,
             effects: Vec::new(),
             seed: 0,
+            max_steps: DEFAULT_MAX_STEPS,
         }
     }
 }
@@ -76,6 +98,9 @@ impl Default for Settings {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Row {
     pub rank: usize,
+    /// The step at which the row joined the explanation set; `None` for
+    /// the rest (tested against the whole set, and not admitted).
+    pub step: Option<usize>,
     pub effect: String,
     pub place: String,
     pub magnitude: f64,
@@ -112,17 +137,26 @@ pub struct Diagnosis {
     pub noise_stated: bool,
     /// The held-out RMS noise alone leaves (µm).
     pub noise_floor_um: f64,
+    /// The base model's calibration (before any member of the set).
     pub calibration: Calibration,
     /// Each reading's σ in az, el (rad) and d (mm), in reading order.
     pub sigma: Vec<Vector3<f64>>,
-    /// Candidates tried, alternatives included (the Bonferroni factor).
+    /// Candidates tried at the last step, alternatives included (the
+    /// Bonferroni factor).
     pub tried: usize,
+    /// Reading coordinates w-tested at the last step.
+    pub blunder_tests: usize,
 }
 
 impl Diagnosis {
     /// Rank 1.
     pub fn best(&self) -> &Row {
         &self.rows[0]
+    }
+
+    /// The explanation set, in the order of selection.
+    pub fn explanation(&self) -> impl Iterator<Item = &Row> {
+        self.rows.iter().filter(|r| r.step.is_some())
     }
 }
 
@@ -165,52 +199,95 @@ fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
 }
 
 /// Diagnoses a campaign: the base calibration, then where, which and how
-/// far (see the module doc), step by step.
+/// far (see the module doc), step by step, until the explanation set is
+/// complete.
 pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
-    let net = Network::from_campaign(c)?;
-    let cal = base_calibration(&net, s)?;
-    let lin = cal
-        .linearisation
-        .clone()
-        .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
-    let infos = reading_infos(c, &net, &cal);
-    let (fold_of, n_folds) = folds(&net, s);
-    let to_mm: Vec<Matrix3<f64>> = net
-        .obs
-        .iter()
-        .map(|o| nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma))
-        .collect();
-    let lm = LinearModel::new(lin.jacobian, lin.residuals, &fold_of, n_folds, to_mm)?;
-    let chi2 = lm.chi2();
-    let dof = cal.fit.dof.unwrap_or(lm.dof());
-    let chi2_p = cal.fit.chi2_p.unwrap_or(1.0);
-    let floor = noise_floor(&lm, s);
-
-    // Which.
+    let net0 = Network::from_campaign(c)?;
+    let (fold_of, n_folds) = folds(&net0, s);
     let enabled = |id: &str| s.effects.is_empty() || s.effects.iter().any(|e| e == id);
-    let (cands, skipped) = candidates::build(
-        &infos,
-        &net.stations,
-        &net.targets,
-        &station_order(c, &net.stations),
-        &enabled,
-    );
-    let (mut rows, tried) = score(&lm, &cands, dof, floor, s.alpha);
+    let ctx = StepContext {
+        campaign: c,
+        net0: &net0,
+        settings: s,
+        order: station_order(c, &net0.stations),
+        fold_of: &fold_of,
+        n_folds,
+        enabled: &enabled,
+    };
+    let mut members: Vec<Member> = Vec::new();
+    let base = ctx.state(&mut members, Vec::new())?;
+    let floor = noise_floor(&base.lm, s);
 
-    // Where.
-    let residuals = residual_rows(c, &net, &cal, &infos);
+    // Where: the base model's residuals, with each coordinate's w-test.
+    let residuals = residual_rows(
+        c,
+        &net0,
+        &base.cal,
+        &base.infos,
+        &base.lm.w_tests(&base.members),
+    );
     let factor_defs = factors::factors(&residuals);
     let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
+    let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
+    let base_cal = base.cal.clone();
 
-    let rms_before = lm.cv_rms_um_base();
-    rows.push(none_row(
-        chi2,
-        dof,
-        chi2_p,
+    // Which, step by step: the explanation set.
+    let mut set_rows: Vec<Row> = Vec::new();
+    let mut state = base;
+    let mut step = 1;
+    let last = loop {
+        let scored = ctx.score(&state, &members, step, floor);
+        // From the second step on, a residual already consistent with the
+        // stated noise ends the search: nothing is left to explain.
+        let open = (step == 1 || state.chi2_p() < s.alpha) && step <= s.max_steps;
+        let pick = open.then(|| scored.pick()).flatten();
+        let Some(pick) = pick else {
+            break (state, scored, open);
+        };
+        let mut row = pick.row.clone();
+        members.push(pick.member.clone());
+        if let Some(beta) = &pick.joint_beta {
+            set_betas(&mut members, beta);
+        }
+        let shifts = physical_shifts(&members, &state.cands, &state.net)?;
+        let next = ctx.state(&mut members, shifts)?;
+        // How far, measured after the nonlinear refit with the member.
+        row.rms_after_um = next.cv_rms_um();
+        row.score = 100.0 * (1.0 - (row.rms_after_um / row.rms_before_um).powi(2));
+        set_gap(&mut row, floor);
+        row.step = Some(step);
+        if let Member::Effect { beta, .. } = members.last().expect("just pushed") {
+            let magnitude = pick.magnitude.expect("an effect has a magnitude");
+            row.magnitude = magnitude(beta);
+        }
+        set_rows.push(row);
+        state = next;
+        step += 1;
+    };
+    let (final_state, scored, open) = last;
+    let mut rows = set_rows;
+    rows.extend(scored.rows.into_iter().map(|mut r| {
+        r.significant &= open;
+        r
+    }));
+    rows.extend(scored.blunder.map(|mut b| {
+        b.row.significant &= open;
+        b.row
+    }));
+    let final_residuals = residual_rows(c, &net0, &final_state.cal, &final_state.infos, &[]);
+    let final_factors = factors::analyse(
+        &final_residuals,
+        &factors::factors(&final_residuals),
         s.alpha,
-        rms_before,
+    );
+    rows.push(none_row(
+        final_state.lm.chi2() - final_state.members_chi2(),
+        final_state.dof(),
+        final_state.chi2_p(),
+        s.alpha,
+        final_state.cv_rms_um(),
         floor,
-        &factor_tests,
+        &final_factors,
     ));
     rank(&mut rows);
     Ok(Diagnosis {
@@ -219,16 +296,246 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         factors: factor_tests,
         residuals,
         factor_defs,
-        skipped,
+        skipped: final_state.skipped,
         chi2,
         dof,
         chi2_p,
-        noise_stated: net.noise_stated,
+        noise_stated: net0.noise_stated,
         noise_floor_um: floor,
-        calibration: cal,
-        sigma: net.obs.iter().map(|o| o.sigma).collect(),
-        tried,
+        calibration: base_cal,
+        sigma: net0.obs.iter().map(|o| o.sigma).collect(),
+        tried: scored.tried,
+        blunder_tests: scored.blunder_tests,
     })
+}
+
+/// Nonlinear refits of a step at most: each re-adjusts the corrected
+/// network and fits the members' increments; they converge in one or two
+/// (the effects are linear in the readings, the base model nearly so).
+const MAX_REFITS: usize = 6;
+
+/// A refit whose increments explain less than this χ² (units of σ²) has
+/// converged: no test of the diagnosis can see the difference.
+const REFIT_TOL_CHI2: f64 = 1e-3;
+
+/// A member of the explanation set.
+#[derive(Clone, Debug)]
+enum Member {
+    /// An effect — its candidate `(effect, place, detail)` — and its
+    /// parameters.
+    Effect {
+        effect: &'static str,
+        place: String,
+        detail: String,
+        beta: Vec<f64>,
+    },
+    /// A reading coordinate rejected as a blunder.
+    Blunder { obs: usize, coordinate: usize },
+}
+
+/// The effect members' parameters from a joint fit, in member order.
+fn set_betas(members: &mut [Member], joint: &[f64]) {
+    let mut at = 0;
+    for m in members {
+        if let Member::Effect { beta, .. } = m {
+            let k = beta.len();
+            for (b, d) in beta.iter_mut().zip(&joint[at..at + k]) {
+                *b += d;
+            }
+            at += k;
+        }
+    }
+}
+
+/// The effect members' columns, side by side in member order, from this
+/// step's candidates.
+fn member_signature(members: &[Member], cands: &[Candidate]) -> Result<Signature> {
+    let mut sig = Signature::new(0);
+    for m in members {
+        if let Member::Effect {
+            effect,
+            place,
+            detail,
+            ..
+        } = m
+        {
+            let c = cands
+                .iter()
+                .find(|c| c.effect == *effect && &c.place == place && &c.detail == detail)
+                .ok_or_else(|| anyhow!("the candidate {effect} at {place} vanished on a refit"))?;
+            sig = Signature::concat(&sig, &c.columns);
+        }
+    }
+    Ok(sig)
+}
+
+/// What the effect members add to each reading (Δaz, Δel rad, Δd mm): the
+/// shifts that take them off the readings.
+fn physical_shifts(
+    members: &[Member],
+    cands: &[Candidate],
+    net: &Network,
+) -> Result<Vec<(usize, Vector3<f64>)>> {
+    let sig = member_signature(members, cands)?;
+    let beta: Vec<f64> = members
+        .iter()
+        .flat_map(|m| match m {
+            Member::Effect { beta, .. } => beta.clone(),
+            Member::Blunder { .. } => Vec::new(),
+        })
+        .collect();
+    Ok(sig
+        .times(&beta)
+        .into_iter()
+        .map(|(i, v)| (i, v.component_mul(&net.obs[i].sigma)))
+        .collect())
+}
+
+/// What every step shares.
+struct StepContext<'a> {
+    campaign: &'a Campaign,
+    net0: &'a Network,
+    settings: &'a Settings,
+    order: Vec<usize>,
+    fold_of: &'a [usize],
+    n_folds: usize,
+    enabled: &'a dyn Fn(&str) -> bool,
+}
+
+/// The model at one step: the campaign corrected by the explanation set so
+/// far — effects taken off the readings, blunders down-weighted — adjusted
+/// again, linearised, with this step's candidates.
+struct State {
+    net: Network,
+    cal: Calibration,
+    infos: Vec<ReadingInfo>,
+    cands: Vec<Candidate>,
+    skipped: Vec<Skipped>,
+    /// The effect members' columns, side by side in member order.
+    members: Signature,
+    /// Coordinates rejected as blunders.
+    rejected: usize,
+    lm: LinearModel,
+}
+
+impl State {
+    /// χ² the members' columns still explain (zero once the refit has
+    /// converged, to [`REFIT_TOL_CHI2`]).
+    fn members_chi2(&self) -> f64 {
+        if self.members.ncols() == 0 {
+            0.0
+        } else {
+            self.lm.fit(&self.members).delta_chi2
+        }
+    }
+
+    /// Degrees of freedom of the augmented model.
+    fn dof(&self) -> usize {
+        let base = self.cal.fit.dof.unwrap_or(self.lm.dof());
+        base.saturating_sub(self.members.ncols() + self.rejected)
+            .max(1)
+    }
+
+    /// The χ² test of the augmented model's residual against the stated noise.
+    fn chi2_p(&self) -> f64 {
+        use statrs::distribution::{ChiSquared, ContinuousCDF};
+        let chi2 = self.lm.chi2() - self.members_chi2();
+        ChiSquared::new(self.dof() as f64)
+            .map(|d| d.sf(chi2))
+            .unwrap_or(1.0)
+    }
+
+    /// Held-out RMS (µm) of the augmented model, its members refitted on
+    /// each fold's training readings.
+    fn cv_rms_um(&self) -> f64 {
+        if self.members.ncols() == 0 {
+            self.lm.cv_rms_um_base()
+        } else {
+            self.lm.cv_rms_um(&self.members)
+        }
+    }
+
+    /// The members' columns with `c`'s after them.
+    fn joint(&self, c: &Signature) -> Signature {
+        Signature::concat(&self.members, c)
+    }
+}
+
+impl StepContext<'_> {
+    /// The model with `members`: the network corrected by `shifts` and
+    /// the rejected coordinates, adjusted, and refitted until the members'
+    /// parameters settle (which updates them).
+    fn state(
+        &self,
+        members: &mut [Member],
+        mut shifts: Vec<(usize, Vector3<f64>)>,
+    ) -> Result<State> {
+        let rejected: Vec<(usize, usize)> = members
+            .iter()
+            .filter_map(|m| match m {
+                Member::Blunder { obs, coordinate } => Some((*obs, *coordinate)),
+                Member::Effect { .. } => None,
+            })
+            .collect();
+        let mut refit = 0;
+        loop {
+            refit += 1;
+            let net = self.net0.adjusted(&shifts, &rejected);
+            let cal = base_calibration(&net, self.settings)?;
+            let lin = cal
+                .linearisation
+                .clone()
+                .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
+            let infos = reading_infos(self.campaign, &net, &cal);
+            let (cands, skipped) = candidates::build(
+                &infos,
+                &net.stations,
+                &net.targets,
+                &self.order,
+                self.enabled,
+            );
+            let sig = member_signature(members, &cands)?;
+            if sig.ncols() > 0 && refit < MAX_REFITS {
+                let step = linear::fit_once(&lin.jacobian, &lin.residuals, &sig)?;
+                if step.delta_chi2 >= REFIT_TOL_CHI2 {
+                    set_betas(members, &step.beta);
+                    shifts = physical_shifts(members, &cands, &net)?;
+                    continue;
+                }
+            }
+            // A rejected coordinate's held-out residual is the blunder
+            // itself: it no longer counts in the RMS.
+            let to_mm: Vec<Matrix3<f64>> = net
+                .obs
+                .iter()
+                .enumerate()
+                .map(|(i, o)| {
+                    let mut m = nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma);
+                    for &(_, c) in rejected.iter().filter(|(r, _)| *r == i) {
+                        m.column_mut(c).fill(0.0);
+                    }
+                    m
+                })
+                .collect();
+            let lm = LinearModel::new(
+                lin.jacobian,
+                lin.residuals,
+                self.fold_of,
+                self.n_folds,
+                to_mm,
+            )?;
+            return Ok(State {
+                net,
+                cal,
+                infos,
+                cands,
+                skipped,
+                members: sig,
+                rejected: rejected.len(),
+                lm,
+            });
+        }
+    }
 }
 
 /// Step 1: the bundle adjustment with the base model.
@@ -330,74 +637,271 @@ fn noise_floor(lm: &LinearModel, s: &Settings) -> f64 {
     lm.noise_floor_um(&draws)
 }
 
-/// Step 3, which: every candidate's fit, the best alternative of each
-/// (effect, place) by χ², and its row — F test (Bonferroni over every
-/// alternative tried), ΔBIC, held-out score and gap. Also returns the
-/// number of alternatives tried.
-fn score(
-    lm: &LinearModel,
-    cands: &[Candidate],
-    dof: usize,
-    floor: f64,
-    alpha: f64,
-) -> (Vec<Row>, usize) {
-    let chi2 = lm.chi2();
-    let rms_before = lm.cv_rms_um_base();
-    let fits: Vec<linear::Fit> = cands.par_iter().map(|c| lm.fit(&c.columns)).collect();
-    let mut best: Vec<(usize, f64)> = Vec::new();
-    for (i, (c, f)) in cands.iter().zip(&fits).enumerate() {
-        match best
-            .iter_mut()
-            .find(|(j, _)| cands[*j].effect == c.effect && cands[*j].place == c.place)
-        {
-            Some(b) if f.delta_chi2 > b.1 => *b = (i, f.delta_chi2),
-            Some(_) => {}
-            None => best.push((i, f.delta_chi2)),
+/// One step's tests: every candidate against the model with the members so
+/// far, and the worst reading's w-test.
+struct Scored {
+    rows: Vec<Row>,
+    /// Per row of `rows`: its candidate's index and joint parameters.
+    fits: Vec<(usize, Vec<f64>)>,
+    blunder: Option<BlunderRow>,
+    /// Candidates tried, alternatives included (the Bonferroni factor).
+    tried: usize,
+    /// Reading coordinates w-tested.
+    blunder_tests: usize,
+    /// Members' columns before each candidate's.
+    members_k: usize,
+    cands: Vec<(&'static str, String, String, fn(&[f64]) -> f64)>,
+}
+
+/// The worst reading coordinate's test as a row.
+struct BlunderRow {
+    row: Row,
+    obs: usize,
+    coordinate: usize,
+}
+
+/// The candidate a step adds to the explanation set.
+struct Pick {
+    row: Row,
+    member: Member,
+    /// For an effect: the joint fit's parameters (members' increments,
+    /// then the new member's), and how its magnitude is reported.
+    joint_beta: Option<Vec<f64>>,
+    magnitude: Option<fn(&[f64]) -> f64>,
+}
+
+impl Scored {
+    /// The significant row with the largest ΔBIC — an effect or the worst
+    /// reading — if any.
+    fn pick(&self) -> Option<Pick> {
+        let effect = self
+            .rows
+            .iter()
+            .zip(&self.fits)
+            .filter(|(r, _)| r.significant)
+            .max_by(|a, b| a.0.delta_bic.total_cmp(&b.0.delta_bic));
+        let blunder = self.blunder.as_ref().filter(|b| b.row.significant);
+        match (effect, blunder) {
+            (Some((r, _)), Some(b)) if b.row.delta_bic > r.delta_bic => Some(self.blunder_pick(b)),
+            (None, Some(b)) => Some(self.blunder_pick(b)),
+            (Some((r, (i, beta))), _) => {
+                let (effect, place, detail, magnitude) = self.cands[*i].clone();
+                Some(Pick {
+                    row: r.clone(),
+                    member: Member::Effect {
+                        effect,
+                        place,
+                        detail,
+                        beta: vec![0.0; beta.len() - self.members_k],
+                    },
+                    joint_beta: Some(beta.clone()),
+                    magnitude: Some(magnitude),
+                })
+            }
+            (None, None) => None,
         }
     }
-    let tried: usize = best.iter().map(|(i, _)| cands[*i].alternatives).sum();
-    let m = lm.rows() as f64;
-    let rows = best
-        .par_iter()
-        .map(|&(i, _)| {
-            let cand: &Candidate = &cands[i];
-            let fit = &fits[i];
-            let k = cand.columns.ncols();
-            let rest = (chi2 - fit.delta_chi2).max(1e-300);
-            let dof_aug = dof.saturating_sub(k).max(1);
-            let f_stat = (fit.delta_chi2 / k as f64) / (rest / dof_aug as f64);
-            let p = f_test::p_value(k as f64, dof_aug as f64, f_stat);
-            let p_corrected = (p * tried as f64).min(1.0);
-            let delta_bic = fit.delta_chi2 - k as f64 * m.ln();
-            let rms_after = lm.cv_rms_um(&cand.columns);
-            let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
-            let (gb, ga) = (rms_before - floor, rms_after - floor);
-            Row {
-                rank: 0,
-                effect: cand.effect.to_string(),
-                place: cand.place.clone(),
-                magnitude: (cand.magnitude)(&fit.beta),
-                unit: cand.unit.to_string(),
-                score,
-                significant: p_corrected < alpha && delta_bic > 0.0 && score > 0.0,
-                rms_before_um: rms_before,
-                rms_after_um: rms_after,
-                gap_before_um: gb,
-                gap_after_um: ga,
-                gap_shrink_pct: if gb > 0.0 {
-                    100.0 * (1.0 - ga / gb)
-                } else {
-                    0.0
-                },
-                k,
-                delta_chi2: fit.delta_chi2,
-                p_corrected,
-                delta_bic,
-                detail: cand.detail.clone(),
+
+    fn blunder_pick(&self, b: &BlunderRow) -> Pick {
+        Pick {
+            row: b.row.clone(),
+            member: Member::Blunder {
+                obs: b.obs,
+                coordinate: b.coordinate,
+            },
+            joint_beta: None,
+            magnitude: None,
+        }
+    }
+}
+
+/// The gap before and after, and how much of it a row's addition removes.
+fn set_gap(row: &mut Row, floor: f64) {
+    let (gb, ga) = (row.rms_before_um - floor, row.rms_after_um - floor);
+    row.gap_before_um = gb;
+    row.gap_after_um = ga;
+    row.gap_shrink_pct = if gb > 0.0 {
+        100.0 * (1.0 - ga / gb)
+    } else {
+        0.0
+    };
+}
+
+impl StepContext<'_> {
+    /// Step `step` of which: every candidate whose effect is not yet in the
+    /// set, fitted jointly with the members; the best alternative of each
+    /// (effect, place) by χ², and its row — F test (Bonferroni over every
+    /// alternative tried, and α spent as α·2⁻ˢ over the steps so that the
+    /// family-wise rate stays under α whatever the number of steps), ΔBIC,
+    /// held-out score and gap; and the worst reading's w-test.
+    fn score(&self, st: &State, members: &[Member], step: usize, floor: f64) -> Scored {
+        let lm = &st.lm;
+        let alpha = self.settings.alpha;
+        let spend = 2f64.powi(step.min(1000) as i32);
+        let k_m = st.members.ncols();
+        let members_chi2 = st.members_chi2();
+        let chi2 = lm.chi2() - members_chi2;
+        let dof = st.dof();
+        let rms_before = st.cv_rms_um();
+        let used: Vec<&str> = members
+            .iter()
+            .filter_map(|m| match m {
+                Member::Effect { effect, .. } => Some(*effect),
+                Member::Blunder { .. } => None,
+            })
+            .collect();
+        let open: Vec<usize> = (0..st.cands.len())
+            .filter(|&i| !used.contains(&st.cands[i].effect))
+            .collect();
+        let fits: Vec<linear::Fit> = open
+            .par_iter()
+            .map(|&i| lm.fit(&st.joint(&st.cands[i].columns)))
+            .collect();
+        let gain = |f: &linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
+        let mut best: Vec<(usize, usize, f64)> = Vec::new();
+        for (slot, (&i, f)) in open.iter().zip(&fits).enumerate() {
+            let c = &st.cands[i];
+            match best
+                .iter_mut()
+                .find(|(j, _, _)| st.cands[*j].effect == c.effect && st.cands[*j].place == c.place)
+            {
+                Some(b) if gain(f) > b.2 => *b = (i, slot, gain(f)),
+                Some(_) => {}
+                None => best.push((i, slot, gain(f))),
             }
-        })
-        .collect();
-    (rows, tried)
+        }
+        let tried: usize = best.iter().map(|(i, _, _)| st.cands[*i].alternatives).sum();
+        let m = lm.rows() as f64;
+        let scored: Vec<(Row, (usize, Vec<f64>))> = best
+            .par_iter()
+            .map(|&(i, slot, delta_chi2)| {
+                let cand: &Candidate = &st.cands[i];
+                let fit = &fits[slot];
+                let k = cand.columns.ncols();
+                let rest = (chi2 - delta_chi2).max(1e-300);
+                let dof_aug = dof.saturating_sub(k).max(1);
+                let f_stat = (delta_chi2 / k as f64) / (rest / dof_aug as f64);
+                let p = f_test::p_value(k as f64, dof_aug as f64, f_stat);
+                let p_corrected = (p * tried as f64 * spend).min(1.0);
+                let delta_bic = delta_chi2 - k as f64 * m.ln();
+                let rms_after = lm.cv_rms_um(&st.joint(&cand.columns));
+                let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
+                let mut row = Row {
+                    rank: 0,
+                    step: None,
+                    effect: cand.effect.to_string(),
+                    place: cand.place.clone(),
+                    magnitude: (cand.magnitude)(&fit.beta[k_m..]),
+                    unit: cand.unit.to_string(),
+                    score,
+                    significant: p_corrected < alpha && delta_bic > 0.0 && score > 0.0,
+                    rms_before_um: rms_before,
+                    rms_after_um: rms_after,
+                    gap_before_um: 0.0,
+                    gap_after_um: 0.0,
+                    gap_shrink_pct: 0.0,
+                    k,
+                    delta_chi2,
+                    p_corrected,
+                    delta_bic,
+                    detail: cand.detail.clone(),
+                };
+                set_gap(&mut row, floor);
+                (row, (i, fit.beta.clone()))
+            })
+            .collect();
+        let (rows, fits): (Vec<Row>, Vec<(usize, Vec<f64>)>) = scored.into_iter().unzip();
+        let (blunder, blunder_tests) = if (self.enabled)("blunder") {
+            self.worst_reading(st, spend, rms_before, floor)
+        } else {
+            (None, 0)
+        };
+        Scored {
+            rows,
+            fits,
+            blunder,
+            tried,
+            blunder_tests,
+            members_k: k_m,
+            cands: st
+                .cands
+                .iter()
+                .map(|c| (c.effect, c.place.clone(), c.detail.clone(), c.magnitude))
+                .collect(),
+        }
+    }
+
+    /// The worst reading coordinate by Baarda's w-test against the model
+    /// with the members, as a `blunder` row (its size in µrad or µm), and
+    /// the number of coordinates tested.
+    fn worst_reading(
+        &self,
+        st: &State,
+        spend: f64,
+        rms_before: f64,
+        floor: f64,
+    ) -> (Option<BlunderRow>, usize) {
+        let tests = st.lm.w_tests(&st.members);
+        let n = snooping::testable(&tests);
+        let Some(t) = snooping::worst(&tests) else {
+            return (None, n);
+        };
+        let o = &self.net0.obs[t.obs];
+        let reading = &self.campaign.readings[t.obs];
+        let (size, unit) = match t.coordinate {
+            2 => (t.size_sigma * o.sigma[2] * 1e3, "µm"),
+            c => (t.size_sigma * o.sigma[c] * 1e6, "µrad"),
+        };
+        let mut column = Signature::new(1);
+        column.add(t.obs, t.coordinate, 0, 1.0);
+        let rms_after = st.lm.cv_rms_um(&st.joint(&column));
+        let p_corrected = (snooping::p_corrected(t.w, n) * spend).min(1.0);
+        let delta_chi2 = t.w * t.w;
+        let delta_bic = delta_chi2 - (st.lm.rows() as f64).ln();
+        let mut row = Row {
+            rank: 0,
+            step: None,
+            effect: "blunder".into(),
+            place: format!(
+                "{}/{}/{}",
+                reading.station,
+                reading.target,
+                reading.face.number()
+            ),
+            magnitude: size,
+            unit: unit.into(),
+            score: 100.0 * (1.0 - (rms_after / rms_before).powi(2)),
+            significant: p_corrected < self.settings.alpha && delta_bic > 0.0,
+            rms_before_um: rms_before,
+            rms_after_um: rms_after,
+            gap_before_um: 0.0,
+            gap_after_um: 0.0,
+            gap_shrink_pct: 0.0,
+            k: 1,
+            delta_chi2,
+            p_corrected,
+            delta_bic,
+            detail: format!(
+                "{}, w = {:+.2}, redundancy {:.2}{}",
+                snooping::COORDINATES[t.coordinate],
+                t.w,
+                t.redundancy,
+                reading
+                    .line
+                    .map(|l| format!(", readings.csv line {l}"))
+                    .unwrap_or_else(|| format!(", reading {}", t.obs + 1))
+            ),
+        };
+        set_gap(&mut row, floor);
+        (
+            Some(BlunderRow {
+                row,
+                obs: t.obs,
+                coordinate: t.coordinate,
+            }),
+            n,
+        )
+    }
 }
 
 /// Step 2, where: each reading's residual with what the factors group by.
@@ -406,6 +910,7 @@ fn residual_rows(
     net: &Network,
     cal: &Calibration,
     infos: &[ReadingInfo],
+    w_tests: &[[WTest; 3]],
 ) -> Vec<ResidualRow> {
     cal.residuals
         .iter()
@@ -424,6 +929,7 @@ fn residual_rows(
                 elevation_deg: o.reading.el.to_degrees(),
                 time_s: r.time_s,
                 temperature_c: r.temperature_c,
+                w: w_tests.get(rr.obs).map(|t| t.map(|t| (t.w, t.redundancy))),
             }
         })
         .collect()
@@ -460,6 +966,7 @@ fn none_row(
     };
     Row {
         rank: 0,
+        step: None,
         effect: "none".into(),
         place,
         magnitude: chi2 / dof as f64,
@@ -479,21 +986,24 @@ fn none_row(
     }
 }
 
-/// The ranking: the significant first, then `none`, then the rest. Within
-/// a class the information criterion orders: it weighs what a candidate
-/// explains against its parameters, so the one station that drifts beats
-/// "every station", and a reflector knocked between stations is not
-/// out-scored by cross-validation, which cannot predict a held-out reading
-/// from before the knock.
+/// The ranking: the explanation set in the order of selection, then any
+/// significant row left out (the step limit reached), then `none`, then
+/// the rest. Within a class the information criterion orders: it weighs
+/// what a candidate explains against its parameters, so the one station
+/// that drifts beats "every station", and a reflector knocked between
+/// stations is not out-scored by cross-validation, which cannot predict a
+/// held-out reading from before the knock.
 fn rank(rows: &mut [Row]) {
-    let class = |r: &Row| match (r.effect.as_str(), r.significant) {
-        ("none", _) => 1,
-        (_, true) => 0,
-        _ => 2,
+    let class = |r: &Row| match (r.step, r.effect.as_str(), r.significant) {
+        (Some(_), _, _) => 0,
+        (None, "none", _) => 2,
+        (None, _, true) => 1,
+        _ => 3,
     };
     rows.sort_by(|a, b| {
         class(a)
             .cmp(&class(b))
+            .then(a.step.cmp(&b.step))
             .then(b.delta_bic.total_cmp(&a.delta_bic))
             .then(a.effect.cmp(&b.effect))
             .then(a.place.cmp(&b.place))
@@ -523,6 +1033,7 @@ mod tests {
                 temperature_c: None,
                 pressure_hpa: None,
                 humidity_pct: None,
+                line: None,
             })
             .collect();
         Campaign {

@@ -1,9 +1,16 @@
 //! The diagnosis as files: `diagnosis.csv` (the output contract: `rank,
 //! effect, where, magnitude, unit, score, significant, rms_before_um,
-//! rms_after_um, gap_before_um, gap_after_um, gap_shrink_pct`, then the
-//! supporting `k, delta_chi2, p_corrected, delta_bic, detail`), the same as
-//! Parquet, `where.csv`, `report.md` in words, and a residual plot per
+//! rms_after_um, gap_before_um, gap_after_um, gap_shrink_pct`, then `step`
+//! — the explanation set's order of selection, empty for the rest — and
+//! the supporting `k, delta_chi2, p_corrected, delta_bic, detail`), the same
+//! as Parquet, `where.csv`, `report.md` in words, and a residual plot per
 //! factor.
+//!
+//! A member's held-out RMS before and after are those of the model before
+//! and after it joined (after the nonlinear refit): along the set they
+//! chain, so the first member's `rms_before_um` and the last one's
+//! `rms_after_um` are the set's. The other rows are tested against the
+//! whole set.
 
 use super::Diagnosis;
 use crate::plots;
@@ -27,6 +34,7 @@ pub const DIAGNOSIS_COLUMNS: &[&str] = &[
     "gap_before_um",
     "gap_after_um",
     "gap_shrink_pct",
+    "step",
     "k",
     "delta_chi2",
     "p_corrected",
@@ -59,6 +67,7 @@ pub fn diagnosis_table(d: &Diagnosis) -> Result<DataFrame> {
         .f64("gap_before_um", col(|x| x.gap_before_um))
         .f64("gap_after_um", col(|x| x.gap_after_um))
         .f64("gap_shrink_pct", col(|x| x.gap_shrink_pct))
+        .opt_i64("step", r.iter().map(|x| x.step.map(|s| s as i64)).collect())
         .i64("k", r.iter().map(|x| x.k as i64).collect())
         .f64("delta_chi2", col(|x| x.delta_chi2))
         .f64("p_corrected", col(|x| x.p_corrected))
@@ -98,6 +107,11 @@ pub fn residuals_table(d: &Diagnosis) -> Result<DataFrame> {
     let r = &d.residuals;
     let opt =
         |f: fn(&super::factors::ResidualRow) -> Option<f64>| r.iter().map(f).collect::<Vec<_>>();
+    let w = |c: usize, redundancy: bool| -> Vec<Option<f64>> {
+        r.iter()
+            .map(|x| x.w.map(|t| if redundancy { t[c].1 } else { t[c].0 }))
+            .collect()
+    };
     TableBuilder::new()
         .str(
             "station",
@@ -120,10 +134,17 @@ pub fn residuals_table(d: &Diagnosis) -> Result<DataFrame> {
         .f64("elevation_deg", r.iter().map(|x| x.elevation_deg).collect())
         .opt_f64("time_s", opt(|x| x.time_s))
         .opt_f64("temperature_c", opt(|x| x.temperature_c))
+        .opt_f64("w_az", w(0, false))
+        .opt_f64("w_el", w(1, false))
+        .opt_f64("w_d", w(2, false))
+        .opt_f64("redundancy_az", w(0, true))
+        .opt_f64("redundancy_el", w(1, true))
+        .opt_f64("redundancy_d", w(2, true))
         .build()
 }
 
 pub fn summary_table(d: &Diagnosis) -> Result<DataFrame> {
+    let set = set_numbers(d);
     TableBuilder::new()
         .str("campaign", &[&d.campaign])
         .f64("chi2", vec![d.chi2])
@@ -132,8 +153,49 @@ pub fn summary_table(d: &Diagnosis) -> Result<DataFrame> {
         .bool("noise_stated", vec![d.noise_stated])
         .f64("noise_floor_um", vec![d.noise_floor_um])
         .i64("tried", vec![d.tried as i64])
+        .i64("blunder_tests", vec![d.blunder_tests as i64])
+        .str("explanation", &[explanation(d)])
+        .f64("set_rms_before_um", vec![set.0])
+        .f64("set_rms_after_um", vec![set.1])
+        .f64("set_gap_shrink_pct", vec![set.2])
         .str("verdict", &[verdict(d)])
         .build()
+}
+
+/// The explanation set's members as `effect at place` joined by ` + `;
+/// `none` when empty.
+pub fn explanation(d: &Diagnosis) -> String {
+    let names: Vec<String> = d
+        .explanation()
+        .map(|r| format!("{} at {}", r.effect, r.place))
+        .collect();
+    if names.is_empty() {
+        "none".into()
+    } else {
+        names.join(" + ")
+    }
+}
+
+/// The set's held-out RMS before and after (µm) and the share of the gap
+/// it removes (%).
+pub fn set_numbers(d: &Diagnosis) -> (f64, f64, f64) {
+    let set: Vec<&super::Row> = d.explanation().collect();
+    match (set.first(), set.last()) {
+        (Some(a), Some(b)) => {
+            let gb = a.rms_before_um - d.noise_floor_um;
+            let ga = b.rms_after_um - d.noise_floor_um;
+            let shrink = if gb > 0.0 {
+                100.0 * (1.0 - ga / gb)
+            } else {
+                0.0
+            };
+            (a.rms_before_um, b.rms_after_um, shrink)
+        }
+        _ => {
+            let rms = d.best().rms_before_um;
+            (rms, rms, 0.0)
+        }
+    }
 }
 
 pub fn skipped_table(d: &Diagnosis) -> Result<DataFrame> {
@@ -164,6 +226,12 @@ pub fn verdict(d: &Diagnosis) -> String {
                 b.place
             )
         }
+    } else if d.explanation().count() > 1 {
+        let (_, _, shrink) = set_numbers(d);
+        format!(
+            "{} together: {shrink:.1} % of the gap over the noise floor removed",
+            explanation(d)
+        )
     } else {
         format!(
             "{} at {}{}: {:.3} {}, {:.1} % of the held-out residual explained",
@@ -267,13 +335,19 @@ pub fn report(d: &Diagnosis) -> String {
     );
     let _ = writeln!(
         s,
-        "| rank | effect | where | magnitude | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|"
+        "The explanation set is built step by step: the most significant candidate (an effect, or the worst reading by Baarda's w-test over {} reading coordinates) joins the model, the campaign is adjusted again with it, and every other candidate is tested against the augmented model; α is spent as α·2⁻ˢ over the steps.\n",
+        d.blunder_tests
+    );
+    let _ = writeln!(
+        s,
+        "| rank | step | effect | where | magnitude | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|---|"
     );
     for r in d.rows.iter().take(10) {
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {:.3} {} | {:.1} | {} | {:.2} → {:.2} | {:.1} |",
+            "| {} | {} | {} | {} | {:.3} {} | {:.1} | {} | {:.2} → {:.2} | {:.1} |",
             r.rank,
+            r.step.map(|s| s.to_string()).unwrap_or_default(),
             r.effect,
             r.place,
             r.magnitude,
@@ -291,9 +365,34 @@ pub fn report(d: &Diagnosis) -> String {
             let _ = writeln!(s, "- `{}`: {}", k.effect, k.reason);
         }
     }
+    let blunders: Vec<&super::Row> = d.explanation().filter(|r| r.effect == "blunder").collect();
+    if !blunders.is_empty() {
+        let _ = writeln!(s, "\nReadings rejected as blunders:\n");
+        for r in blunders {
+            let _ = writeln!(
+                s,
+                "- {} ({}): {:+.1} {}",
+                r.place, r.detail, r.magnitude, r.unit
+            );
+        }
+    }
     let _ = writeln!(s, "\n## How far\n");
     let b = d.best();
-    if b.effect == "none" {
+    let set: Vec<&super::Row> = d.explanation().collect();
+    if set.len() > 1 {
+        let (before, after, shrink) = set_numbers(d);
+        let names: Vec<String> = set
+            .iter()
+            .map(|r| format!("`{}` ({})", r.effect, r.place))
+            .collect();
+        let _ = writeln!(
+            s,
+            "{} together bring the held-out residual from {before:.2} µm to {after:.2} µm: they shrink the gap over the noise floor from {:.2} µm to {:.2} µm ({shrink:.1} %).",
+            names.join(" and "),
+            before - d.noise_floor_um,
+            after - d.noise_floor_um,
+        );
+    } else if b.effect == "none" {
         let _ = writeln!(
             s,
             "No effect is added; the gap stays at {:.2} µm.",

@@ -9,6 +9,8 @@
 //! norm = "l1"                         # "l1" (the paper's |…|) or "l2"; the bundle is "l2"
 //! fixed = ["ez3"]                     # held at their start value
 //! shapes = { dz3 = "poly:1" }         # the model to fit; constants by default
+//! reject_blunders = false             # bundle only: iterated data snooping (Baarda's w-test)
+//! blunder_alpha = 0.01                # its family-wise level
 //! ```
 //!
 //! Outputs: `params`, `singular_values`, `combinations` (as `identify`:
@@ -21,9 +23,13 @@
 //! `std_position_mm`, `std_rotation_urad`), `targets` (`target`, `x_mm`,
 //! `y_mm`, `z_mm`, `std_mm`) and `residuals` (per reading: `station`,
 //! `target`, `face`, `az_urad`, `el_urad`, `d_um`, and the same over σ:
-//! `az_sigma`, `el_sigma`, `d_sigma`).
+//! `az_sigma`, `el_sigma`, `d_sigma`), and `rejected` (the readings data
+//! snooping removed, in order: `station`, `target`, `face`, `line`,
+//! `coordinate`, `w`, `critical_w`, `redundancy`, `size`, `unit`; empty
+//! unless `reject_blunders`).
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
+use crate::calibrate::snooping::{self, Rejected};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
 use crate::campaign::{self, Campaign};
 use crate::error_model::{ParamId, Shape};
@@ -47,6 +53,14 @@ pub struct CalibrateStage {
     pub rank_tol: f64,
     #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
+    #[serde(default)]
+    pub reject_blunders: bool,
+    #[serde(default = "default_blunder_alpha")]
+    pub blunder_alpha: f64,
+}
+
+fn default_blunder_alpha() -> f64 {
+    0.01
 }
 
 impl CalibrateStage {
@@ -55,7 +69,7 @@ impl CalibrateStage {
         &self,
         c: &Campaign,
         inputs: Option<&StageInputs>,
-    ) -> Result<(Network, Calibration)> {
+    ) -> Result<(Network, Calibration, Vec<Rejected>)> {
         let net = Network::from_campaign(c)?;
         let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
         let start = match inputs {
@@ -63,18 +77,18 @@ impl CalibrateStage {
             None => crate::error_model::ErrorParams::zero(&model),
         };
         let free = fitting::free(&start, &self.fixed);
-        let cal = calibrate::calibrate(
-            &net,
-            &start,
-            &free,
-            &Settings {
-                objective: self.objective,
-                norm: self.norm,
-                rank_tol: self.rank_tol,
-                max_iters: self.max_iters,
-            },
-        )?;
-        Ok((net, cal))
+        let settings = Settings {
+            objective: self.objective,
+            norm: self.norm,
+            rank_tol: self.rank_tol,
+            max_iters: self.max_iters,
+        };
+        if self.reject_blunders {
+            snooping::calibrate_rejecting(&net, &start, &free, &settings, self.blunder_alpha)
+        } else {
+            let cal = calibrate::calibrate(&net, &start, &free, &settings)?;
+            Ok((net, cal, Vec::new()))
+        }
     }
 }
 
@@ -102,6 +116,7 @@ impl StageKind for CalibrateStage {
         "stations",
         "targets",
         "residuals",
+        "rejected",
     ];
 
     fn columns(table: &str) -> Option<&'static [&'static str]> {
@@ -141,6 +156,18 @@ impl StageKind for CalibrateStage {
                 "std_rotation_urad",
             ]),
             "targets" => Some(&["target", "x_mm", "y_mm", "z_mm", "std_mm"]),
+            "rejected" => Some(&[
+                "station",
+                "target",
+                "face",
+                "line",
+                "coordinate",
+                "w",
+                "critical_w",
+                "redundancy",
+                "size",
+                "unit",
+            ]),
             _ => fitting::columns(table),
         }
     }
@@ -153,14 +180,84 @@ impl StageKind for CalibrateStage {
                 "the bundle adjustment is a least-squares fit of the readings: use norm = \"l2\"",
             ));
         }
+        if self.reject_blunders && self.objective != Objective::Bundle {
+            out.push(Invalid::new(
+                "reject_blunders",
+                "blunders are found by the w-test of each reading, which needs the readings' own residuals: use objective = \"bundle\"",
+            ));
+        }
+        if !(self.blunder_alpha > 0.0 && self.blunder_alpha < 0.5) {
+            out.push(Invalid::new(
+                "blunder_alpha",
+                format!(
+                    "`blunder_alpha` must lie in (0, 0.5), got {}",
+                    self.blunder_alpha
+                ),
+            ));
+        }
         out
     }
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let c = Campaign::from_inputs(inputs, "campaign")?;
-        let (net, cal) = self.calibrate(&c, Some(inputs))?;
-        tables(&net, &cal)
+        let (net, cal, rejected) = self.calibrate(&c, Some(inputs))?;
+        Ok(tables(&net, &cal)?.table("rejected", rejected_table(&c, &rejected)?))
     }
+}
+
+/// The readings data snooping rejected, with their tests.
+fn rejected_table(c: &Campaign, rejected: &[Rejected]) -> Result<DataFrame> {
+    let net = Network::from_campaign(c)?;
+    let readings: Vec<_> = rejected.iter().map(|r| &c.readings[r.test.obs]).collect();
+    let (size, unit): (Vec<f64>, Vec<&str>) = rejected
+        .iter()
+        .map(|r| {
+            let sigma = net.obs[r.test.obs].sigma[r.test.coordinate];
+            match r.test.coordinate {
+                2 => (r.test.size_sigma * sigma * 1e3, "µm"),
+                _ => (r.test.size_sigma * sigma * 1e6, "µrad"),
+            }
+        })
+        .unzip();
+    TableBuilder::new()
+        .str(
+            "station",
+            &readings
+                .iter()
+                .map(|r| r.station.as_str())
+                .collect::<Vec<_>>(),
+        )
+        .str(
+            "target",
+            &readings
+                .iter()
+                .map(|r| r.target.as_str())
+                .collect::<Vec<_>>(),
+        )
+        .i64("face", readings.iter().map(|r| r.face.number()).collect())
+        .opt_i64(
+            "line",
+            readings.iter().map(|r| r.line.map(|l| l as i64)).collect(),
+        )
+        .str(
+            "coordinate",
+            &rejected
+                .iter()
+                .map(|r| snooping::COORDINATES[r.test.coordinate])
+                .collect::<Vec<_>>(),
+        )
+        .f64("w", rejected.iter().map(|r| r.test.w).collect())
+        .f64(
+            "critical_w",
+            rejected.iter().map(|r| r.critical_w).collect(),
+        )
+        .f64(
+            "redundancy",
+            rejected.iter().map(|r| r.test.redundancy).collect(),
+        )
+        .f64("size", size)
+        .str("unit", &unit)
+        .build()
 }
 
 /// The output tables of a calibration.

@@ -4,8 +4,8 @@
 //! [`crate::campaign`], because it is an adapter between the runner's tables
 //! and the domain: the campaign itself knows nothing of stage inputs.
 //!
-//! The tables mirror the files column for column — `readings` has exactly
-//! readings.csv's columns, `targets` targets.csv's, `gauge` gauge.csv's —
+//! The tables mirror the files column for column — `readings` has
+//! readings.csv's columns (and `line`, where each reading was read from), `targets` targets.csv's, `gauge` gauge.csv's —
 //! with every optional column always present (null where not known), and
 //! `meta` holds campaign.toml as one row. The round trip is exact: numbers
 //! stay `f64`, angles stay in degrees.
@@ -66,6 +66,7 @@ impl Campaign {
             .opt_f64("temperature_c", r.iter().map(|r| r.temperature_c).collect())
             .opt_f64("pressure_hpa", r.iter().map(|r| r.pressure_hpa).collect())
             .opt_f64("humidity_pct", r.iter().map(|r| r.humidity_pct).collect())
+            .opt_i64("line", r.iter().map(|r| r.line.map(|l| l as i64)).collect())
             .build()
     }
 
@@ -134,6 +135,7 @@ fn readings_from(t: &TableRef) -> Result<Vec<CampaignReading>> {
     let temperature = t.opt_f64("temperature_c")?;
     let pressure = t.opt_f64("pressure_hpa")?;
     let humidity = t.opt_f64("humidity_pct")?;
+    let line = t.opt_i64("line")?;
     Ok((0..t.height())
         .map(|i| CampaignReading {
             station: station[i].clone(),
@@ -146,6 +148,7 @@ fn readings_from(t: &TableRef) -> Result<Vec<CampaignReading>> {
             temperature_c: temperature[i],
             pressure_hpa: pressure[i],
             humidity_pct: humidity[i],
+            line: line[i].and_then(|l| usize::try_from(l).ok()),
         })
         .collect())
 }
@@ -230,10 +233,25 @@ fn meta_from(t: &TableRef) -> Result<Meta> {
     })
 }
 
+/// readings.csv's columns, then the line each reading was read from.
+const READINGS_TABLE_COLUMNS: &[&str] = &[
+    "station",
+    "target",
+    "az_deg",
+    "el_deg",
+    "d_mm",
+    "face",
+    "time_s",
+    "temperature_c",
+    "pressure_hpa",
+    "humidity_pct",
+    "line",
+];
+
 /// The columns of a campaign's tables as stages pass them on.
 pub fn columns(table: &str) -> Option<&'static [&'static str]> {
     match table {
-        "readings" => Some(crate::campaign::READINGS_COLUMNS),
+        "readings" => Some(READINGS_TABLE_COLUMNS),
         "targets" => Some(crate::campaign::TARGETS_COLUMNS),
         "gauge" => Some(crate::campaign::GAUGE_COLUMNS),
         "meta" => Some(&[

@@ -13,14 +13,17 @@
 //! alpha = 0.01                       # family-wise significance
 //! effects = []                       # effect ids to try (empty: all of effects.md)
 //! seed = 0
+//! max_steps = 8                      # members of the explanation set at most
 //! ```
 //!
 //! Outputs: `diagnosis` (the contract of `diagnosis.csv`, see
 //! [`crate::diagnose::output`]), `where` (`factor`, `component`, `groups`,
 //! `eta2`, `f`, `p`, `significant`, `worst_group`, `worst_mean_sigma`),
-//! `residuals` (per reading, with the factor values), `summary` (one row:
-//! `campaign`, `chi2`, `dof`, `chi2_p`, `noise_stated`, `noise_floor_um`,
-//! `tried`, `verdict`), `skipped` (`effect`, `reason`); files
+//! `residuals` (per reading, with the factor values and each coordinate's
+//! w-test and redundancy), `summary` (one row: `campaign`, `chi2`, `dof`,
+//! `chi2_p`, `noise_stated`, `noise_floor_um`, `tried`, `blunder_tests`,
+//! `explanation`, `set_rms_before_um`, `set_rms_after_um`,
+//! `set_gap_shrink_pct`, `verdict`), `skipped` (`effect`, `reason`); files
 //! `diagnosis.csv`, `report.md` and `residuals-<factor>.svg`.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
@@ -49,6 +52,12 @@ pub struct DiagnoseStage {
     pub effects: Vec<String>,
     #[serde(default)]
     pub seed: u64,
+    #[serde(default = "default_max_steps")]
+    pub max_steps: usize,
+}
+
+fn default_max_steps() -> usize {
+    diagnose::DEFAULT_MAX_STEPS
 }
 
 fn default_folds() -> usize {
@@ -71,6 +80,7 @@ impl Default for DiagnoseStage {
             alpha: default_alpha(),
             effects: Vec::new(),
             seed: 0,
+            max_steps: default_max_steps(),
         }
     }
 }
@@ -85,6 +95,7 @@ impl DiagnoseStage {
             alpha: self.alpha,
             effects: self.effects.clone(),
             seed: self.seed,
+            max_steps: self.max_steps,
         })
     }
 
@@ -160,6 +171,12 @@ impl StageKind for DiagnoseStage {
                 "elevation_deg",
                 "time_s",
                 "temperature_c",
+                "w_az",
+                "w_el",
+                "w_d",
+                "redundancy_az",
+                "redundancy_el",
+                "redundancy_d",
             ]),
             "summary" => Some(&[
                 "campaign",
@@ -169,6 +186,11 @@ impl StageKind for DiagnoseStage {
                 "noise_stated",
                 "noise_floor_um",
                 "tried",
+                "blunder_tests",
+                "explanation",
+                "set_rms_before_um",
+                "set_rms_after_um",
+                "set_gap_shrink_pct",
                 "verdict",
             ]),
             "skipped" => Some(&["effect", "reason"]),
@@ -197,15 +219,21 @@ impl StageKind for DiagnoseStage {
             ));
         }
         for (i, e) in self.effects.iter().enumerate() {
-            if !effects::IDS.contains(&e.as_str()) || e == "none" || e == "noise" {
+            if !(effects::IDS[..7].contains(&e.as_str()) || e == "blunder") {
                 out.push(Invalid::new(
                     format!("effects.{i}"),
                     format!(
-                        "`{e}` is not a candidate effect; one of {}",
+                        "`{e}` is not a candidate effect; one of {}, blunder",
                         effects::IDS[..7].join(", ")
                     ),
                 ));
             }
+        }
+        if !(1..=100).contains(&self.max_steps) {
+            out.push(Invalid::new(
+                "max_steps",
+                format!("`max_steps` must be 1 … 100, got {}", self.max_steps),
+            ));
         }
         out
     }

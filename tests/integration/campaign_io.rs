@@ -509,7 +509,8 @@ fn the_tables_have_the_files_columns() {
             "time_s",
             "temperature_c",
             "pressure_hpa",
-            "humidity_pct"
+            "humidity_pct",
+            "line"
         ]
     );
     assert_eq!(
