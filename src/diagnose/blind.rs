@@ -2,6 +2,15 @@
 //! random (or none) at a random magnitude and place, diagnosed without
 //! seeing the truth, then scored against it.
 //!
+//! Cases come in kinds ([`CaseKind`]): one effect; none; one effect seen
+//! in two faces; one effect in a file without `time_s` and `temperature_c`;
+//! two effects at once; one blunder; several blunders; a blunder and an
+//! effect. Every tracker carries random kinematic errors (the paper's 18
+//! parameters, `tracker_sigma` each). Single-effect kinds are scored as
+//! before (the effect and place named first); every kind is also scored as
+//! a set: each member put in found in the explanation set, and nothing
+//! named that was not put in.
+//!
 //! # What counts as detectable
 //!
 //! An effect can only be found if the readings carry it in a form the base
@@ -15,10 +24,10 @@
 //! from noise reliably; accuracy is reported on detectable cases and on all.
 
 use super::{Diagnosis, Settings as DiagnoseSettings, diagnose};
-use crate::campaign::{Aim, CampaignReading};
+use crate::campaign::{Aim, Campaign, CampaignReading};
 use crate::effects::{
-    AirRefraction, Axis, Effects, EncoderHarmonic, Incidence, IncidenceTable9, RangeScale,
-    StationDrift, TargetShift,
+    AirRefraction, Axis, Blunder, Coordinate, Effects, EncoderHarmonic, Incidence, IncidenceTable9,
+    RangeScale, StationDrift, TargetShift,
 };
 use crate::error_model::{ErrorModel, ErrorParams};
 use crate::kinematics::Face;
@@ -31,6 +40,62 @@ use nalgebra::{DVector, Vector3};
 use rand::rngs::ChaCha8Rng;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
+
+/// What a case holds.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum CaseKind {
+    /// No effect, no blunder (drawn with the plan's `none_fraction`).
+    None,
+    Single,
+    /// One effect, every reading taken in both faces.
+    TwoFace,
+    /// One effect (not one that needs time or temperature), in a file
+    /// without `time_s` and `temperature_c`.
+    NoTime,
+    TwoEffects,
+    Blunder,
+    /// Two to four blunders.
+    Blunders,
+    BlunderAndEffect,
+}
+
+impl CaseKind {
+    /// The kinds the plan draws from by default (`none` comes from the
+    /// plan's `none_fraction`).
+    pub const ALL: [CaseKind; 7] = [
+        CaseKind::Single,
+        CaseKind::TwoFace,
+        CaseKind::NoTime,
+        CaseKind::TwoEffects,
+        CaseKind::Blunder,
+        CaseKind::Blunders,
+        CaseKind::BlunderAndEffect,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            CaseKind::None => "none",
+            CaseKind::Single => "single",
+            CaseKind::TwoFace => "two-face",
+            CaseKind::NoTime => "no-time",
+            CaseKind::TwoEffects => "two-effects",
+            CaseKind::Blunder => "blunder",
+            CaseKind::Blunders => "blunders",
+            CaseKind::BlunderAndEffect => "blunder-and-effect",
+        }
+    }
+
+    /// One effect or none, no blunder: scored by what is named first.
+    pub fn is_single(self) -> bool {
+        matches!(
+            self,
+            CaseKind::None | CaseKind::Single | CaseKind::TwoFace | CaseKind::NoTime
+        )
+    }
+}
 
 /// How the cases are drawn.
 #[derive(Clone, Debug)]
@@ -46,12 +111,49 @@ pub struct Plan {
     pub none_fraction: f64,
     /// Effect ids to draw from.
     pub effects: Vec<String>,
+    /// Kinds of case to draw from (besides `none`).
+    pub kinds: Vec<CaseKind>,
     /// Kinematic error parameters of each tracker: Gaussian, this σ in µm
     /// and µrad (a factory-compensated tracker has a few).
     pub tracker_sigma: f64,
     pub detect_chi2: f64,
     /// Monte Carlo draws per diagnosis.
     pub mc_draws: usize,
+}
+
+/// One thing put into a case: an effect or a blunder.
+#[derive(Clone, Debug)]
+pub struct Member {
+    pub effect: String,
+    /// As the diagnosis names it: a station or reflector id, an axis,
+    /// `all`, or `station/target/face` for a blunder.
+    pub place: String,
+    pub has_place: bool,
+    /// Δχ² of its unabsorbed signature, alone.
+    pub signal_chi2: f64,
+}
+
+/// A case scored as a set.
+#[derive(Clone, Debug, Default)]
+pub struct SetScore {
+    /// Members put in, and how many of them are detectable.
+    pub members: usize,
+    pub detectable: usize,
+    /// Detectable members found in the explanation set.
+    pub found: usize,
+    /// Explanation-set members that match nothing put in.
+    pub spurious: usize,
+    pub true_blunders: usize,
+    pub detectable_blunders: usize,
+    pub blunders_found: usize,
+    pub false_blunders: usize,
+    /// Readings without a blunder.
+    pub clean_readings: usize,
+    /// `station-drift` or `air-refraction` named in a file without the
+    /// columns they need.
+    pub time_effect_without_time: bool,
+    pub true_set: String,
+    pub named_set: String,
 }
 
 /// The truth of one case.
@@ -71,6 +173,7 @@ pub struct Truth {
 #[derive(Clone, Debug)]
 pub struct Case {
     pub case: usize,
+    pub kind: CaseKind,
     pub layout: String,
     pub stations: usize,
     pub readings: usize,
@@ -87,6 +190,7 @@ pub struct Case {
     /// `None` when the truth has no single place to name.
     pub place_correct: Option<bool>,
     pub magnitude_ratio: Option<f64>,
+    pub set: SetScore,
 }
 
 fn between(rng: &mut ChaCha8Rng, (lo, hi): (f64, f64)) -> f64 {
@@ -116,9 +220,14 @@ fn pick<'a, T>(rng: &mut ChaCha8Rng, v: &'a [T]) -> &'a T {
     &v[((random::uniform(rng) * v.len() as f64) as usize).min(v.len() - 1)]
 }
 
-/// Draws an effect of the given id for a layout.
-fn draw_effect(rng: &mut ChaCha8Rng, id: &str, stations: &[String], targets: &[String]) -> Truth {
-    let mut fx = Effects::default();
+/// Draws an effect of the given id for a layout into `fx`.
+fn draw_effect(
+    rng: &mut ChaCha8Rng,
+    id: &str,
+    stations: &[String],
+    targets: &[String],
+    fx: &mut Effects,
+) -> Truth {
     let (place, mag, has_place) = match id {
         "incidence" => {
             let e = magnitude(rng, 30.0, 300.0, false);
@@ -206,8 +315,50 @@ fn draw_effect(rng: &mut ChaCha8Rng, id: &str, stations: &[String], targets: &[S
         place,
         magnitude: mag,
         has_place,
-        effects: fx,
+        effects: fx.clone(),
     }
+}
+
+/// Draws `n` blunders on distinct readings of `readings`: a random
+/// coordinate, off by 6 to 40 σ either way.
+fn draw_blunders(
+    rng: &mut ChaCha8Rng,
+    n: usize,
+    readings: &[CampaignReading],
+    noise: Noise,
+) -> Vec<Blunder> {
+    let mut taken: Vec<usize> = Vec::new();
+    let mut out = Vec::new();
+    while out.len() < n.min(readings.len()) {
+        let i = ((random::uniform(rng) * readings.len() as f64) as usize).min(readings.len() - 1);
+        if taken.contains(&i) {
+            continue;
+        }
+        taken.push(i);
+        let r = &readings[i];
+        let coordinate = *pick(rng, &[Coordinate::Az, Coordinate::El, Coordinate::D]);
+        let sigmas = magnitude(rng, 6.0, 40.0, true);
+        let (size_urad, size_um) = match coordinate {
+            Coordinate::D => (None, Some(sigmas * noise.sigma_range_at_um(r.d_mm))),
+            _ => (Some(sigmas * noise.sigma_angle_urad), None),
+        };
+        out.push(Blunder {
+            station: r.station.clone(),
+            target: r.target.clone(),
+            face: r.face.number() as u8,
+            coordinate,
+            size_urad,
+            size_um,
+        });
+    }
+    out
+}
+
+/// How a case's campaign is measured.
+#[derive(Clone, Copy)]
+struct Measuring {
+    two_face: bool,
+    timed: bool,
 }
 
 fn simulate(
@@ -216,13 +367,18 @@ fn simulate(
     noise: Noise,
     fx: &Effects,
     seed: u64,
+    how: Measuring,
 ) -> Result<SimulatedCampaign> {
     let layout = layout::build(spec);
     simulate_campaign(&CampaignSpec {
         name: "blind".into(),
         layout: &layout,
         errors: Some(errors),
-        faces: &[Face::Front],
+        faces: if how.two_face {
+            &[Face::Front, Face::Back]
+        } else {
+            &[Face::Front]
+        },
         aim: Aim::StationsCentroid,
         max_angle_deg: crate::effects::DEFAULT_MAX_ANGLE_DEG,
         noise,
@@ -231,8 +387,8 @@ fn simulate(
         reference_u_mm: 0.002,
         level_urad: 1000.0,
         interval_s: 20.0,
-        record_time: true,
-        record_temperature: true,
+        record_time: how.timed,
+        record_temperature: how.timed,
         seed,
     })
     .map_err(|e| anyhow!(e))
@@ -249,21 +405,16 @@ fn key(r: &CampaignReading) -> Key {
 /// readings with and without the effect.
 fn signal_chi2(
     d: &Diagnosis,
-    with: &SimulatedCampaign,
-    without: &SimulatedCampaign,
+    with: &Campaign,
+    without: &Campaign,
     readings: &[CampaignReading],
 ) -> f64 {
     let Some(lin) = &d.calibration.linearisation else {
         return 0.0;
     };
-    let base: BTreeMap<Key, &CampaignReading> = without
-        .campaign
-        .readings
-        .iter()
-        .map(|r| (key(r), r))
-        .collect();
-    let eff: BTreeMap<Key, &CampaignReading> =
-        with.campaign.readings.iter().map(|r| (key(r), r)).collect();
+    let base: BTreeMap<Key, &CampaignReading> =
+        without.readings.iter().map(|r| (key(r), r)).collect();
+    let eff: BTreeMap<Key, &CampaignReading> = with.readings.iter().map(|r| (key(r), r)).collect();
     let mut delta = DVector::zeros(lin.jacobian.nrows());
     for (i, r) in readings.iter().enumerate() {
         let k = key(r);
@@ -283,11 +434,11 @@ fn signal_chi2(
 /// Runs one case.
 fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let mut rng = random::stream(plan.seed, &format!("blind-check-{case}"));
-    let kind = *pick(&mut rng, &plan.layouts);
+    let layout_kind = *pick(&mut rng, &plan.layouts);
     let n_st = plan.stations.0
         + ((random::uniform(&mut rng) * (plan.stations.1 - plan.stations.0 + 1) as f64) as usize)
             .min(plan.stations.1 - plan.stations.0);
-    let mut spec = Spec::new(kind);
+    let mut spec = Spec::new(layout_kind);
     spec.stations = n_st;
     let noise = Noise {
         sigma_angle_urad: between(&mut rng, plan.noise_angle_urad),
@@ -301,16 +452,61 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let lay = layout::build(&spec);
     let stations: Vec<String> = lay.stations.iter().map(|s| s.0.clone()).collect();
     let targets: Vec<String> = lay.targets.iter().map(|t| t.0.clone()).collect();
-    let id = if random::uniform(&mut rng) < plan.none_fraction || plan.effects.is_empty() {
-        "none".to_string()
+    let kind = if random::uniform(&mut rng) < plan.none_fraction || plan.effects.is_empty() {
+        CaseKind::None
     } else {
-        pick(&mut rng, &plan.effects).clone()
+        *pick(&mut rng, &plan.kinds)
     };
-    let truth = draw_effect(&mut rng, &id, &stations, &targets);
+    let how = Measuring {
+        two_face: kind == CaseKind::TwoFace,
+        timed: kind != CaseKind::NoTime,
+    };
     let seed = plan.seed.wrapping_mul(1_000_003).wrapping_add(case as u64);
-    let noisy = simulate(&spec, &errors, noise, &truth.effects, seed)?;
-    let clean_with = simulate(&spec, &errors, Noise::default(), &truth.effects, seed)?;
-    let clean_without = simulate(&spec, &errors, Noise::default(), &Effects::default(), seed)?;
+    // The effects: ids drawn without repeats, from those the file can
+    // carry (no time-based effect without time), and no two incidence
+    // models at once.
+    let n_effects = match kind {
+        CaseKind::None | CaseKind::Blunder | CaseKind::Blunders => 0,
+        CaseKind::TwoEffects => 2,
+        _ => 1,
+    };
+    let mut fx = Effects::default();
+    let mut truths: Vec<Truth> = Vec::new();
+    for _ in 0..n_effects {
+        let allowed: Vec<String> = plan
+            .effects
+            .iter()
+            .filter(|e| how.timed || !matches!(e.as_str(), "station-drift" | "air-refraction"))
+            .filter(|e| !truths.iter().any(|t| &t.effect == *e))
+            .filter(|e| !(n_effects > 1 && e.as_str() == "incidence-table9"))
+            .cloned()
+            .collect();
+        if allowed.is_empty() {
+            break;
+        }
+        let id = pick(&mut rng, &allowed).clone();
+        truths.push(draw_effect(&mut rng, &id, &stations, &targets, &mut fx));
+    }
+    let clean_without = simulate(
+        &spec,
+        &errors,
+        Noise::default(),
+        &Effects::default(),
+        seed,
+        how,
+    )?;
+    let n_blunders = match kind {
+        CaseKind::Blunder | CaseKind::BlunderAndEffect => 1,
+        CaseKind::Blunders => 2 + (random::uniform(&mut rng) * 3.0) as usize % 3,
+        _ => 0,
+    };
+    fx.blunder = draw_blunders(
+        &mut rng,
+        n_blunders,
+        &clean_without.campaign.readings,
+        noise,
+    );
+    let noisy = simulate(&spec, &errors, noise, &fx, seed, how)?;
     let d = diagnose(
         &noisy.campaign,
         &DiagnoseSettings {
@@ -319,11 +515,47 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
             ..DiagnoseSettings::default()
         },
     )?;
-    let signal = if truth.effect == "none" {
-        0.0
-    } else {
-        signal_chi2(&d, &clean_with, &clean_without, &noisy.campaign.readings)
+    // Each member's signal, alone.
+    let readings = &noisy.campaign.readings;
+    let signal_of = |one: &Effects| -> Result<f64> {
+        let with = simulate(&spec, &errors, Noise::default(), one, seed, how)?;
+        Ok(signal_chi2(
+            &d,
+            &with.campaign,
+            &clean_without.campaign,
+            readings,
+        ))
     };
+    let mut members: Vec<Member> = Vec::new();
+    for t in &truths {
+        let one = only(&t.effects, &t.effect);
+        members.push(Member {
+            effect: t.effect.clone(),
+            place: t.place.clone(),
+            has_place: t.has_place,
+            signal_chi2: signal_of(&one)?,
+        });
+    }
+    for b in &fx.blunder {
+        let one = Effects {
+            blunder: vec![b.clone()],
+            ..Effects::default()
+        };
+        members.push(Member {
+            effect: "blunder".into(),
+            place: b.place(),
+            has_place: true,
+            signal_chi2: signal_of(&one)?,
+        });
+    }
+    let truth = truths.first().cloned().unwrap_or_else(|| Truth {
+        effect: "none".into(),
+        place: "all".into(),
+        magnitude: 0.0,
+        has_place: false,
+        effects: Effects::default(),
+    });
+    let signal = members.first().map_or(0.0, |m| m.signal_chi2);
     let best = d.best();
     let effect_correct = best.effect == truth.effect;
     let place_correct = truth
@@ -331,15 +563,17 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         .then(|| effect_correct && best.place == truth.place);
     let magnitude_ratio = (effect_correct && truth.effect != "none" && truth.magnitude != 0.0)
         .then(|| best.magnitude / truth.magnitude);
+    let set = score_set(&d, &members, plan.detect_chi2, readings.len(), how.timed);
     Ok(Case {
         case,
-        layout: format!("{kind:?}").to_lowercase(),
+        kind,
+        layout: format!("{layout_kind:?}").to_lowercase(),
         stations: n_st,
-        readings: noisy.campaign.readings.len(),
+        readings: readings.len(),
         sigma_angle_urad: noise.sigma_angle_urad,
         sigma_range_um: noise.sigma_range_um,
         signal_chi2: signal,
-        detectable: truth.effect == "none" || signal >= plan.detect_chi2,
+        detectable: members.iter().all(|m| m.signal_chi2 >= plan.detect_chi2),
         named_effect: best.effect.clone(),
         named_place: best.place.clone(),
         named_magnitude: best.magnitude,
@@ -347,7 +581,83 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         place_correct,
         magnitude_ratio,
         truth,
+        set,
     })
+}
+
+/// `fx` with only the effect `id` (and no blunder).
+fn only(fx: &Effects, id: &str) -> Effects {
+    let mut one = Effects::default();
+    match id {
+        "incidence" => one.incidence = fx.incidence.clone(),
+        "incidence-table9" => one.incidence_table9 = fx.incidence_table9.clone(),
+        "range-scale" => one.range_scale = fx.range_scale.clone(),
+        "air-refraction" => one.air_refraction = fx.air_refraction.clone(),
+        "encoder-harmonic" => one.encoder_harmonic = fx.encoder_harmonic.clone(),
+        "station-drift" => one.station_drift = fx.station_drift.clone(),
+        "target-shift" => one.target_shift = fx.target_shift.clone(),
+        _ => {}
+    }
+    one
+}
+
+/// The explanation set against what was put in: an effect is found when
+/// the set names its id, a blunder when the set names its reading.
+fn score_set(
+    d: &Diagnosis,
+    members: &[Member],
+    detect_chi2: f64,
+    readings: usize,
+    timed: bool,
+) -> SetScore {
+    let named: Vec<&super::Row> = d.explanation().collect();
+    let matches = |m: &Member, r: &super::Row| {
+        r.effect == m.effect && (m.effect != "blunder" || r.place == m.place)
+    };
+    let detectable: Vec<&Member> = members
+        .iter()
+        .filter(|m| m.signal_chi2 >= detect_chi2)
+        .collect();
+    let blunders = |v: &[&Member]| v.iter().filter(|m| m.effect == "blunder").count();
+    let all: Vec<&Member> = members.iter().collect();
+    let name = |e: &str, p: &str| format!("{e} at {p}");
+    SetScore {
+        members: members.len(),
+        detectable: detectable.len(),
+        found: detectable
+            .iter()
+            .filter(|m| named.iter().any(|r| matches(m, r)))
+            .count(),
+        spurious: named
+            .iter()
+            .filter(|r| !members.iter().any(|m| matches(m, r)))
+            .count(),
+        true_blunders: blunders(&all),
+        detectable_blunders: blunders(&detectable),
+        blunders_found: detectable
+            .iter()
+            .filter(|m| m.effect == "blunder" && named.iter().any(|r| matches(m, r)))
+            .count(),
+        false_blunders: named
+            .iter()
+            .filter(|r| r.effect == "blunder" && !members.iter().any(|m| matches(m, r)))
+            .count(),
+        clean_readings: readings - blunders(&all),
+        time_effect_without_time: !timed
+            && named
+                .iter()
+                .any(|r| matches!(r.effect.as_str(), "station-drift" | "air-refraction")),
+        true_set: if members.is_empty() {
+            "none".into()
+        } else {
+            members
+                .iter()
+                .map(|m| name(&m.effect, &m.place))
+                .collect::<Vec<_>>()
+                .join(" + ")
+        },
+        named_set: super::output::explanation(d),
+    }
 }
 
 /// Runs every case (in parallel; the result does not depend on the
@@ -371,6 +681,60 @@ pub struct Score {
     pub none_correct: usize,
     /// Median of |named/true − 1| over correctly named effects.
     pub median_magnitude_error: f64,
+}
+
+/// Set-level accuracy of a group of cases (of one kind, or all).
+#[derive(Clone, Debug, Default)]
+pub struct SetAccuracy {
+    pub cases: usize,
+    /// Cases whose every member is detectable.
+    pub detectable_cases: usize,
+    /// … whose every member was found.
+    pub all_found: usize,
+    /// Cases (any) with no spurious member.
+    pub spurious_free: usize,
+    pub detectable_blunders: usize,
+    pub blunders_found: usize,
+    pub false_blunders: usize,
+    pub clean_readings: usize,
+    /// Cases without time columns where a time-based effect was named.
+    pub time_effects_without_time: usize,
+}
+
+impl SetAccuracy {
+    pub fn of<'a>(cases: impl Iterator<Item = &'a Case>) -> SetAccuracy {
+        let mut a = SetAccuracy::default();
+        for c in cases {
+            let s = &c.set;
+            a.cases += 1;
+            if s.detectable == s.members {
+                a.detectable_cases += 1;
+                a.all_found += (s.found == s.members) as usize;
+            }
+            a.spurious_free += (s.spurious == 0) as usize;
+            a.detectable_blunders += s.detectable_blunders;
+            a.blunders_found += s.blunders_found;
+            a.false_blunders += s.false_blunders;
+            a.clean_readings += s.clean_readings;
+            a.time_effects_without_time += s.time_effect_without_time as usize;
+        }
+        a
+    }
+
+    /// Share of fully detectable cases whose every member was found.
+    pub fn all_found_rate(&self) -> f64 {
+        self.all_found as f64 / self.detectable_cases.max(1) as f64
+    }
+    pub fn spurious_free_rate(&self) -> f64 {
+        self.spurious_free as f64 / self.cases.max(1) as f64
+    }
+    pub fn blunder_rate(&self) -> f64 {
+        self.blunders_found as f64 / self.detectable_blunders.max(1) as f64
+    }
+    /// False blunders per 1 000 clean readings.
+    pub fn false_blunders_per_1000(&self) -> f64 {
+        1000.0 * self.false_blunders as f64 / self.clean_readings.max(1) as f64
+    }
 }
 
 impl Score {

@@ -15,24 +15,33 @@
 //! none_fraction = 0.25
 //! effects = ["incidence", "incidence-table9", "range-scale", "air-refraction",
 //!            "encoder-harmonic", "station-drift", "target-shift"]
+//! kinds = ["single", "two-face", "no-time", "two-effects", "blunder",
+//!          "blunders", "blunder-and-effect"]   # besides `none`
 //! tracker_sigma = 5.0                  # µm / µrad of the kinematic errors
 //! detect_chi2 = 25.0
 //! mc_draws = 20
 //! ```
 //!
-//! Outputs: `cases` (one row per campaign: `case`, `layout`, `stations`,
+//! Outputs: `cases` (one row per campaign: `case`, `kind`, `layout`, `stations`,
 //! `readings`, `sigma_angle_urad`, `sigma_range_um`, `true_effect`,
 //! `true_where`, `true_magnitude`, `signal_chi2`, `detectable`,
 //! `named_effect`, `named_where`, `named_magnitude`, `effect_correct`,
-//! `where_correct`, `magnitude_ratio`), `confusion` (`subset` = all or
-//! detectable, `true_effect`, `named_effect`, `count`), `summary`
-//! (`subset`, `cases`, `effect_accuracy_pct` over campaigns with an effect,
-//! `where_accuracy_pct` over those with a station or reflector,
-//! `none_accuracy_pct` over effect-free campaigns,
-//! `median_magnitude_error_pct`) and the figure `confusion.svg`.
+//! `where_correct`, `magnitude_ratio`, and the case as a set: `true_set`,
+//! `named_set`, `members`, `members_detectable`, `members_found`,
+//! `spurious`, `blunders`, `blunders_found`, `false_blunders`,
+//! `time_effect_without_time`), `confusion` (single-effect kinds; `subset`
+//! = all or detectable, `true_effect`, `named_effect`, `count`), `summary`
+//! (single-effect kinds: `subset`, `cases`, `effect_accuracy_pct` over
+//! campaigns with an effect, `where_accuracy_pct` over those with a station
+//! or reflector, `none_accuracy_pct` over effect-free campaigns,
+//! `median_magnitude_error_pct`), `kinds` (per kind and over all: `kind`,
+//! `cases`, `detectable_cases`, `all_found_pct` — every member of a fully
+//! detectable case in the explanation set — `spurious_free_pct`,
+//! `detectable_blunders`, `blunders_found_pct`, `false_blunders_per_1000` clean
+//! readings, `time_effects_without_time`) and the figure `confusion.svg`.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
-use crate::diagnose::blind::{self, Case, Plan, Score};
+use crate::diagnose::blind::{self, Case, CaseKind, Plan, Score, SetAccuracy};
 use crate::effects;
 use crate::layout::Kind;
 use crate::plots;
@@ -60,6 +69,8 @@ pub struct BlindCheckStage {
     pub none_fraction: f64,
     #[serde(default = "default_effects")]
     pub effects: Vec<String>,
+    #[serde(default = "default_kinds")]
+    pub kinds: Vec<CaseKind>,
     #[serde(default = "default_tracker")]
     pub tracker_sigma: f64,
     #[serde(default = "default_detect")]
@@ -89,6 +100,9 @@ fn default_none() -> f64 {
 fn default_effects() -> Vec<String> {
     effects::IDS[..7].iter().map(|s| s.to_string()).collect()
 }
+fn default_kinds() -> Vec<CaseKind> {
+    CaseKind::ALL.to_vec()
+}
 fn default_tracker() -> f64 {
     5.0
 }
@@ -110,6 +124,7 @@ impl BlindCheckStage {
             noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
             none_fraction: self.none_fraction,
             effects: self.effects.clone(),
+            kinds: self.kinds.clone(),
             tracker_sigma: self.tracker_sigma,
             detect_chi2: self.detect_chi2,
             mc_draws: self.mc_draws,
@@ -122,7 +137,7 @@ impl StageKind for BlindCheckStage {
     const SUMMARY: &'static str =
         "simulated campaigns with a hidden effect, diagnosed blind and scored (confusion matrix)";
     const INPUTS: &'static [Slot] = &[];
-    const OUTPUTS: &'static [&'static str] = &["summary", "cases", "confusion"];
+    const OUTPUTS: &'static [&'static str] = &["summary", "cases", "confusion", "kinds"];
 
     fn columns(table: &str) -> Option<&'static [&'static str]> {
         match table {
@@ -144,6 +159,28 @@ impl StageKind for BlindCheckStage {
                 "effect_correct",
                 "where_correct",
                 "magnitude_ratio",
+                "kind",
+                "true_set",
+                "named_set",
+                "members",
+                "members_detectable",
+                "members_found",
+                "spurious",
+                "blunders",
+                "blunders_found",
+                "false_blunders",
+                "time_effect_without_time",
+            ]),
+            "kinds" => Some(&[
+                "kind",
+                "cases",
+                "detectable_cases",
+                "all_found_pct",
+                "spurious_free_pct",
+                "detectable_blunders",
+                "blunders_found_pct",
+                "false_blunders_per_1000",
+                "time_effects_without_time",
             ]),
             "confusion" => Some(&["subset", "true_effect", "named_effect", "count"]),
             "summary" => Some(&[
@@ -209,6 +246,12 @@ impl StageKind for BlindCheckStage {
                 ));
             }
         }
+        if self.kinds.is_empty() || self.kinds.contains(&CaseKind::None) {
+            out.push(Invalid::new(
+                "kinds",
+                "`kinds` needs at least one kind, and not `none` (its share is `none_fraction`)",
+            ));
+        }
         if !(self.tracker_sigma >= 0.0 && self.tracker_sigma.is_finite()) {
             out.push(Invalid::new("tracker_sigma", "`tracker_sigma` must be ≥ 0"));
         }
@@ -223,7 +266,9 @@ impl StageKind for BlindCheckStage {
         let labels: Vec<String> = std::iter::once("none".to_string())
             .chain(self.effects.iter().cloned())
             .collect();
-        let detectable: Vec<&Case> = cases.iter().filter(|c| c.detectable).collect();
+        // The single-effect kinds are scored by what is named first.
+        let single: Vec<&Case> = cases.iter().filter(|c| c.kind.is_single()).collect();
+        let detectable: Vec<&Case> = single.iter().copied().filter(|c| c.detectable).collect();
         let matrix = |subset: &[&Case]| -> Vec<Vec<usize>> {
             labels
                 .iter()
@@ -240,7 +285,7 @@ impl StageKind for BlindCheckStage {
                 })
                 .collect()
         };
-        let all: Vec<&Case> = cases.iter().collect();
+        let all = single;
         let svg = plots::confusion_matrix(
             "Blind check: true effect (rows) against the diagnosis (columns), detectable cases",
             &labels,
@@ -256,8 +301,54 @@ impl StageKind for BlindCheckStage {
                     &[("all", matrix(&all)), ("detectable", matrix(&detectable))],
                 )?,
             )
+            .table("kinds", kinds_table(&cases)?)
             .file("confusion.svg".into(), svg.into_bytes()))
     }
+}
+
+/// Set-level accuracy per kind drawn, then over every case.
+fn kinds_table(cases: &[Case]) -> Result<DataFrame> {
+    let mut kinds: Vec<CaseKind> = cases.iter().map(|c| c.kind).collect();
+    kinds.sort();
+    kinds.dedup();
+    let mut rows: Vec<(&str, SetAccuracy)> = kinds
+        .iter()
+        .map(|k| {
+            (
+                k.name(),
+                SetAccuracy::of(cases.iter().filter(|c| c.kind == *k)),
+            )
+        })
+        .collect();
+    rows.push(("all", SetAccuracy::of(cases.iter())));
+    let pct = |f: fn(&SetAccuracy) -> f64| rows.iter().map(|r| 100.0 * f(&r.1)).collect();
+    TableBuilder::new()
+        .str("kind", &rows.iter().map(|r| r.0).collect::<Vec<_>>())
+        .i64("cases", rows.iter().map(|r| r.1.cases as i64).collect())
+        .i64(
+            "detectable_cases",
+            rows.iter().map(|r| r.1.detectable_cases as i64).collect(),
+        )
+        .f64("all_found_pct", pct(SetAccuracy::all_found_rate))
+        .f64("spurious_free_pct", pct(SetAccuracy::spurious_free_rate))
+        .i64(
+            "detectable_blunders",
+            rows.iter()
+                .map(|r| r.1.detectable_blunders as i64)
+                .collect(),
+        )
+        .f64("blunders_found_pct", pct(SetAccuracy::blunder_rate))
+        .f64(
+            "false_blunders_per_1000",
+            rows.iter().map(|r| r.1.false_blunders_per_1000()).collect(),
+        )
+        .i64(
+            "time_effects_without_time",
+            rows.iter()
+                .map(|r| r.1.time_effects_without_time as i64)
+                .collect(),
+        )
+        .build()
 }
 
 fn summary(all: &[&Case], detectable: &[&Case]) -> Result<DataFrame> {
@@ -304,6 +395,7 @@ fn summary(all: &[&Case], detectable: &[&Case]) -> Result<DataFrame> {
 fn cases_table(cases: &[Case]) -> Result<DataFrame> {
     let s = |f: fn(&Case) -> String| cases.iter().map(f).collect::<Vec<String>>();
     let x = |f: fn(&Case) -> f64| cases.iter().map(f).collect::<Vec<f64>>();
+    let n = |f: fn(&Case) -> usize| cases.iter().map(|c| f(c) as i64).collect::<Vec<i64>>();
     TableBuilder::new()
         .i64("case", cases.iter().map(|c| c.case as i64).collect())
         .str("layout", &s(|c| c.layout.clone()))
@@ -336,6 +428,26 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
         .opt_f64(
             "magnitude_ratio",
             cases.iter().map(|c| c.magnitude_ratio).collect(),
+        )
+        .str(
+            "kind",
+            &cases.iter().map(|c| c.kind.name()).collect::<Vec<_>>(),
+        )
+        .str("true_set", &s(|c| c.set.true_set.clone()))
+        .str("named_set", &s(|c| c.set.named_set.clone()))
+        .i64("members", n(|c| c.set.members))
+        .i64("members_detectable", n(|c| c.set.detectable))
+        .i64("members_found", n(|c| c.set.found))
+        .i64("spurious", n(|c| c.set.spurious))
+        .i64("blunders", n(|c| c.set.true_blunders))
+        .i64("blunders_found", n(|c| c.set.blunders_found))
+        .i64("false_blunders", n(|c| c.set.false_blunders))
+        .bool(
+            "time_effect_without_time",
+            cases
+                .iter()
+                .map(|c| c.set.time_effect_without_time)
+                .collect(),
         )
         .build()
 }
