@@ -243,7 +243,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         // Δχ² = 50 that the targeted tests find; α-spending already keeps
         // spurious members rare.)
         let open = step <= s.max_steps;
-        let pick = open.then(|| scored.pick()).flatten();
+        let pick = open.then(|| scored.pick(&state.cands)).flatten();
         let Some(pick) = pick else {
             break (state, scored, open);
         };
@@ -653,7 +653,6 @@ struct Scored {
     blunder_tests: usize,
     /// Members' columns before each candidate's.
     members_k: usize,
-    cands: Vec<(&'static str, String, String, fn(&[f64]) -> f64)>,
 }
 
 /// The worst reading coordinate's test as a row.
@@ -676,7 +675,7 @@ struct Pick {
 impl Scored {
     /// The significant row with the largest ΔBIC — an effect or the worst
     /// reading — if any.
-    fn pick(&self) -> Option<Pick> {
+    fn pick(&self, cands: &[Candidate]) -> Option<Pick> {
         let effect = self
             .rows
             .iter()
@@ -688,17 +687,17 @@ impl Scored {
             (Some((r, _)), Some(b)) if b.row.delta_bic > r.delta_bic => Some(self.blunder_pick(b)),
             (None, Some(b)) => Some(self.blunder_pick(b)),
             (Some((r, (i, beta))), _) => {
-                let (effect, place, detail, magnitude) = self.cands[*i].clone();
+                let c = &cands[*i];
                 Some(Pick {
                     row: r.clone(),
                     member: Member::Effect {
-                        effect,
-                        place,
-                        detail,
+                        effect: c.effect,
+                        place: c.place.clone(),
+                        detail: c.detail.clone(),
                         beta: vec![0.0; beta.len() - self.members_k],
                     },
                     joint_beta: Some(beta.clone()),
-                    magnitude: Some(magnitude),
+                    magnitude: Some(c.magnitude),
                 })
             }
             (None, None) => None,
@@ -826,11 +825,6 @@ impl StepContext<'_> {
             tried,
             blunder_tests,
             members_k: k_m,
-            cands: st
-                .cands
-                .iter()
-                .map(|c| (c.effect, c.place.clone(), c.detail.clone(), c.magnitude))
-                .collect(),
         }
     }
 
