@@ -234,24 +234,19 @@ fn meta_from(t: &TableRef) -> Result<Meta> {
 }
 
 /// readings.csv's columns, then the line each reading was read from.
-const READINGS_TABLE_COLUMNS: &[&str] = &[
-    "station",
-    "target",
-    "az_deg",
-    "el_deg",
-    "d_mm",
-    "face",
-    "time_s",
-    "temperature_c",
-    "pressure_hpa",
-    "humidity_pct",
-    "line",
-];
+static READINGS_TABLE_COLUMNS: std::sync::LazyLock<Vec<&'static str>> =
+    std::sync::LazyLock::new(|| {
+        crate::campaign::READINGS_COLUMNS
+            .iter()
+            .copied()
+            .chain(["line"])
+            .collect()
+    });
 
 /// The columns of a campaign's tables as stages pass them on.
 pub fn columns(table: &str) -> Option<&'static [&'static str]> {
     match table {
-        "readings" => Some(READINGS_TABLE_COLUMNS),
+        "readings" => Some(READINGS_TABLE_COLUMNS.as_slice()),
         "targets" => Some(crate::campaign::TARGETS_COLUMNS),
         "gauge" => Some(crate::campaign::GAUGE_COLUMNS),
         "meta" => Some(&[
