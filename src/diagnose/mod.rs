@@ -24,11 +24,13 @@
 //!    taken off the readings, the bundle adjustment redone, the members'
 //!    parameters refitted until they settle). Every remaining candidate is
 //!    then tested against the augmented model, so a large effect no longer
-//!    drowns a small one. The search stops when nothing more is significant
-//!    or (from the second step) the residual is consistent with the stated
-//!    noise. α is spent as α·2⁻ˢ at step s, so the family-wise error rate
-//!    over all steps stays under α. One member per effect id (blunders:
-//!    one per reading coordinate). With no member, the answer is `none` — if
+//!    drowns a small one. The search stops when nothing more is
+//!    significant. α is spent as α·2⁻ˢ at step s, so the family-wise error
+//!    rate over all steps stays under α. One member per effect id
+//!    (blunders: one per reading coordinate). Greedy choice can be misled
+//!    by a broad candidate standing in for two narrow effects, so the first
+//!    step's three best candidates each start a path and the path whose
+//!    final model has the lowest BIC is kept. With no member, the answer is `none` — if
 //!    the residual is consistent with the stated noise (χ² test); otherwise
 //!    `none` with "unexplained structure" and where it lies.
 //! 5. **How far** — the gap is the held-out residual (µm) minus the one
@@ -231,43 +233,39 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
     let base_cal = base.cal.clone();
 
-    // Which, step by step: the explanation set.
-    let mut set_rows: Vec<Row> = Vec::new();
-    let mut state = base;
-    let mut step = 1;
-    let last = loop {
-        let scored = ctx.score(&state, &members, step, floor);
-        // The search ends when nothing more is significant. (Not when the
-        // residual first looks consistent with the noise: the χ² test over
-        // hundreds of degrees of freedom cannot see a second effect of
-        // Δχ² = 50 that the targeted tests find; α-spending already keeps
-        // spurious members rare.)
-        let open = step <= s.max_steps;
-        let pick = open.then(|| scored.pick(&state.cands)).flatten();
-        let Some(pick) = pick else {
-            break (state, scored, open);
-        };
-        let mut row = pick.row.clone();
-        members.push(pick.member.clone());
-        if let Some(beta) = &pick.joint_beta {
-            set_betas(&mut members, beta);
-        }
-        let shifts = physical_shifts(&members, &state.cands, &state.net)?;
-        let next = ctx.state(&mut members, shifts)?;
-        // How far, measured after the nonlinear refit with the member.
-        row.rms_after_um = next.cv_rms_um();
-        row.score = 100.0 * (1.0 - (row.rms_after_um / row.rms_before_um).powi(2));
-        set_gap(&mut row, floor);
-        row.step = Some(step);
-        if let Member::Effect { beta, .. } = members.last().expect("just pushed") {
-            let magnitude = pick.magnitude.expect("an effect has a magnitude");
-            row.magnitude = magnitude(beta);
-        }
-        set_rows.push(row);
-        state = next;
-        step += 1;
+    // Which, step by step: the explanation set, along the most promising
+    // first steps.
+    let first = ctx.score(&base, &members, 1, floor);
+    let open = s.max_steps >= 1;
+    let starts = if open {
+        first.picks(&base.cands, FIRST_STEPS)
+    } else {
+        Vec::new()
     };
-    let (final_state, scored, open) = last;
+    let path = if starts.is_empty() {
+        Path {
+            rows: Vec::new(),
+            state: base,
+            scored: first,
+            open,
+        }
+    } else {
+        let paths: Vec<Path> = starts
+            .into_par_iter()
+            .map(|p| ctx.follow(&base, p, floor))
+            .collect::<Result<_>>()?;
+        // The first of the best: the greedy path wins ties.
+        paths
+            .into_iter()
+            .min_by(|a, b| a.state.bic().total_cmp(&b.state.bic()))
+            .expect("at least one path")
+    };
+    let Path {
+        rows: set_rows,
+        state: final_state,
+        scored,
+        open,
+    } = path;
     let mut rows = set_rows;
     rows.extend(scored.rows.into_iter().map(|mut r| {
         r.significant &= open;
@@ -394,6 +392,23 @@ fn physical_shifts(
         .collect())
 }
 
+/// How many of the first step's significant candidates start a path of
+/// their own (see [`StepContext::follow`]).
+const FIRST_STEPS: usize = 3;
+
+/// One way through the steps: the rows that chose the members, the model
+/// with all of them, and the tests of its last step.
+struct Path {
+    rows: Vec<Row>,
+    state: State,
+    scored: Scored,
+    /// Whether the last step could still admit a member.
+    open: bool,
+}
+
+/// A member's row, and how its magnitude is read from its parameters.
+type MemberRow = (Row, Option<fn(&[f64]) -> f64>);
+
 /// What every step shares.
 struct StepContext<'a> {
     campaign: &'a Campaign,
@@ -402,7 +417,7 @@ struct StepContext<'a> {
     order: Vec<usize>,
     fold_of: &'a [usize],
     n_folds: usize,
-    enabled: &'a dyn Fn(&str) -> bool,
+    enabled: &'a (dyn Fn(&str) -> bool + Sync),
 }
 
 /// The model at one step: the campaign corrected by the explanation set so
@@ -458,6 +473,14 @@ impl State {
         }
     }
 
+    /// The Bayesian information criterion of the augmented model, up to a
+    /// constant: `χ² + k·ln m`, with `k` the members' parameters (a
+    /// rejected coordinate counts as one) and `m` the reading coordinates.
+    fn bic(&self) -> f64 {
+        let k = self.members.ncols() + self.rejected;
+        self.lm.chi2() - self.members_chi2() + k as f64 * (self.lm.rows() as f64).ln()
+    }
+
     /// The members' columns with `c`'s after them.
     fn joint(&self, c: &Signature) -> Signature {
         Signature::concat(&self.members, c)
@@ -465,6 +488,71 @@ impl State {
 }
 
 impl StepContext<'_> {
+    /// The explanation set that starts with `first` and goes on greedily:
+    /// at each step the significant candidate with the best ΔBIC joins.
+    ///
+    /// Greedy selection alone goes wrong when a broad candidate stands in
+    /// for two narrower true effects: per-station range scales at every
+    /// station absorb air refraction and one station's scale together, a
+    /// drift common to all stations absorbs one station's drift and part
+    /// of an encoder harmonic — and once in, it blocks its own effect at
+    /// the right place. So the first step's best few candidates each start
+    /// a path, and the diagnosis keeps the path whose final model has the
+    /// lowest information criterion ([`State::bic`]).
+    fn follow(&self, base: &State, first: Pick, floor: f64) -> Result<Path> {
+        let mut members = Vec::new();
+        let mut rows = Vec::new();
+        let mut state = self.join(base, &mut members, &mut rows, first, floor)?;
+        loop {
+            let step = rows.len() + 1;
+            let scored = self.score(&state, &members, step, floor);
+            let open = step <= self.settings.max_steps;
+            let pick = open.then(|| scored.pick(&state.cands)).flatten();
+            let Some(pick) = pick else {
+                return Ok(Path {
+                    rows: rows.into_iter().map(|(r, _)| r).collect(),
+                    state,
+                    scored,
+                    open,
+                });
+            };
+            state = self.join(&state, &mut members, &mut rows, pick, floor)?;
+        }
+    }
+
+    /// `pick` joins the set: the model refitted with it, its row completed
+    /// with the gap measured after the refit, and every member's magnitude
+    /// read from the joint refit (each row keeps how its magnitude is
+    /// read).
+    fn join(
+        &self,
+        st: &State,
+        members: &mut Vec<Member>,
+        rows: &mut Vec<MemberRow>,
+        pick: Pick,
+        floor: f64,
+    ) -> Result<State> {
+        let mut row = pick.row;
+        members.push(pick.member);
+        if let Some(beta) = &pick.joint_beta {
+            set_betas(members, beta);
+        }
+        let shifts = physical_shifts(members, &st.cands, &st.net)?;
+        let next = self.state(members, shifts)?;
+        // How far, measured after the nonlinear refit with the member.
+        row.rms_after_um = next.cv_rms_um();
+        row.score = 100.0 * (1.0 - (row.rms_after_um / row.rms_before_um).powi(2));
+        set_gap(&mut row, floor);
+        row.step = Some(rows.len() + 1);
+        rows.push((row, pick.magnitude));
+        for ((row, magnitude), m) in rows.iter_mut().zip(members.iter()) {
+            if let (Some(magnitude), Member::Effect { beta, .. }) = (magnitude, m) {
+                row.magnitude = magnitude(beta);
+            }
+        }
+        Ok(next)
+    }
+
     /// The model with `members`: the network corrected by `shifts` and
     /// the rejected coordinates, adjusted, and refitted until the members'
     /// parameters settle (which updates them).
@@ -676,32 +764,55 @@ impl Scored {
     /// The significant row with the largest ΔBIC — an effect or the worst
     /// reading — if any.
     fn pick(&self, cands: &[Candidate]) -> Option<Pick> {
-        let effect = self
+        self.picks(cands, 1).into_iter().next()
+    }
+
+    /// The first step's paths: the best significant row (an effect or the
+    /// worst reading), then the next best significant effects, `n` in all.
+    /// A blunder starts no other path: data snooping is worst-first by
+    /// construction, and two blunders on one reading would otherwise outbid
+    /// a target shift seen in that reading alone by one parameter's BIC.
+    fn picks(&self, cands: &[Candidate], n: usize) -> Vec<Pick> {
+        let mut significant: Vec<(f64, Option<usize>)> = self
             .rows
             .iter()
-            .zip(&self.fits)
-            .filter(|(r, _)| r.significant)
-            .max_by(|a, b| a.0.delta_bic.total_cmp(&b.0.delta_bic));
-        let blunder = self.blunder.as_ref().filter(|b| b.row.significant);
-        match (effect, blunder) {
-            (Some((r, _)), Some(b)) if b.row.delta_bic > r.delta_bic => Some(self.blunder_pick(b)),
-            (None, Some(b)) => Some(self.blunder_pick(b)),
-            (Some((r, (i, beta))), _) => {
-                let c = &cands[*i];
-                Some(Pick {
-                    row: r.clone(),
-                    member: Member::Effect {
-                        effect: c.effect,
-                        place: c.place.clone(),
-                        detail: c.detail.clone(),
-                        beta: vec![0.0; beta.len() - self.members_k],
-                    },
-                    joint_beta: Some(beta.clone()),
-                    magnitude: Some(c.magnitude),
-                })
-            }
-            (None, None) => None,
-        }
+            .enumerate()
+            .filter(|(_, r)| r.significant)
+            .map(|(j, r)| (r.delta_bic, Some(j)))
+            .chain(
+                self.blunder
+                    .iter()
+                    .filter(|b| b.row.significant)
+                    .map(|b| (b.row.delta_bic, None)),
+            )
+            .collect();
+        // Stable: on equal ΔBIC, effects before the blunder, rows in order.
+        significant.sort_by(|a, b| b.0.total_cmp(&a.0));
+        significant
+            .into_iter()
+            .enumerate()
+            .filter(|(rank, (_, j))| *rank == 0 || j.is_some())
+            .map(|(_, s)| s)
+            .take(n)
+            .map(|(_, j)| match j {
+                None => self.blunder_pick(self.blunder.as_ref().expect("significant")),
+                Some(j) => {
+                    let (r, (i, beta)) = (&self.rows[j], &self.fits[j]);
+                    let c = &cands[*i];
+                    Pick {
+                        row: r.clone(),
+                        member: Member::Effect {
+                            effect: c.effect,
+                            place: c.place.clone(),
+                            detail: c.detail.clone(),
+                            beta: vec![0.0; beta.len() - self.members_k],
+                        },
+                        joint_beta: Some(beta.clone()),
+                        magnitude: Some(c.magnitude),
+                    }
+                }
+            })
+            .collect()
     }
 
     fn blunder_pick(&self, b: &BlunderRow) -> Pick {

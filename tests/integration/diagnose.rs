@@ -229,12 +229,7 @@ fn blind_check_meets_its_targets() {
     let kind = |k: CaseKind| SetAccuracy::of(cases.iter().filter(|c| c.kind == k));
     let two = kind(CaseKind::TwoEffects);
     eprintln!("two effects: {two:?}");
-    // Issue 13 asks ≥ 90 %; this seed gives 12 of 18 (67 %): the misses
-    // are a knocked reflector seen once before the knock (the same
-    // signature as a blunder on that reading), a per-station range scale
-    // absorbing air refraction, and second effects at Δχ² ≈ 30. This
-    // guards what is reached.
-    assert!(two.all_found_rate() >= 0.65, "{two:?}");
+    assert!(two.all_found_rate() >= 0.8, "{two:?}");
     let every = SetAccuracy::of(cases.iter());
     eprintln!("all kinds: {every:?}");
     assert!(every.spurious_free_rate() >= 0.95, "{every:?}");
@@ -244,6 +239,29 @@ fn blind_check_meets_its_targets() {
     let no_time = kind(CaseKind::NoTime);
     assert!(no_time.cases >= 20, "{no_time:?}");
     assert_eq!(no_time.time_effects_without_time, 0, "{no_time:?}");
+}
+
+/// Issue 13's two-effect target on a sample of its own (the mixed sample
+/// above holds only 18 detectable two-effect campaigns): both effects in
+/// the explanation set in ≥ 90 % of the detectable ones, no spurious member
+/// in ≥ 95 % of all. The committed pipeline's 2 000 cases give 91.0 % of
+/// 111 (`ltcal show pipelines/blind-check.toml blind.kinds`).
+#[test]
+fn blind_two_effect_campaigns_are_explained_by_both() {
+    let stage = BlindCheckStage {
+        cases: 200,
+        seed: 78,
+        none_fraction: 0.0,
+        kinds: vec![CaseKind::TwoEffects],
+        ..toml::from_str("").unwrap()
+    };
+    assert!(stage.validate().is_empty());
+    let cases = blind::run(&stage.plan()).unwrap();
+    let two = SetAccuracy::of(cases.iter());
+    eprintln!("two effects: {two:?}");
+    assert!(two.detectable_cases >= 80, "{two:?}");
+    assert!(two.all_found_rate() >= 0.9, "{two:?}");
+    assert!(two.spurious_free_rate() >= 0.95, "{two:?}");
 }
 
 /// The paper's gap (issue: diagnosis, item 7): the pure model removes
@@ -333,4 +351,81 @@ fn calibrate_rejects_exactly_the_blunders_of_example_11() {
     let (_, cal, none) = plain.calibrate(&c, None).unwrap();
     assert!(none.is_empty());
     assert!(cal.fit.chi2_p.unwrap() < 1e-6, "{:?}", cal.fit);
+}
+
+/// Regression (issue 13): the diagnosis chose greedily, and per-station
+/// range scales at every station — one broad candidate — absorbed air
+/// refraction and one station's scale together (Δχ² 5 446 against 5 376
+/// for the station's scale alone); once in, it blocked range-scale at the
+/// right station and left too little for air refraction. The first step's
+/// best candidates now each start a path, and the set with the lowest BIC
+/// wins.
+#[test]
+fn a_broad_range_scale_no_longer_hides_air_refraction_and_one_stations_scale() {
+    use ltcal::campaign::Aim;
+    use ltcal::effects::{AirRefraction, Effects, RangeScale};
+    use ltcal::kinematics::Face;
+    use ltcal::layout::{self, Kind, Spec};
+    use ltcal::noise::Noise;
+    use ltcal::simulate::{CampaignSpec, simulate_campaign};
+
+    let spec = Spec {
+        stations: 4,
+        ..Spec::new(Kind::Hall)
+    };
+    let layout = layout::build(&spec);
+    let effects = Effects {
+        air_refraction: Some(AirRefraction {
+            t0_c: 20.0,
+            offset_c: 0.0,
+            amplitude_c: 0.62,
+            period_s: 2205.0,
+            phase_deg: 200.7,
+            drift_c_per_h: 1.26,
+        }),
+        range_scale: Some(RangeScale {
+            ppm: [("S3".to_string(), -6.2)].into(),
+            sigma_ppm: None,
+        }),
+        ..Effects::default()
+    };
+    let sim = simulate_campaign(&CampaignSpec {
+        name: "broad-range-scale".into(),
+        layout: &layout,
+        errors: None,
+        faces: &[Face::Front],
+        aim: Aim::StationsCentroid,
+        max_angle_deg: 30.0,
+        noise: Noise {
+            sigma_angle_urad: 0.56,
+            sigma_range_um: 1.68,
+            sigma_range_ppm: 0.3,
+        },
+        effects: &effects,
+        gauge_u_mm: 0.0005,
+        reference_u_mm: 0.002,
+        level_urad: 1000.0,
+        interval_s: 20.0,
+        record_time: true,
+        record_temperature: true,
+        seed: 402,
+    })
+    .unwrap();
+    let d = diagnose::diagnose(&sim.campaign, &Settings::default()).unwrap();
+    let mut set: Vec<(&str, &str, f64)> = d
+        .explanation()
+        .map(|r| (r.effect.as_str(), r.place.as_str(), r.magnitude))
+        .collect();
+    set.sort_by(|a, b| a.0.cmp(b.0));
+    let named: Vec<(&str, &str)> = set.iter().map(|m| (m.0, m.1)).collect();
+    assert_eq!(
+        named,
+        [("air-refraction", "all"), ("range-scale", "S3")],
+        "{:#?}",
+        &d.rows[..4]
+    );
+    // Each member's magnitude is read from the joint refit of the set:
+    // the coefficient of effects.md (−0.93 ppm/K) and the station's scale.
+    assert!((set[0].2 - -0.93).abs() < 0.2, "{set:?}");
+    assert!((set[1].2 - -6.2).abs() < 0.3, "{set:?}");
 }
