@@ -224,11 +224,12 @@ impl Products {
 fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signature) -> Fit {
     let pr = products(j, c, r_perp, |_| true);
     let (gram, _) = pr.projected_gram(full);
-    let beta = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
+    let (beta, cov) = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
     let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
     Fit {
         beta: beta.iter().copied().collect(),
         delta_chi2,
+        cov,
     }
 }
 
@@ -244,15 +245,17 @@ pub fn fit_once(j: &BlockJacobian, r: &DVector<f64>, c: &Signature) -> Result<Fi
 /// Least squares by the normal equations of a few projected columns, with a
 /// ridge of 1e-10 of the columns' size before projection: what the base
 /// model absorbs entirely (to round-off) gets β = 0, not a huge β fitting
-/// round-off.
-fn lstsq(gram: &DMatrix<f64>, rhs: &DVector<f64>, scale: f64) -> DVector<f64> {
+/// round-off. Also the solution's covariance, the inverse of that matrix
+/// (zero where it is singular).
+fn lstsq(gram: &DMatrix<f64>, rhs: &DVector<f64>, scale: f64) -> (DVector<f64>, DMatrix<f64>) {
     let mut a = gram.clone();
     for i in 0..a.nrows() {
         a[(i, i)] += 1e-10 * scale.max(1e-300);
     }
+    let n = gram.nrows();
     a.cholesky()
-        .map(|c| c.solve(rhs))
-        .unwrap_or_else(|| DVector::zeros(gram.nrows()))
+        .map(|c| (c.solve(rhs), c.inverse()))
+        .unwrap_or_else(|| (DVector::zeros(n), DMatrix::zeros(n, n)))
 }
 
 /// `N⁻¹·Jᵀ·x` over the blocks `keep` admits, refined once from the
@@ -308,6 +311,9 @@ pub struct LinearModel {
 pub struct Fit {
     pub beta: Vec<f64>,
     pub delta_chi2: f64,
+    /// Covariance of `beta` for unit-variance (whitened) readings:
+    /// `(CᵀP⊥C)⁻¹`, ridged as the fit is.
+    pub cov: DMatrix<f64>,
 }
 
 /// The model was not determined enough to test anything.
@@ -457,7 +463,7 @@ impl LinearModel {
             let train = |i: usize| self.fold_of[i] != fi;
             let pr = products(&self.j, c, &f.res, train);
             let (gram, v) = pr.projected_gram(&f.factor);
-            let bc = lstsq(&gram, &pr.ctx, c.column_scale(train));
+            let (bc, _) = lstsq(&gram, &pr.ctx, c.column_scale(train));
             // The base fit moves by −δ, δ = N_f⁻¹·u·β_c.
             let d_a = f.factor.solve_schur(&(&v * &bc));
             let mut part = f.base_sum + 2.0 * d_a.dot(&f.h_k) + d_a.dot(&(&f.g_k * &d_a));
@@ -666,7 +672,7 @@ mod tests {
                         .column_iter()
                         .map(|x| x.norm_squared())
                         .fold(0.0, f64::max);
-                    let bc = lstsq(&cp.tr_mul(&cp), &cp.tr_mul(&(&p * &rt)), scale);
+                    let (bc, _) = lstsq(&cp.tr_mul(&cp), &cp.tr_mul(&(&p * &rt)), scale);
                     let target = &rt - &ct * &bc;
                     (Some(bc), target)
                 }

@@ -55,7 +55,7 @@ use anyhow::{Result, anyhow};
 use candidates::{Candidate, ReadingInfo, Skipped};
 use factors::{FactorTest, ResidualRow};
 use linear::{LinearModel, Signature};
-use nalgebra::{DVector, Matrix3, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
 
 /// How to diagnose.
@@ -106,6 +106,11 @@ pub struct Row {
     pub effect: String,
     pub place: String,
     pub magnitude: f64,
+    /// Standard uncertainty of `magnitude`, same unit: the delta method on
+    /// the covariance of the fit that estimates it (a member's: the joint
+    /// fit of the whole set), scaled by `max(χ²/dof, 1)` like the bundle's;
+    /// a blunder's `σ/√r`; `NaN` for `none`.
+    pub magnitude_u: f64,
     pub unit: String,
     /// Held-out mean-square residual explained, %.
     pub score: f64,
@@ -409,6 +414,58 @@ struct Path {
 /// A member's row, and how its magnitude is read from its parameters.
 type MemberRow = (Row, Option<fn(&[f64]) -> f64>);
 
+/// The standard uncertainty of `magnitude(β)` from β's covariance `cov`
+/// (whitened units) times `var_factor`: the delta method, `u² = gᵀ·Σ·g`
+/// with the gradient `g` by central differences. (For an amplitude near
+/// zero the distribution is far from normal and `u` only a scale.)
+fn magnitude_u(
+    magnitude: fn(&[f64]) -> f64,
+    beta: &[f64],
+    cov: &DMatrix<f64>,
+    var_factor: f64,
+) -> f64 {
+    let mut b = beta.to_vec();
+    let g = DVector::from_iterator(
+        beta.len(),
+        (0..beta.len()).map(|i| {
+            let h = 1e-6 * (beta[i].abs() + cov[(i, i)].max(0.0).sqrt()).max(1e-300);
+            b[i] = beta[i] + h;
+            let up = magnitude(&b);
+            b[i] = beta[i] - h;
+            let down = magnitude(&b);
+            b[i] = beta[i];
+            (up - down) / (2.0 * h)
+        }),
+    );
+    (g.dot(&(cov * &g)) * var_factor).max(0.0).sqrt()
+}
+
+/// Each effect member's magnitude uncertainty from the joint fit of the
+/// whole set at `st` (its columns in member order); `None` for blunders.
+fn member_u(st: &State, members: &[Member], rows: &[MemberRow]) -> Vec<Option<f64>> {
+    let fit = st.lm.fit(&st.members);
+    let var_factor = ((st.lm.chi2() - st.members_chi2()) / st.dof() as f64).max(1.0);
+    let mut offset = 0;
+    members
+        .iter()
+        .zip(rows)
+        .map(|(m, (_, magnitude))| match m {
+            // Every effect member owns `beta.len()` columns of the joint
+            // fit, whether or not its magnitude has a formula.
+            Member::Effect { beta, .. } => {
+                let k = beta.len();
+                let at = offset;
+                offset += k;
+                magnitude.map(|magnitude| {
+                    let cov = fit.cov.view((at, at), (k, k)).into_owned();
+                    magnitude_u(magnitude, beta, &cov, var_factor)
+                })
+            }
+            Member::Blunder { .. } => None,
+        })
+        .collect()
+}
+
 /// What every step shares.
 struct StepContext<'a> {
     campaign: &'a Campaign,
@@ -509,6 +566,12 @@ impl StepContext<'_> {
             let open = step <= self.settings.max_steps;
             let pick = open.then(|| scored.pick(&state.cands)).flatten();
             let Some(pick) = pick else {
+                let u = member_u(&state, &members, &rows);
+                for ((row, _), u) in rows.iter_mut().zip(u) {
+                    if let Some(u) = u {
+                        row.magnitude_u = u;
+                    }
+                }
                 return Ok(Path {
                     rows: rows.into_iter().map(|(r, _)| r).collect(),
                     state,
@@ -899,12 +962,15 @@ impl StepContext<'_> {
                 let delta_bic = delta_chi2 - k as f64 * m.ln();
                 let rms_after = lm.cv_rms_um(&st.joint(&cand.columns));
                 let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
+                let cov = fit.cov.view((k_m, k_m), (k, k)).into_owned();
+                let var_factor = (rest / dof_aug as f64).max(1.0);
                 let mut row = Row {
                     rank: 0,
                     step: None,
                     effect: cand.effect.to_string(),
                     place: cand.place.clone(),
                     magnitude: (cand.magnitude)(&fit.beta[k_m..]),
+                    magnitude_u: magnitude_u(cand.magnitude, &fit.beta[k_m..], &cov, var_factor),
                     unit: cand.unit.to_string(),
                     score,
                     significant: p_corrected < alpha && delta_bic > 0.0 && score > 0.0,
@@ -956,10 +1022,11 @@ impl StepContext<'_> {
         };
         let o = &self.net0.obs[t.obs];
         let reading = &self.campaign.readings[t.obs];
-        let (size, unit) = match t.coordinate {
-            2 => (t.size_sigma * o.sigma[2] * 1e3, "µm"),
-            c => (t.size_sigma * o.sigma[c] * 1e6, "µrad"),
+        let (scale, unit) = match t.coordinate {
+            2 => (o.sigma[2] * 1e3, "µm"),
+            c => (o.sigma[c] * 1e6, "µrad"),
         };
+        let size = t.size_sigma * scale;
         let mut column = Signature::new(1);
         column.add(t.obs, t.coordinate, 0, 1.0);
         let rms_after = st.lm.cv_rms_um(&st.joint(&column));
@@ -977,6 +1044,8 @@ impl StepContext<'_> {
                 reading.face.number()
             ),
             magnitude: size,
+            // The blunder's estimate v/r has variance σ²/r.
+            magnitude_u: scale / t.redundancy.max(1e-12).sqrt(),
             unit: unit.into(),
             score: 100.0 * (1.0 - (rms_after / rms_before).powi(2)),
             significant: p_corrected < self.settings.alpha && delta_bic > 0.0,
@@ -1078,6 +1147,7 @@ fn none_row(
         effect: "none".into(),
         place,
         magnitude: chi2 / dof as f64,
+        magnitude_u: f64::NAN,
         unit: "χ²/dof".into(),
         score: 0.0,
         significant: noise_ok,

@@ -1,7 +1,8 @@
 //! The diagnosis as files: `diagnosis.csv` (the output contract: `rank,
 //! effect, where, magnitude, unit, score, significant, rms_before_um,
 //! rms_after_um, gap_before_um, gap_after_um, gap_shrink_pct`, then `step`
-//! — the explanation set's order of selection, empty for the rest — and
+//! — the explanation set's order of selection, empty for the rest —,
+//! `magnitude_u` — the magnitude's standard uncertainty, same unit — and
 //! the supporting `k, delta_chi2, p_corrected, delta_bic, detail`), the same
 //! as Parquet, `where.csv`, `report.md` in words, and a residual plot per
 //! factor.
@@ -35,6 +36,7 @@ pub const DIAGNOSIS_COLUMNS: &[&str] = &[
     "gap_after_um",
     "gap_shrink_pct",
     "step",
+    "magnitude_u",
     "k",
     "delta_chi2",
     "p_corrected",
@@ -68,6 +70,12 @@ pub fn diagnosis_table(d: &Diagnosis) -> Result<DataFrame> {
         .f64("gap_after_um", col(|x| x.gap_after_um))
         .f64("gap_shrink_pct", col(|x| x.gap_shrink_pct))
         .opt_i64("step", r.iter().map(|x| x.step.map(|s| s as i64)).collect())
+        .opt_f64(
+            "magnitude_u",
+            r.iter()
+                .map(|x| x.magnitude_u.is_finite().then_some(x.magnitude_u))
+                .collect(),
+        )
         .i64("k", r.iter().map(|x| x.k as i64).collect())
         .f64("delta_chi2", col(|x| x.delta_chi2))
         .f64("p_corrected", col(|x| x.p_corrected))
@@ -234,7 +242,7 @@ pub fn verdict(d: &Diagnosis) -> String {
         )
     } else {
         format!(
-            "{} at {}{}: {:.3} {}, {:.1} % of the held-out residual explained",
+            "{} at {}{}: {:.3} ± {:.3} {} (standard uncertainty), {:.1} % of the held-out residual explained",
             b.effect,
             b.place,
             if b.detail.is_empty() {
@@ -243,6 +251,7 @@ pub fn verdict(d: &Diagnosis) -> String {
                 format!(" ({})", b.detail)
             },
             b.magnitude,
+            b.magnitude_u,
             b.unit,
             b.score
         )
@@ -340,17 +349,22 @@ pub fn report(d: &Diagnosis) -> String {
     );
     let _ = writeln!(
         s,
-        "| rank | step | effect | where | magnitude | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|---|"
+        "| rank | step | effect | where | magnitude ± u | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|---|"
     );
     for r in d.rows.iter().take(10) {
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {:.3} {} | {:.1} | {} | {:.2} → {:.2} | {:.1} |",
+            "| {} | {} | {} | {} | {:.3}{} {} | {:.1} | {} | {:.2} → {:.2} | {:.1} |",
             r.rank,
             r.step.map(|s| s.to_string()).unwrap_or_default(),
             r.effect,
             r.place,
             r.magnitude,
+            if r.magnitude_u.is_finite() {
+                format!(" ± {:.3}", r.magnitude_u)
+            } else {
+                String::new()
+            },
             r.unit,
             r.score,
             if r.significant { "yes" } else { "no" },
@@ -371,8 +385,8 @@ pub fn report(d: &Diagnosis) -> String {
         for r in blunders {
             let _ = writeln!(
                 s,
-                "- {} ({}): {:+.1} {}",
-                r.place, r.detail, r.magnitude, r.unit
+                "- {} ({}): {:+.1} ± {:.1} {}",
+                r.place, r.detail, r.magnitude, r.magnitude_u, r.unit
             );
         }
     }
