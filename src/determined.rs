@@ -26,6 +26,10 @@ pub struct Estimate {
     /// Standard uncertainty of each free coefficient's minimum-norm
     /// estimate; `None` when fixed (or not estimable).
     pub std: Vec<Option<f64>>,
+    /// Covariance of the free coefficients, in `free_index` order (`B·C_z·Bᵀ`;
+    /// `None` when no uncertainty could be formed): what propagates the
+    /// calibration into a corrected measurement, correlations included.
+    pub cov: Option<DMatrix<f64>>,
     /// Singular values of what determines the free coefficients.
     pub analysis: Analysis,
     /// The free-coefficient indices the analysis columns refer to.
@@ -110,12 +114,28 @@ impl Determined {
         self.analysis.rank
     }
 
-    /// The [`Estimate`] these directions give `params` with `std`.
-    pub fn estimate(self, params: ErrorParams, free: &[bool], std: Vec<Option<f64>>) -> Estimate {
+    /// The [`Estimate`] these directions give `params`, with the
+    /// covariance `cov_z` of `z` when there is one.
+    pub fn estimate(
+        self,
+        params: ErrorParams,
+        free: &[bool],
+        cov_z: Option<&DMatrix<f64>>,
+    ) -> Estimate {
+        let cov = cov_z
+            .filter(|_| self.rank() > 0)
+            .map(|c| self.basis() * c * self.basis().transpose());
+        let mut std = vec![None; free.len()];
+        if let Some(cov) = &cov {
+            for (k, &i) in self.free_index.iter().enumerate() {
+                std[i] = Some(cov[(k, k)].max(0.0).sqrt());
+            }
+        }
         Estimate {
             params,
             free: free.to_vec(),
             std,
+            cov,
             analysis: self.analysis,
             free_index: self.free_index,
             combinations: self.combinations,
@@ -125,19 +145,6 @@ impl Determined {
     /// `p₀ + B·z` on the free coefficients.
     pub fn params(&self, start: &ErrorParams, z: &DVector<f64>) -> ErrorParams {
         start.plus(&self.free_index, &(self.basis() * z))
-    }
-
-    /// Each coefficient's standard uncertainty from the covariance of `z`
-    /// (`None` for coefficients held fixed), `n` coefficients in all.
-    pub fn std(&self, cov_z: &DMatrix<f64>, n: usize) -> Vec<Option<f64>> {
-        let mut std = vec![None; n];
-        if self.rank() > 0 {
-            let cov = self.basis() * cov_z * self.basis().transpose();
-            for (k, &i) in self.free_index.iter().enumerate() {
-                std[i] = Some(cov[(k, k)].max(0.0).sqrt());
-            }
-        }
-        std
     }
 
     /// The covariance of `z` of an unweighted least-squares fit whose

@@ -323,23 +323,21 @@ pub fn identify(
         (Weighting::Unweighted, Some(_)) => StdFrom::Sandwich,
         (Weighting::Unweighted, None) => StdFrom::ResidualScatter,
     };
-    let std = match rank {
-        0 => vec![None; free.len()],
-        _ => {
+    let cov_z = (rank > 0)
+        .then(|| {
             let jz = jacobian(&params, obs, &free_index) * basis;
-            let cov = match std_from {
+            match std_from {
                 StdFrom::ResidualScatter => det.scatter_covariance(&jz, &r),
                 StdFrom::StatedNoise => (jz.transpose() * &jz).try_inverse(),
                 StdFrom::Sandwich => sandwich(&jz, obs),
-            };
-            cov.map_or_else(|| vec![None; free.len()], |c| det.std(&c, free.len()))
-        }
-    };
+            }
+        })
+        .flatten();
     // The RMS in µm whatever the weighting: the coordinates' misses.
     let (r0, r) = (residuals(start, obs, true), residuals(&params, obs, true));
     let rms = |r: &DVector<f64>| (r.norm_squared() / obs.len() as f64).sqrt();
     Ok(Identification {
-        estimate: det.estimate(params, free, std),
+        estimate: det.estimate(params, free, cov_z.as_ref()),
         rms_before_um: rms(&r0),
         rms_after_um: rms(&r),
         iterations,

@@ -211,6 +211,17 @@ impl<'a> TableRef<'a> {
         self.required(col, s.iter().map(|v| v.map(str::to_string)))
     }
 
+    /// Any column as text (numbers as polars writes them), for keys.
+    pub fn text(&self, col: &str) -> Result<Vec<String>> {
+        let c = self.column(col)?.cast(&DataType::String).map_err(|_| {
+            anyhow!(
+                "table `{}`, column `{col}` cannot be read as text",
+                self.name
+            )
+        })?;
+        self.required(col, c.str()?.iter().map(|v| v.map(str::to_string)))
+    }
+
     pub fn bool(&self, col: &str) -> Result<Vec<bool>> {
         let c = self.column(col)?;
         let s = c

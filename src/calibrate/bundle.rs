@@ -647,7 +647,7 @@ pub fn calibrate(
         .ok_or_else(|| anyhow!("singular normal matrix at the solution"))?;
     let cov_a = factor.dense_covariance() * var_factor;
     let nz = layout.n_z;
-    let std = det.std(&cov_a.view((0, 0), (nz, nz)).into_owned(), free.len());
+    let cov_z = cov_a.view((0, 0), (nz, nz)).into_owned();
     let pose_std = layout
         .station
         .iter()
@@ -688,7 +688,7 @@ pub fn calibrate(
     let (rms_after, mean_abs_after) = (rms(&r), mean_abs(&r));
     let (rank, gauge_scale_ppm) = (det.analysis.rank, gauge_scale_ppm(net, &params));
     Ok(Calibration {
-        estimate: det.estimate(params, free, std),
+        estimate: det.estimate(params, free, Some(&cov_z)),
         poses,
         pose_std,
         points,
@@ -702,6 +702,7 @@ pub fn calibrate(
             rank,
             iterations: fit.iterations,
             stop: fit.reason,
+            std_from: "stated-noise",
             rms_before: rms(&r0),
             rms_after,
             mean_abs_before: mean_abs(&r0),
@@ -717,6 +718,122 @@ pub fn calibrate(
             residuals: r,
         }),
     })
+}
+
+/// A bundle adjustment solved once, then again on perturbed copies of its
+/// network — the trials of a Monte Carlo propagation (GUM Supplement 1,
+/// [`super::monte_carlo`]). The frame, the determined directions and the
+/// layout of the unknowns are the nominal fit's, and every trial starts
+/// from its solution: two or three Gauss–Newton steps, without the
+/// identifiability analysis or the covariances a full calibration adds.
+pub struct Repeated {
+    setup: Setup,
+    basis: DMatrix<f64>,
+    layout: Layout,
+    start: ErrorParams,
+    /// The nominal solution.
+    x: DVector<f64>,
+    max_iters: u64,
+}
+
+/// What one trial estimates.
+#[derive(Clone, Debug)]
+pub struct Solved {
+    pub params: ErrorParams,
+    /// Station → campaign frame.
+    pub poses: Vec<Rigid>,
+    /// Per target, its position; `None` when no reading sees it.
+    pub points: Vec<Option<Vector3<f64>>>,
+}
+
+impl Repeated {
+    /// Fits the nominal network.
+    pub fn new(
+        net: &Network,
+        start: &ErrorParams,
+        free: &[bool],
+        settings: &Settings,
+    ) -> Result<Repeated> {
+        let setup = Setup::new(net, start, free)?;
+        let det = analyse_setup(net, start, &setup, settings.rank_tol)?;
+        let basis = det.basis().clone();
+        let layout = setup.layout(net, basis.ncols());
+        let x0 = setup.initial(&layout);
+        let x = LevenbergMarquardt::new()
+            .with_initial_lambda(INITIAL_LAMBDA)
+            .and_then(|lm| {
+                lm.minimize(
+                    setup.problem(net, start, &basis, &layout),
+                    x0,
+                    settings.max_iters,
+                )
+            })
+            .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?
+            .x;
+        Ok(Repeated {
+            setup,
+            basis,
+            layout,
+            start: start.clone(),
+            x,
+            max_iters: settings.max_iters,
+        })
+    }
+
+    /// The station that defines the frame, if one does (no references).
+    pub fn fixed_station(&self) -> Option<usize> {
+        self.setup.fixed_station
+    }
+
+    /// The nominal solution.
+    pub fn nominal(&self, net: &Network) -> Solved {
+        self.solved(net, &self.x)
+    }
+
+    /// Solves `net` — the nominal network with its readings, gauge lengths
+    /// or reference coordinates perturbed, same readings in the same order —
+    /// from the nominal solution. The readings' weights `W·J(q)⁻¹` are
+    /// those of the perturbed readings, as a calibration of them would use.
+    pub fn solve(&self, net: &Network) -> Result<Solved> {
+        debug_assert_eq!(net.obs.len(), self.setup.weights.len());
+        let weights: Vec<Matrix3<f64>> = net
+            .obs
+            .iter()
+            .map(|o| design_weight(o, o.reading))
+            .collect();
+        let problem = Bundle {
+            weights: &weights,
+            ..self
+                .setup
+                .problem(net, &self.start, &self.basis, &self.layout)
+        };
+        let fit = LevenbergMarquardt::new()
+            .with_initial_lambda(INITIAL_LAMBDA)
+            .and_then(|lm| lm.minimize(problem, self.x.clone(), self.max_iters))
+            .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?;
+        Ok(self.solved(net, &fit.x))
+    }
+
+    fn solved(&self, net: &Network, x: &DVector<f64>) -> Solved {
+        let problem = self
+            .setup
+            .problem(net, &self.start, &self.basis, &self.layout);
+        Solved {
+            params: problem.params(x),
+            poses: (0..net.stations.len())
+                .map(|s| {
+                    let (rotation, translation, _) = problem.pose(x, s);
+                    Rigid {
+                        rotation,
+                        translation,
+                    }
+                })
+                .collect(),
+            points: (0..net.targets.len())
+                .map(|t| self.layout.point[t].map(|_| problem.point(x, t)))
+                .collect(),
+        }
+    }
 }
 
 #[cfg(test)]

@@ -29,10 +29,12 @@ use super::register::align;
 use super::{Calibration, FitSummary, Network, Norm, Objective, Settings, gauge_scale_ppm};
 use crate::determined::Determined;
 use crate::error_model::ErrorParams;
+use crate::kinematics::nominal_jacobian;
 use crate::solver::LevenbergMarquardt;
 use anyhow::{Result, anyhow, bail};
 use argmin::core::{Error as ArgminError, Jacobian, Operator};
 use nalgebra::{DMatrix, DVector, Vector3};
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 /// One station in one face: target → readings (indices into `net.obs`).
@@ -56,7 +58,17 @@ enum Term {
         k: usize,
         l: usize,
         length_mm: f64,
+        of: Length,
     },
+}
+
+/// Where a term's known length comes from, for its uncertainty.
+#[derive(Clone, Copy, Debug)]
+enum Length {
+    /// Between the reference coordinates of `k` and `l` (Eq. 13).
+    References,
+    /// Gauge `g` of `net.gauge` (Eq. 15).
+    Gauge(usize),
 }
 
 fn views(net: &Network) -> Vec<View> {
@@ -141,6 +153,7 @@ fn terms(net: &Network, views: &[View], objective: Objective) -> Result<Vec<Term
                             k,
                             l,
                             length_mm: (a - b).norm(),
+                            of: Length::References,
                         });
                     }
                 }
@@ -164,13 +177,14 @@ fn terms(net: &Network, views: &[View], objective: Objective) -> Result<Vec<Term
             if objective == Objective::Eq15 {
                 let before = out.len();
                 for (v, view) in views.iter().enumerate() {
-                    for g in &net.gauge {
+                    for (i, g) in net.gauge.iter().enumerate() {
                         if view.targets.contains_key(&g.a) && view.targets.contains_key(&g.b) {
                             out.push(Term::Against {
                                 v,
                                 k: g.a,
                                 l: g.b,
                                 length_mm: g.length_mm,
+                                of: Length::Gauge(i),
                             });
                         }
                     }
@@ -259,7 +273,9 @@ fn evaluate(
                     gv.iter().zip(&gw).map(|(a, b)| a - b).collect::<Vec<_>>(),
                 )
             }
-            Term::Against { v, k, l, length_mm } => {
+            Term::Against {
+                v, k, l, length_mm, ..
+            } => {
                 let (dv, gv) = dist(v, k, l);
                 (dv - length_mm, gv)
             }
@@ -398,16 +414,20 @@ pub fn calibrate(
     let rms = |r: &DVector<f64>| (r.norm_squared() / m).sqrt();
     let mean_abs = |r: &DVector<f64>| r.iter().map(|x| x.abs()).sum::<f64>() / m;
 
-    // Standard uncertainties from the least-squares covariance of the terms,
-    // scaled by their scatter (no stated weights enter the distance forms).
-    let std = match rank {
-        0 => vec![None; free.len()],
-        _ => {
+    // Standard uncertainties of the estimator actually used, propagated from
+    // the stated noise of the readings, gauge and references: the terms
+    // share readings, so `s²·(JᵀJ)⁻¹`, which takes them as independent,
+    // would not hold.
+    let cov_z = (rank > 0)
+        .then(|| {
             let jz = e1.j.as_ref().expect("requested") * basis;
-            det.scatter_covariance(&jz, &e1.r)
-                .map_or_else(|| vec![None; free.len()], |c| det.std(&c, free.len()))
-        }
-    };
+            sandwich(
+                &jz,
+                &noise_rows(net, &views, &terms, &params),
+                settings.norm,
+            )
+        })
+        .flatten();
     let station_pts = net.station_points(&params);
     let anchor = net.references_fix_frame().then(|| net.reference_points());
     let alignment = align(&station_pts, anchor.as_ref(), 1e-10)
@@ -415,7 +435,7 @@ pub fn calibrate(
     let gauge_scale_ppm = gauge_scale_ppm(net, &params);
     let residuals = super::reading_residuals(net, &params, &alignment.poses, &alignment.points);
     Ok(Calibration {
-        estimate: det.estimate(params, free, std),
+        estimate: det.estimate(params, free, cov_z.as_ref()),
         pose_std: vec![None; alignment.poses.len()],
         poses: alignment.poses.clone(),
         points: alignment.points.clone(),
@@ -429,6 +449,10 @@ pub fn calibrate(
             rank,
             iterations,
             stop,
+            std_from: match settings.norm {
+                Norm::L1 => "sandwich-l1",
+                Norm::L2 => "sandwich",
+            },
             rms_before: rms(&e0.r),
             rms_after: rms(&e1.r),
             mean_abs_before: mean_abs(&e0.r),
@@ -441,4 +465,175 @@ pub fn calibrate(
         residuals,
         linearisation: None,
     })
+}
+
+/// One term's row of `A`: its residual (µm) per unit standard-normal draw
+/// of each source of noise it touches, as `(source, ∂r/∂ξ)`. Sources:
+/// reading `i`'s az, el and d at `3i..3i+3`, then each gauge length, then
+/// each reference coordinate (`3k..3k+3` after the gauges).
+type NoiseRow = Vec<(usize, f64)>;
+
+/// `A`, term by term, at `params`: a term touches only the readings of its
+/// two reflectors in its one or two views, and its length's source.
+fn noise_rows(
+    net: &Network,
+    views: &[View],
+    terms: &[Term],
+    params: &ErrorParams,
+) -> Vec<NoiseRow> {
+    let eval = params.evaluator();
+    let n_obs = net.obs.len();
+    let reference_col = |k: usize| 3 * n_obs + net.gauge.len() + 3 * k;
+    let pts: Vec<BTreeMap<usize, Vector3<f64>>> = views
+        .iter()
+        .map(|view| {
+            view.targets
+                .iter()
+                .map(|(&t, idx)| {
+                    let sum: Vector3<f64> = idx
+                        .iter()
+                        .map(|&i| eval.point(net.obs[i].q, &net.obs[i].links))
+                        .sum();
+                    (t, sum / idx.len() as f64)
+                })
+                .collect()
+        })
+        .collect();
+    // `sign · ∂dᵛ_kl`: a view's point is the mean of its readings, each
+    // moved by `J(q)·diag(σ)·ξ` (Eq. 1 linearised at the reading).
+    let distance = |row: &mut NoiseRow, v: usize, k: usize, l: usize, sign: f64| {
+        let u = (pts[v][&k] - pts[v][&l]).normalize();
+        for (t, s) in [(k, 1.0), (l, -1.0)] {
+            let idx = &views[v].targets[&t];
+            let w = sign * s * 1e3 / idx.len() as f64;
+            for &i in idx {
+                let o = &net.obs[i];
+                let g = nominal_jacobian(o.reading).transpose() * u;
+                for c in 0..3 {
+                    row.push((3 * i + c, w * g[c] * o.sigma[c]));
+                }
+            }
+        }
+    };
+    terms
+        .iter()
+        .map(|t| {
+            let mut row = NoiseRow::new();
+            match *t {
+                Term::Between { v, w, k, l } => {
+                    distance(&mut row, v, k, l, 1.0);
+                    distance(&mut row, w, k, l, -1.0);
+                }
+                Term::Against { v, k, l, of, .. } => {
+                    distance(&mut row, v, k, l, 1.0);
+                    match of {
+                        Length::Gauge(g) => row.push((3 * n_obs + g, -1e3 * net.gauge[g].u_mm)),
+                        Length::References => {
+                            if let (Some((a, ua)), Some((b, ub))) =
+                                (net.references[k], net.references[l])
+                            {
+                                let u = (a - b).normalize();
+                                for c in 0..3 {
+                                    row.push((reference_col(k) + c, -1e3 * ua * u[c]));
+                                    row.push((reference_col(l) + c, 1e3 * ub * u[c]));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            row
+        })
+        .collect()
+}
+
+/// The covariance of `z`, the fit's determined directions, from the noise
+/// rows `A` of its terms (`None` when the fit's normal matrix is singular).
+///
+/// L2: `z` moves by `−(JᵀJ)⁻¹·Jᵀ·A·ξ`, so `cov = H⁻¹·(JᵀA)(JᵀA)ᵀ·H⁻¹`.
+///
+/// L1 (Huber's M-estimator sandwich, `ψ = sign`): the term errors
+/// `e = A·ξ` are normal with `sᵢ² = (AAᵀ)ᵢᵢ`, so `E ψ'(eᵢ) = 2fᵢ(0) =
+/// 2/(√(2π)·sᵢ)` and `cov(sign eᵢ, sign eⱼ) = (2/π)·asin ρᵢⱼ`;
+/// `cov = B⁻¹·M·B⁻¹` with `B = Jᵀ·diag(2fᵢ(0))·J` and `M = Jᵀ·R·J`. The
+/// IRLS weights do not enter: they are the algorithm, not the estimator.
+/// Only terms sharing a source correlate, so `R·J` is built row by row
+/// from the sources each term touches, never as a terms × terms matrix.
+fn sandwich(jz: &DMatrix<f64>, rows: &[NoiseRow], norm: Norm) -> Option<DMatrix<f64>> {
+    let n_sources = rows
+        .iter()
+        .flat_map(|r| r.iter().map(|&(s, _)| s + 1))
+        .max()
+        .unwrap_or(0);
+    let rank = jz.ncols();
+    match norm {
+        Norm::L2 => {
+            let h_inv = (jz.transpose() * jz).try_inverse()?;
+            let mut g = DMatrix::<f64>::zeros(rank, n_sources);
+            for (i, row) in rows.iter().enumerate() {
+                for &(s, a) in row {
+                    for c in 0..rank {
+                        g[(c, s)] += jz[(i, c)] * a;
+                    }
+                }
+            }
+            Some(&h_inv * (&g * g.transpose()) * &h_inv)
+        }
+        Norm::L1 => {
+            let s: Vec<f64> = rows
+                .iter()
+                .map(|r| r.iter().map(|&(_, a)| a * a).sum::<f64>().sqrt())
+                .collect();
+            let mut b = DMatrix::<f64>::zeros(rank, rank);
+            for (i, &si) in s.iter().enumerate() {
+                if si > 0.0 {
+                    let ji = jz.row(i);
+                    b += ji.transpose() * ji * (2.0 / ((2.0 * std::f64::consts::PI).sqrt() * si));
+                }
+            }
+            let mut by_source: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n_sources];
+            for (i, row) in rows.iter().enumerate() {
+                for &(src, a) in row {
+                    by_source[src].push((i, a));
+                }
+            }
+            let m = rows.len();
+            // Row i of R·J; each row is summed in a fixed order, whatever
+            // the thread count.
+            let rj: Vec<DVector<f64>> = (0..m)
+                .into_par_iter()
+                .map_init(
+                    || (vec![0.0; m], vec![usize::MAX; m], Vec::new()),
+                    |(acc, mark, touched), i| {
+                        touched.clear();
+                        for &(src, a) in &rows[i] {
+                            for &(j, bj) in &by_source[src] {
+                                if mark[j] != i {
+                                    mark[j] = i;
+                                    acc[j] = 0.0;
+                                    touched.push(j);
+                                }
+                                acc[j] += a * bj;
+                            }
+                        }
+                        let mut out = DVector::zeros(rank);
+                        for &j in touched.iter() {
+                            if s[i] > 0.0 && s[j] > 0.0 {
+                                let rho = (acc[j] / (s[i] * s[j])).clamp(-1.0, 1.0);
+                                out += jz.row(j).transpose()
+                                    * (std::f64::consts::FRAC_2_PI * rho.asin());
+                            }
+                        }
+                        out
+                    },
+                )
+                .collect();
+            let mut meat = DMatrix::<f64>::zeros(rank, rank);
+            for (i, t) in rj.iter().enumerate() {
+                meat += jz.row(i).transpose() * t.transpose();
+            }
+            let b_inv = b.try_inverse()?;
+            Some(&b_inv * meat * &b_inv)
+        }
+    }
 }

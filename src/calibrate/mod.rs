@@ -21,6 +21,7 @@
 
 pub mod bundle;
 pub mod distances;
+pub mod monte_carlo;
 pub mod register;
 pub mod snooping;
 pub mod sparse;
@@ -362,6 +363,11 @@ pub struct FitSummary {
     /// Why the solver stopped: one of [`crate::solver::Fit::reason`]'s
     /// words, `nothing-to-estimate` or `irls-converged`.
     pub stop: &'static str,
+    /// Where the standard uncertainties come from: `stated-noise` (the
+    /// bundle's inverse normal matrix, weighted by the stated σ),
+    /// `sandwich` (Eq. 13–15 in L2) or `sandwich-l1` (in L1), both from the
+    /// stated noise of the readings, gauge and references.
+    pub std_from: &'static str,
     /// Root mean square of the objective's residuals before and after
     /// (µm for the distance objectives; units of σ for the bundle).
     pub rms_before: f64,

@@ -16,8 +16,10 @@
 //! Outputs: `params`, `singular_values`, `combinations` (as `identify`:
 //! what the campaign determines once poses are free), `fit` (one row:
 //! `objective`, `norm`, `n_readings`, `n_residuals`, `n_unknowns`, `rank`,
-//! `iterations`, `stop`, `rms_before`, `rms_after`, `mean_abs_before`,
-//! `mean_abs_after` — µm for Eq. 13–15, units of σ for the bundle —
+//! `iterations`, `stop`, `std_from` (`stated-noise`, `sandwich`,
+//! `sandwich-l1`: see [`calibrate::FitSummary::std_from`]), `rms_before`,
+//! `rms_after`, `mean_abs_before`, `mean_abs_after` — µm for Eq. 13–15,
+//! units of σ for the bundle —
 //! `chi2`, `dof`, `chi2_p`, `gauge_scale_ppm`, `noise_stated`), `stations`
 //! (`station`, `x_mm`, `y_mm`, `z_mm`, `roll_urad`, `pitch_urad`, `yaw_deg`,
 //! `std_position_mm`, `std_rotation_urad`), `targets` (`target`, `x_mm`,
@@ -130,6 +132,7 @@ impl StageKind for CalibrateStage {
                 "rank",
                 "iterations",
                 "stop",
+                "std_from",
                 "rms_before",
                 "rms_after",
                 "mean_abs_before",
@@ -284,6 +287,7 @@ fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
         .i64("rank", vec![f.rank as i64])
         .i64("iterations", vec![f.iterations as i64])
         .str("stop", &[f.stop])
+        .str("std_from", &[f.std_from])
         .f64("rms_before", vec![f.rms_before])
         .f64("rms_after", vec![f.rms_after])
         .f64("mean_abs_before", vec![f.mean_abs_before])

@@ -23,10 +23,12 @@ pub mod inject;
 pub mod layout_design;
 pub mod measure;
 pub mod mesh;
+pub mod monte_carlo;
 pub mod paper_gap;
 pub mod plot;
 pub mod sensitivity;
 pub mod simulate_campaign;
+pub mod spread;
 
 use crate::table::TableRef;
 use anyhow::{Result, anyhow};
@@ -323,4 +325,6 @@ stage_kinds! {
     Sensitivity => sensitivity::SensitivityStage,
     IncidenceFit => incidence_fit::IncidenceFitStage,
     LayoutDesign => layout_design::LayoutDesignStage,
+    MonteCarlo => monte_carlo::MonteCarloStage,
+    Spread => spread::SpreadStage,
 }

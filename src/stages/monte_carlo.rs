@@ -1,0 +1,359 @@
+//! `monte_carlo`: the uncertainty of a bundle calibration by GUM
+//! Supplement 1 — the campaign's stated reading noise, gauge and reference
+//! uncertainties propagated through the full nonlinear adjustment (see
+//! [`crate::calibrate::monte_carlo`]), side by side with the linear
+//! propagation the `calibrate` stage reports.
+//!
+//! ```toml
+//! [stages.uncertainty]
+//! kind = "monte_carlo"
+//! inputs = { campaign = "corner" }   # a whole campaign (import or simulate); start = "…" optional
+//! shapes = {}                        # the model (the paper's 18 constants by default)
+//! fixed = []
+//! block_trials = 10000               # M, trials per block (≥ 100/(1 − coverage))
+//! digits = 1                         # significant digits the uncertainties must be stable to
+//! max_trials = 100000                # the outcome says whether they were
+//! coverage = 0.95
+//! seed = 0
+//! ```
+//!
+//! Outputs: `params` (`coef`, `unit`, `value` — the nominal fit's —,
+//! `mean`, `u_mc`, `low`, `high` — the coverage interval —, `u_linear`,
+//! `u_ratio` = `u_mc / u_linear`, `determined`), `stations` and `targets`
+//! (`station`/`target`, `x_mm`, `y_mm`, `z_mm`, `u_x_mm`, `u_y_mm`,
+//! `u_z_mm`, `u_mm` — the root mean square of the three, what the linear
+//! `std_mm` reports —, `u_linear_mm`, `u_ratio`; the station that defines
+//! the frame has none), `trials` (per block: `block`, `trials`,
+//! `worst_ratio` — the largest `2s/δ`, ≤ 1 when stable —, `stable`).
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
+use crate::calibrate::bundle::Repeated;
+use crate::calibrate::monte_carlo::{self, Estimate, Outcome, Output};
+use crate::calibrate::{self, Calibration, Network, Norm, Objective};
+use crate::campaign::{self, Campaign};
+use crate::error_model::{ParamId, Shape};
+use crate::table::TableBuilder;
+use anyhow::{Result, anyhow};
+use polars::prelude::DataFrame;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MonteCarloStage {
+    #[serde(default)]
+    pub shapes: BTreeMap<ParamId, Shape>,
+    #[serde(default)]
+    pub fixed: Vec<ParamId>,
+    #[serde(default = "fitting::default_rank_tol")]
+    pub rank_tol: f64,
+    #[serde(default = "fitting::default_max_iters")]
+    pub max_iters: u64,
+    #[serde(default = "default_block")]
+    pub block_trials: usize,
+    #[serde(default = "default_digits")]
+    pub digits: u32,
+    #[serde(default = "default_max_trials")]
+    pub max_trials: usize,
+    #[serde(default = "default_coverage")]
+    pub coverage: f64,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_block() -> usize {
+    monte_carlo::DEFAULT_BLOCK_TRIALS
+}
+fn default_digits() -> u32 {
+    1
+}
+fn default_max_trials() -> usize {
+    100_000
+}
+fn default_coverage() -> f64 {
+    0.95
+}
+
+/// The tables' coordinate columns.
+const XYZ: [&str; 3] = ["x_mm", "y_mm", "z_mm"];
+const U_XYZ: [&str; 3] = ["u_x_mm", "u_y_mm", "u_z_mm"];
+
+impl MonteCarloStage {
+    /// The nominal calibration (its linear uncertainties) and the
+    /// propagation.
+    pub fn propagate(
+        &self,
+        c: &Campaign,
+        inputs: Option<&StageInputs>,
+    ) -> Result<(Network, Calibration, Outcome)> {
+        let net = Network::from_campaign(c)?;
+        let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
+        let start = match inputs {
+            Some(i) => fitting::start(&model, i)?,
+            None => crate::error_model::ErrorParams::zero(&model),
+        };
+        let free = fitting::free(&start, &self.fixed);
+        let settings = calibrate::Settings {
+            objective: Objective::Bundle,
+            norm: Norm::L2,
+            rank_tol: self.rank_tol,
+            max_iters: self.max_iters,
+        };
+        let cal = calibrate::calibrate(&net, &start, &free, &settings)?;
+        let repeated = Repeated::new(&net, &start, &free, &settings)?;
+        let outcome = monte_carlo::run(
+            &net,
+            &repeated,
+            &free,
+            &monte_carlo::Settings {
+                block_trials: self.block_trials,
+                digits: self.digits,
+                max_trials: self.max_trials,
+                coverage: self.coverage,
+                seed: self.seed,
+            },
+        )?;
+        Ok((net, cal, outcome))
+    }
+}
+
+impl StageKind for MonteCarloStage {
+    const KIND: &'static str = "monte_carlo";
+    const SUMMARY: &'static str = "uncertainty of a bundle calibration by Monte Carlo (GUM Supplement 1, adaptive), beside the linear propagation";
+    const INPUTS: &'static [Slot] = &[
+        Slot::group(
+            "campaign",
+            true,
+            "a campaign (`import_campaign` or `simulate_campaign`)",
+            campaign::TABLES,
+        ),
+        Slot::table(
+            "start",
+            false,
+            "start values (a params table); fixed and undetermined coefficients keep them",
+        ),
+    ];
+    const OUTPUTS: &'static [&'static str] = &["params", "stations", "targets", "trials"];
+
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "params" => Some(&[
+                "coef",
+                "unit",
+                "value",
+                "mean",
+                "u_mc",
+                "low",
+                "high",
+                "u_linear",
+                "u_ratio",
+                "determined",
+            ]),
+            "stations" => Some(&[
+                "station",
+                "x_mm",
+                "y_mm",
+                "z_mm",
+                "u_x_mm",
+                "u_y_mm",
+                "u_z_mm",
+                "u_mm",
+                "u_linear_mm",
+                "u_ratio",
+            ]),
+            "targets" => Some(&[
+                "target",
+                "x_mm",
+                "y_mm",
+                "z_mm",
+                "u_x_mm",
+                "u_y_mm",
+                "u_z_mm",
+                "u_mm",
+                "u_linear_mm",
+                "u_ratio",
+            ]),
+            "trials" => Some(&["block", "trials", "worst_ratio", "stable"]),
+            _ => None,
+        }
+    }
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
+        if !(self.coverage > 0.5 && self.coverage < 1.0) {
+            out.push(Invalid::new(
+                "coverage",
+                format!("`coverage` must lie in (0.5, 1), got {}", self.coverage),
+            ));
+        } else {
+            let min = monte_carlo::min_block_trials(self.coverage);
+            if self.block_trials < min {
+                out.push(Invalid::new(
+                    "block_trials",
+                    format!(
+                        "`block_trials` must be at least {min} (GUM-S1 7.9.4: 100/(1 − coverage)), got {}",
+                        self.block_trials
+                    ),
+                ));
+            }
+        }
+        if !(1..=4).contains(&self.digits) {
+            out.push(Invalid::new("digits", "`digits` must be 1 … 4"));
+        }
+        if self.max_trials < self.block_trials {
+            out.push(Invalid::new(
+                "max_trials",
+                "`max_trials` must be at least `block_trials`",
+            ));
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+        let c = Campaign::from_inputs(inputs, "campaign")?;
+        let (net, cal, outcome) = self.propagate(&c, Some(inputs))?;
+        Ok(StageOutput::default()
+            .table("params", params_table(&cal, &outcome)?)
+            .table("stations", stations_table(&net, &cal, &outcome)?)
+            .table("targets", targets_table(&net, &cal, &outcome)?)
+            .table("trials", trials_table(&outcome)?))
+    }
+}
+
+fn ratio(a: f64, b: Option<f64>) -> Option<f64> {
+    b.filter(|b| *b > 0.0).map(|b| a / b)
+}
+
+fn params_table(cal: &Calibration, o: &Outcome) -> Result<DataFrame> {
+    let est = &cal.estimate;
+    let coefs = est.params.coefs();
+    let determined = est.determined();
+    let rows: Vec<(usize, &Estimate)> = o
+        .outputs
+        .iter()
+        .zip(&o.estimates)
+        .filter_map(|(out, e)| match out {
+            Output::Param(i) => Some((*i, e)),
+            _ => None,
+        })
+        .collect();
+    let linear: Vec<Option<f64>> = rows.iter().map(|(i, _)| est.std[*i]).collect();
+    TableBuilder::new()
+        .str(
+            "coef",
+            &rows
+                .iter()
+                .map(|(i, _)| coefs[*i].name())
+                .collect::<Vec<_>>(),
+        )
+        .str(
+            "unit",
+            &rows
+                .iter()
+                .map(|(i, _)| coefs[*i].unit())
+                .collect::<Vec<_>>(),
+        )
+        .f64("value", rows.iter().map(|r| r.1.nominal).collect())
+        .f64("mean", rows.iter().map(|r| r.1.mean).collect())
+        .f64("u_mc", rows.iter().map(|r| r.1.u).collect())
+        .f64("low", rows.iter().map(|r| r.1.low).collect())
+        .f64("high", rows.iter().map(|r| r.1.high).collect())
+        .opt_f64("u_linear", linear.clone())
+        .opt_f64(
+            "u_ratio",
+            rows.iter()
+                .zip(&linear)
+                .map(|(r, l)| ratio(r.1.u, *l).filter(|_| determined[r.0]))
+                .collect(),
+        )
+        .bool(
+            "determined",
+            rows.iter().map(|(i, _)| determined[*i]).collect(),
+        )
+        .build()
+}
+
+/// Per station or target with Monte Carlo coordinates: its three
+/// estimates in x, y, z order.
+fn by_place(o: &Outcome, station: bool) -> BTreeMap<usize, [Estimate; 3]> {
+    let mut m: BTreeMap<usize, [Estimate; 3]> = BTreeMap::new();
+    for (out, e) in o.outputs.iter().zip(&o.estimates) {
+        let (i, k) = match (out, station) {
+            (Output::Station(s, k), true) => (*s, *k),
+            (Output::Target(t, k), false) => (*t, *k),
+            _ => continue,
+        };
+        m.entry(i).or_insert([*e; 3])[k] = *e;
+    }
+    m
+}
+
+/// The rows of `stations` or `targets`: id, position, the three Monte
+/// Carlo uncertainties and their root mean square beside the linear one.
+fn place_table(
+    id_column: &str,
+    ids: &[String],
+    places: &BTreeMap<usize, [Estimate; 3]>,
+    linear: impl Fn(usize) -> Option<f64>,
+) -> Result<DataFrame> {
+    let rows: Vec<(&usize, &[Estimate; 3])> = places.iter().collect();
+    let u_rms: Vec<f64> = rows
+        .iter()
+        .map(|(_, e)| (e.iter().map(|x| x.u * x.u).sum::<f64>() / 3.0).sqrt())
+        .collect();
+    let lin: Vec<Option<f64>> = rows.iter().map(|(i, _)| linear(**i)).collect();
+    let mut b = TableBuilder::new().str(
+        id_column,
+        &rows
+            .iter()
+            .map(|(i, _)| ids[**i].as_str())
+            .collect::<Vec<_>>(),
+    );
+    for (k, col) in XYZ.iter().enumerate() {
+        b = b.f64(col, rows.iter().map(|(_, e)| e[k].nominal).collect());
+    }
+    for (k, col) in U_XYZ.iter().enumerate() {
+        b = b.f64(col, rows.iter().map(|(_, e)| e[k].u).collect());
+    }
+    b.f64("u_mm", u_rms.clone())
+        .opt_f64("u_linear_mm", lin.clone())
+        .opt_f64(
+            "u_ratio",
+            u_rms.iter().zip(&lin).map(|(u, l)| ratio(*u, *l)).collect(),
+        )
+        .build()
+}
+
+fn stations_table(net: &Network, cal: &Calibration, o: &Outcome) -> Result<DataFrame> {
+    place_table("station", &net.stations, &by_place(o, true), |s| {
+        cal.pose_std[s].map(|p| p.0)
+    })
+}
+
+fn targets_table(net: &Network, cal: &Calibration, o: &Outcome) -> Result<DataFrame> {
+    place_table("target", &net.targets, &by_place(o, false), |t| {
+        cal.point_std.get(&t).copied()
+    })
+}
+
+fn trials_table(o: &Outcome) -> Result<DataFrame> {
+    TableBuilder::new()
+        .i64("block", (1..=o.blocks.len() as i64).collect())
+        .i64("trials", o.blocks.iter().map(|b| b.trials as i64).collect())
+        .opt_f64(
+            "worst_ratio",
+            o.blocks
+                .iter()
+                .map(|b| b.worst_ratio.is_finite().then_some(b.worst_ratio))
+                .collect(),
+        )
+        .bool(
+            "stable",
+            o.blocks
+                .iter()
+                .enumerate()
+                .map(|(i, _)| o.stable && i + 1 == o.blocks.len())
+                .collect(),
+        )
+        .build()
+}
