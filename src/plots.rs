@@ -603,6 +603,8 @@ fn colour_bar(
 /// value written in it, coloured by `map` over `lo … hi`.
 struct HeatMap<'a> {
     caption: &'a str,
+    x_desc: &'a str,
+    y_desc: &'a str,
     x: &'a [f64],
     y: &'a [f64],
     z: &'a [Vec<f64>],
@@ -636,8 +638,8 @@ fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
     chart
         .configure_mesh()
         .disable_mesh()
-        .x_desc("α_h (deg)")
-        .y_desc("α_v (deg)")
+        .x_desc(h.x_desc)
+        .y_desc(h.y_desc)
         .x_labels(h.x.len())
         .y_labels(h.y.len())
         .x_label_formatter(&|v| format!("{v}"))
@@ -647,7 +649,8 @@ fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
         .map_err(err)?;
     let span = (h.hi - h.lo).max(1e-12);
     for (i, row) in h.z.iter().enumerate() {
-        for (j, &v) in row.iter().enumerate() {
+        // A cell without a value (NaN) stays blank.
+        for (j, &v) in row.iter().enumerate().filter(|(_, v)| v.is_finite()) {
             let ((a, b), (c, d)) = (half(h.x, j), half(h.y, i));
             let t = (v - h.lo) / span;
             chart
@@ -728,6 +731,8 @@ pub fn incidence_maps(
             let maps = [
                 HeatMap {
                     caption: &data_caption,
+                    x_desc: "α_h (deg)",
+                    y_desc: "α_v (deg)",
                     x: alpha_h_deg,
                     y: alpha_v_deg,
                     z: data_um,
@@ -738,6 +743,8 @@ pub fn incidence_maps(
                 },
                 HeatMap {
                     caption: &fit_caption,
+                    x_desc: "α_h (deg)",
+                    y_desc: "α_v (deg)",
                     x: alpha_h_deg,
                     y: alpha_v_deg,
                     z: f.fitted,
@@ -748,6 +755,8 @@ pub fn incidence_maps(
                 },
                 HeatMap {
                     caption: &res_caption,
+                    x_desc: "α_h (deg)",
+                    y_desc: "α_v (deg)",
                     x: alpha_h_deg,
                     y: alpha_v_deg,
                     z: &residuals[k],
@@ -760,6 +769,52 @@ pub fn incidence_maps(
             for (c, m) in maps.iter().enumerate() {
                 heat_map(&cells[3 * k + c], m)?;
             }
+        }
+        Ok(())
+    })
+}
+
+/// One view of an uncertainty field, for [`uncertainty_field`]: `u_um[i][j]`
+/// at `(x_m[j], y_m[i])`, NaN where nothing is measured.
+pub struct FieldView<'a> {
+    pub caption: String,
+    pub x_desc: &'a str,
+    pub y_desc: &'a str,
+    pub x_m: &'a [f64],
+    pub y_m: &'a [f64],
+    pub u_um: &'a [Vec<f64>],
+}
+
+/// The uncertainty of a measurement after calibration over the volume
+/// (SpatialAnalyzer's "uncertainty field"): one heat map per view, two per
+/// row, all on one colour scale from zero.
+pub fn uncertainty_field(title: &str, views: &[FieldView]) -> Result<String> {
+    let hi = views
+        .iter()
+        .flat_map(|v| v.u_um.iter().flatten())
+        .copied()
+        .filter(|u| u.is_finite())
+        .fold(0.0f64, f64::max)
+        .max(1e-9);
+    let rows = views.len().div_ceil(2).max(1);
+    figure((1500, 640 * rows as u32 + 50), |root| {
+        let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
+        for (area, v) in root.split_evenly((rows, 2)).iter().zip(views) {
+            heat_map(
+                area,
+                &HeatMap {
+                    caption: &v.caption,
+                    x_desc: v.x_desc,
+                    y_desc: v.y_desc,
+                    x: v.x_m,
+                    y: v.y_m,
+                    z: v.u_um,
+                    lo: 0.0,
+                    hi,
+                    map: viridis,
+                    bar_label: "standard uncertainty (µm)",
+                },
+            )?;
         }
         Ok(())
     })

@@ -21,6 +21,7 @@
 
 pub mod bundle;
 pub mod distances;
+pub mod measurement;
 pub mod monte_carlo;
 pub mod register;
 pub mod snooping;

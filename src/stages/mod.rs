@@ -22,6 +22,7 @@ pub mod incidence_fit;
 pub mod inject;
 pub mod layout_design;
 pub mod measure;
+pub mod measurement_uncertainty;
 pub mod mesh;
 pub mod monte_carlo;
 pub mod paper_gap;
@@ -327,4 +328,5 @@ stage_kinds! {
     LayoutDesign => layout_design::LayoutDesignStage,
     MonteCarlo => monte_carlo::MonteCarloStage,
     Spread => spread::SpreadStage,
+    MeasurementUncertainty => measurement_uncertainty::MeasurementUncertaintyStage,
 }
