@@ -820,6 +820,218 @@ pub fn uncertainty_field(title: &str, views: &[FieldView]) -> Result<String> {
     })
 }
 
+/// One row of [`coverage_intervals`]: a quantity's Monte Carlo coverage
+/// interval in units of its linear standard uncertainty, about the
+/// nominal value (`low_u`, `high_u`), and the linear interval's half-width
+/// (1.96 for 95 %).
+pub struct CoverageRow {
+    pub label: String,
+    pub low_u: f64,
+    pub high_u: f64,
+    pub linear_u: f64,
+}
+
+/// Monte Carlo coverage intervals beside the linear ones, one row per
+/// quantity, all in units of the linear standard uncertainty: where the
+/// problem is linear the two bars coincide.
+pub fn coverage_intervals(title: &str, rows: &[CoverageRow]) -> Result<String> {
+    let n = rows.len().max(1);
+    let reach = rows
+        .iter()
+        .flat_map(|r| [r.low_u.abs(), r.high_u.abs(), r.linear_u])
+        .filter(|v| v.is_finite())
+        .fold(2.0f64, f64::max)
+        * 1.15;
+    figure((900, 90 + 30 * n as u32 + 70), |root| {
+        let root = root.titled(title, ("sans-serif", 18)).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(14)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(span(-reach, reach)?, (0..n - 1).into_segmented())
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .disable_y_mesh()
+            .x_desc("coverage interval about the nominal value, in linear standard uncertainties")
+            .y_labels(n)
+            .y_label_formatter(&|v| match v {
+                SegmentValue::CenterOf(i) => rows
+                    .get(n - 1 - *i)
+                    .map(|r| r.label.clone())
+                    .unwrap_or_default(),
+                _ => String::new(),
+            })
+            .label_style(("sans-serif", 12))
+            .draw()
+            .map_err(err)?;
+        let linear = RGBColor(190, 190, 190);
+        let mc = RGBColor(44, 113, 142);
+        chart
+            .draw_series(rows.iter().rev().enumerate().map(|(i, r)| {
+                let mut bar = Rectangle::new(
+                    [
+                        (-r.linear_u, SegmentValue::Exact(i)),
+                        (r.linear_u, SegmentValue::Exact(i + 1)),
+                    ],
+                    linear.filled(),
+                );
+                bar.set_margin(4, 4, 0, 0);
+                bar
+            }))
+            .map_err(err)?
+            .label("linear: ±1.96 u")
+            .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], linear.filled()));
+        chart
+            .draw_series(rows.iter().rev().enumerate().map(|(i, r)| {
+                let mut bar = Rectangle::new(
+                    [
+                        (r.low_u, SegmentValue::Exact(i)),
+                        (r.high_u, SegmentValue::Exact(i + 1)),
+                    ],
+                    mc.filled(),
+                );
+                bar.set_margin(11, 11, 0, 0);
+                bar
+            }))
+            .map_err(err)?
+            .label("Monte Carlo")
+            .legend(move |(x, y)| Rectangle::new([(x, y - 3), (x + 14, y + 3)], mc.filled()));
+        legend(&mut chart, SeriesLabelPosition::UpperRight, 12)?;
+        Ok(())
+    })
+}
+
+/// A reflector or station in plan (metres) for [`uncertainty_ellipses`],
+/// with the covariance of its x, y (mm²: `[xx, xy, yy]`) when it has one.
+pub struct PlanPoint {
+    pub label: String,
+    pub x_m: f64,
+    pub y_m: f64,
+    pub cov_xy_mm2: Option<[f64; 3]>,
+}
+
+/// The standard deviations along the principal axes of a 2×2 covariance
+/// `[xx, xy, yy]`, largest first, and the angle of the first from x (rad).
+fn principal_axes(c: &[f64; 3]) -> (f64, f64, f64) {
+    let [xx, xy, yy] = *c;
+    let mean = (xx + yy) / 2.0;
+    let r = (((xx - yy) / 2.0).powi(2) + xy * xy).sqrt();
+    let angle = 0.5 * (2.0 * xy).atan2(xx - yy);
+    (
+        (mean + r).max(0.0).sqrt(),
+        (mean - r).max(0.0).sqrt(),
+        angle,
+    )
+}
+
+/// Reflector uncertainty ellipses from the network in plan: each
+/// reflector's 95 % ellipse of (x, y) — `2.448 σ` along the covariance's
+/// principal axes — magnified by the factor in the caption; stations as
+/// triangles.
+pub fn uncertainty_ellipses(
+    title: &str,
+    stations: &[PlanPoint],
+    targets: &[PlanPoint],
+) -> Result<String> {
+    let axes = principal_axes;
+    let all = stations.iter().chain(targets);
+    let (mut x0, mut x1, mut y0, mut y1) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    for p in all.clone() {
+        x0 = x0.min(p.x_m);
+        x1 = x1.max(p.x_m);
+        y0 = y0.min(p.y_m);
+        y1 = y1.max(p.y_m);
+    }
+    let extent = (x1 - x0).max(y1 - y0).max(1.0);
+    let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+    let half = extent * 0.6;
+    let largest_mm = targets
+        .iter()
+        .filter_map(|p| p.cov_xy_mm2.as_ref())
+        .map(|c| axes(c).0 * 2.448)
+        .fold(0.0f64, f64::max);
+    // A round magnification that makes the largest ellipse 4 % of the
+    // plot: 1, 2 or 5 times a power of ten.
+    let magnification = if largest_mm > 0.0 {
+        let raw = 0.04 * extent * 1000.0 / largest_mm;
+        let p = 10f64.powf(raw.log10().floor());
+        [5.0, 2.0, 1.0]
+            .into_iter()
+            .map(|m| m * p)
+            .find(|m| *m <= raw)
+            .unwrap_or(p)
+    } else {
+        1.0
+    };
+    figure((900, 900), |root| {
+        let caption = format!("{title} — 95 % ellipses magnified ×{magnification}");
+        let root = root.titled(&caption, ("sans-serif", 16)).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(14)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(span(cx - half, cx + half)?, span(cy - half, cy + half)?)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("x (m)")
+            .y_desc("y (m)")
+            .label_style(("sans-serif", 12))
+            .draw()
+            .map_err(err)?;
+        let ink = RGBColor(44, 113, 142);
+        for p in targets {
+            if let Some(c) = &p.cov_xy_mm2 {
+                let (a, b, angle) = axes(c);
+                let k = 2.448 * magnification / 1000.0;
+                let (sn, cs) = angle.sin_cos();
+                let ring: Vec<(f64, f64)> = (0..=64)
+                    .map(|i| {
+                        let t = i as f64 / 64.0 * std::f64::consts::TAU;
+                        let (u, v) = (k * a * t.cos(), k * b * t.sin());
+                        (p.x_m + u * cs - v * sn, p.y_m + u * sn + v * cs)
+                    })
+                    .collect();
+                chart
+                    .draw_series(std::iter::once(PathElement::new(ring, ink.stroke_width(2))))
+                    .map_err(err)?;
+            }
+            chart
+                .draw_series([
+                    Circle::new((p.x_m, p.y_m), 2, BLACK.filled()).into_dyn(),
+                    Text::new(
+                        p.label.clone(),
+                        (p.x_m, p.y_m),
+                        ("sans-serif", 10).into_font(),
+                    )
+                    .into_dyn(),
+                ])
+                .map_err(err)?;
+        }
+        chart
+            .draw_series(stations.iter().flat_map(|s| {
+                [
+                    TriangleMarker::new((s.x_m, s.y_m), 7, RGBColor(200, 60, 40).filled())
+                        .into_dyn(),
+                    Text::new(
+                        s.label.clone(),
+                        (s.x_m, s.y_m),
+                        ("sans-serif", 12).into_font(),
+                    )
+                    .into_dyn(),
+                ]
+            }))
+            .map_err(err)?;
+        Ok(())
+    })
+}
+
 /// Layout design: one panel of horizontal bars per quantity (σ_min, O1, …),
 /// one bar per layout, the value written at its end.
 pub fn layout_bars(title: &str, names: &[&str], panels: &[(&str, &[f64])]) -> Result<String> {
@@ -1111,6 +1323,20 @@ pub fn grouped_bars(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An ellipse 3 × 1 turned by 30°: its covariance `R·diag(9, 1)·Rᵀ`
+    /// gives back the axes and the angle.
+    #[test]
+    fn principal_axes_of_a_turned_covariance() {
+        let (s, c) = 30f64.to_radians().sin_cos();
+        let cov = [9.0 * c * c + s * s, 8.0 * c * s, 9.0 * s * s + c * c];
+        let (a, b, angle) = principal_axes(&cov);
+        assert!(
+            (a - 3.0).abs() < 1e-12 && (b - 1.0).abs() < 1e-12,
+            "{a} {b}"
+        );
+        assert!((angle - 30f64.to_radians()).abs() < 1e-12, "{angle}");
+    }
 
     /// Regression (issue 12): a value of f64::MAX on an axis made the
     /// span ∞ and plotters' tick loop never ended; now it is refused.

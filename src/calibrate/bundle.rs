@@ -661,17 +661,17 @@ pub fn calibrate(
         .collect();
     let mut points = BTreeMap::new();
     let mut point_std = BTreeMap::new();
+    let mut point_cov = BTreeMap::new();
     for (t, off) in layout.point.iter().enumerate() {
         let Some((o, dense)) = off else { continue };
         points.insert(t, problem.point(&x, t));
-        let var = if *dense {
-            (0..3).map(|k| cov_a[(o + k, o + k)]).sum::<f64>()
+        let cov = if *dense {
+            Matrix3::from_fn(|i, j| cov_a[(o + i, o + j)])
         } else {
-            factor
-                .point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
-                .trace()
+            factor.point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
         };
-        point_std.insert(t, (var / 3.0).max(0.0).sqrt());
+        point_std.insert(t, (cov.trace() / 3.0).max(0.0).sqrt());
+        point_cov.insert(t, cov);
     }
     let poses: Vec<Rigid> = (0..net.stations.len())
         .map(|s| {
@@ -693,6 +693,7 @@ pub fn calibrate(
         pose_std,
         points,
         point_std,
+        point_cov,
         fit: FitSummary {
             objective: super::Objective::Bundle,
             norm: Norm::L2,

@@ -440,6 +440,7 @@ pub fn calibrate(
         poses: alignment.poses.clone(),
         points: alignment.points.clone(),
         point_std: BTreeMap::new(),
+        point_cov: BTreeMap::new(),
         fit: FitSummary {
             objective: settings.objective,
             norm: settings.norm,

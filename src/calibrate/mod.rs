@@ -33,7 +33,7 @@ use crate::error_model::{ErrorParams, Links};
 use crate::kinematics::{Face, Joints, Reading};
 use crate::noise::Noise;
 use anyhow::{Result, anyhow, bail};
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 
@@ -332,6 +332,10 @@ pub struct Calibration {
     pub pose_std: Vec<Option<(f64, f64)>>,
     pub points: BTreeMap<usize, Vector3<f64>>,
     pub point_std: BTreeMap<usize, f64>,
+    /// Each position's 3×3 covariance (mm², campaign frame) when the
+    /// objective estimates positions with their uncertainty (the bundle);
+    /// `point_std` is the root mean square of its diagonal.
+    pub point_cov: BTreeMap<usize, Matrix3<f64>>,
     pub fit: FitSummary,
     /// Per reading: residuals in az, el, d against the estimated network,
     /// in µrad, µrad, µm and in units of σ.

@@ -258,6 +258,17 @@ pub fn verdict(d: &Diagnosis) -> String {
     }
 }
 
+/// A float as CSV text that round-trips: positional, except far from 1,
+/// where Rust's positional form would spell out hundreds of zeros (a
+/// `p_corrected` of 1e-300).
+fn float_text(x: f64) -> String {
+    if x != 0.0 && x.is_finite() && !(1e-5..1e16).contains(&x.abs()) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
 /// A table as CSV text (floats written to round-trip).
 pub fn csv(df: &DataFrame) -> Result<Vec<u8>> {
     let mut w = csv::Writer::from_writer(Vec::new());
@@ -272,7 +283,7 @@ pub fn csv(df: &DataFrame) -> Result<Vec<u8>> {
             .columns()
             .iter()
             .map(|c| match c.get(i) {
-                Ok(polars::prelude::AnyValue::Float64(x)) => format!("{x}"),
+                Ok(polars::prelude::AnyValue::Float64(x)) => float_text(x),
                 Ok(v) => crate::table::cell_text(&v, 12),
                 Err(_) => String::new(),
             })
@@ -470,4 +481,30 @@ pub fn figures(d: &Diagnosis) -> Result<Figures> {
 pub struct Figures {
     pub files: Vec<(String, Vec<u8>)>,
     pub notes: Vec<String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::float_text;
+
+    /// Regression: a `p_corrected` of 2.6e-300 was written to
+    /// `diagnosis.csv` as 300 characters of zeros.
+    #[test]
+    fn tiny_p_values_are_written_short_and_round_trip() {
+        for x in [
+            2.569340674987612e-300,
+            1e-6,
+            0.5,
+            8.176087746984,
+            -35.76,
+            0.0,
+            3e20,
+        ] {
+            let t = float_text(x);
+            assert!(t.len() <= 24, "{t}");
+            assert_eq!(t.parse::<f64>().unwrap(), x);
+        }
+        assert_eq!(float_text(0.5), "0.5");
+        assert_eq!(float_text(1e-300), "1e-300");
+    }
 }

@@ -24,7 +24,12 @@
 //! `u_z_mm`, `u_mm` — the root mean square of the three, what the linear
 //! `std_mm` reports —, `u_linear_mm`, `u_ratio`; the station that defines
 //! the frame has none), `trials` (per block: `block`, `trials`,
-//! `worst_ratio` — the largest `2s/δ`, ≤ 1 when stable —, `stable`).
+//! `worst_ratio` — the largest `2s/δ`, ≤ 1 when stable —, `stable`), and
+//! two figures: `coverage.svg`, the determined coefficients' Monte Carlo
+//! coverage intervals beside the linear `±1.96 u` (in units of `u`), and
+//! `ellipses.svg`, the reflectors in plan with their 95 % uncertainty
+//! ellipses from the network (the bundle's linear covariance of x, y,
+//! magnified) and the stations.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::bundle::Repeated;
@@ -32,10 +37,12 @@ use crate::calibrate::monte_carlo::{self, Estimate, Outcome, Output};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective};
 use crate::campaign::{self, Campaign};
 use crate::error_model::{ParamId, Shape};
+use crate::plots::{self, CoverageRow, PlanPoint};
 use crate::table::TableBuilder;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
+use statrs::distribution::{ContinuousCDF, Normal};
 use std::collections::BTreeMap;
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -212,12 +219,85 @@ impl StageKind for MonteCarloStage {
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let c = Campaign::from_inputs(inputs, "campaign")?;
         let (net, cal, outcome) = self.propagate(&c, Some(inputs))?;
+        let coverage = plots::coverage_intervals(
+            &format!(
+                "{}: {} % coverage intervals of the determined coefficients ({} trials)",
+                c.meta.name,
+                100.0 * self.coverage,
+                outcome.trials
+            ),
+            &coverage_rows(&cal, &outcome, self.coverage)?,
+        )?;
+        let (stations, targets) = plan_points(&net, &cal);
+        let ellipses = plots::uncertainty_ellipses(
+            &format!("{}: reflectors in plan", c.meta.name),
+            &stations,
+            &targets,
+        )?;
         Ok(StageOutput::default()
             .table("params", params_table(&cal, &outcome)?)
             .table("stations", stations_table(&net, &cal, &outcome)?)
             .table("targets", targets_table(&net, &cal, &outcome)?)
-            .table("trials", trials_table(&outcome)?))
+            .table("trials", trials_table(&outcome)?)
+            .file("coverage.svg".into(), coverage.into_bytes())
+            .file("ellipses.svg".into(), ellipses.into_bytes()))
     }
+}
+
+/// The determined coefficients' Monte Carlo intervals in units of their
+/// linear standard uncertainty, beside the linear interval `±z·u`.
+fn coverage_rows(cal: &Calibration, o: &Outcome, coverage: f64) -> Result<Vec<CoverageRow>> {
+    let z = Normal::new(0.0, 1.0)
+        .map_err(|e| anyhow!("{e}"))?
+        .inverse_cdf(0.5 + coverage / 2.0);
+    let est = &cal.estimate;
+    let determined = est.determined();
+    Ok(o.outputs
+        .iter()
+        .zip(&o.estimates)
+        .filter_map(|(out, e)| match out {
+            Output::Param(i) if determined[*i] => {
+                let u = est.std[*i].filter(|u| *u > 0.0)?;
+                Some(CoverageRow {
+                    label: est.params.coefs()[*i].name(),
+                    low_u: (e.low - e.nominal) / u,
+                    high_u: (e.high - e.nominal) / u,
+                    linear_u: z,
+                })
+            }
+            _ => None,
+        })
+        .collect())
+}
+
+/// Stations and reflectors in plan, in metres, the reflectors with the
+/// linear covariance of their x, y.
+fn plan_points(net: &Network, cal: &Calibration) -> (Vec<PlanPoint>, Vec<PlanPoint>) {
+    let stations = cal
+        .poses
+        .iter()
+        .zip(&net.stations)
+        .map(|(p, id)| PlanPoint {
+            label: id.clone(),
+            x_m: p.translation.x / 1000.0,
+            y_m: p.translation.y / 1000.0,
+            cov_xy_mm2: None,
+        })
+        .collect();
+    let targets = cal
+        .points
+        .iter()
+        .map(|(t, x)| PlanPoint {
+            label: net.targets[*t].clone(),
+            x_m: x.x / 1000.0,
+            y_m: x.y / 1000.0,
+            cov_xy_mm2: cal
+                .point_cov
+                .get(t)
+                .map(|c| [c[(0, 0)], c[(0, 1)], c[(1, 1)]]),
+        })
+        .collect();
+    (stations, targets)
 }
 
 fn ratio(a: f64, b: Option<f64>) -> Option<f64> {

@@ -10,10 +10,12 @@ use ltcal::stages::declared_columns;
 use std::path::Path;
 use std::process::Command;
 
-/// Tables whose columns depend on the data: one column per station.
+/// Tables whose columns depend on the data (one column per station) or on
+/// the settings (`spread`'s leading columns are its `by` list).
 const DATA_DEPENDENT: &[(&str, &str)] = &[
     ("evaluate_campaign", "table5"),
     ("evaluate_campaign", "table6"),
+    ("spread", "spread"),
 ];
 
 fn parquet_columns(path: &Path) -> Vec<String> {
