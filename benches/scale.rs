@@ -5,6 +5,10 @@
 //! medians can be read against the readings (the README's log–log slope
 //! comes from these medians).
 //!
+//! `calibrate_hall` is issue 10's own case: the `hall` layout with 200
+//! reflectors per level (600 in all) read from 8 stations, every reflector
+//! from every station (4 800 readings), as the issue timed it.
+//!
 //!     cargo bench --bench scale
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
@@ -34,7 +38,11 @@ const SERIES: [(usize, usize, usize); 6] = [
 /// A simulated campaign of the `network` layout with the paper's Table 2
 /// errors and typical indoor noise.
 fn campaign(per_level: usize, stations: usize, faces: usize) -> Campaign {
-    let mut spec = Spec::new(Kind::Network);
+    campaign_of(Kind::Network, per_level, stations, faces)
+}
+
+fn campaign_of(kind: Kind, per_level: usize, stations: usize, faces: usize) -> Campaign {
+    let mut spec = Spec::new(kind);
     spec.per_level = per_level;
     spec.stations = stations;
     let layout = layout::build(&spec);
@@ -90,6 +98,24 @@ fn calibrate_scale(c: &mut Criterion) {
     g.finish();
 }
 
+fn calibrate_hall(c: &mut Criterion) {
+    let mut g = c.benchmark_group("calibrate_hall");
+    g.sample_size(20).measurement_time(Duration::from_secs(4));
+    let camp = campaign_of(Kind::Hall, 200, 8, 1);
+    let net = Network::from_campaign(&camp).unwrap();
+    let start = ErrorParams::zero(&ErrorModel::constant());
+    let settings = Settings {
+        objective: Objective::Bundle,
+        norm: Norm::L2,
+        rank_tol: 1e-9,
+        max_iters: 100,
+    };
+    g.bench_function(id(&camp, 8, 1), |b| {
+        b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &settings).unwrap())
+    });
+    g.finish();
+}
+
 /// The whole diagnosis as `ltcal diagnose` runs it: the bundle adjustment,
 /// every candidate, 5-fold cross-validation and 100 Monte Carlo draws.
 fn diagnose_scale(c: &mut Criterion) {
@@ -104,5 +130,5 @@ fn diagnose_scale(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, calibrate_scale, diagnose_scale);
+criterion_group!(benches, calibrate_scale, calibrate_hall, diagnose_scale);
 criterion_main!(benches);
