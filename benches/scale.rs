@@ -78,16 +78,21 @@ fn id(c: &Campaign, stations: usize, faces: usize) -> BenchmarkId {
     )
 }
 
-fn calibrate_scale(c: &mut Criterion) {
-    let mut g = c.benchmark_group("calibrate_scale");
-    g.sample_size(10).measurement_time(Duration::from_secs(4));
-    let start = ErrorParams::zero(&ErrorModel::constant());
-    let settings = Settings {
+/// The bundle adjustment as `calibrate` runs it by default.
+fn bundle() -> Settings {
+    Settings {
         objective: Objective::Bundle,
         norm: Norm::L2,
         rank_tol: 1e-9,
         max_iters: 100,
-    };
+    }
+}
+
+fn calibrate_scale(c: &mut Criterion) {
+    let mut g = c.benchmark_group("calibrate_scale");
+    g.sample_size(10).measurement_time(Duration::from_secs(4));
+    let start = ErrorParams::zero(&ErrorModel::constant());
+    let settings = bundle();
     for (per_level, stations, faces) in SERIES {
         let camp = campaign(per_level, stations, faces);
         let net = Network::from_campaign(&camp).unwrap();
@@ -104,12 +109,7 @@ fn calibrate_hall(c: &mut Criterion) {
     let camp = campaign_of(Kind::Hall, 200, 8, 1);
     let net = Network::from_campaign(&camp).unwrap();
     let start = ErrorParams::zero(&ErrorModel::constant());
-    let settings = Settings {
-        objective: Objective::Bundle,
-        norm: Norm::L2,
-        rank_tol: 1e-9,
-        max_iters: 100,
-    };
+    let settings = bundle();
     g.bench_function(id(&camp, 8, 1), |b| {
         b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &settings).unwrap())
     });

@@ -33,7 +33,7 @@
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::snooping::{self, Rejected};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
-use crate::campaign::{self, Campaign};
+use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::table::TableBuilder;
 use anyhow::{Result, anyhow};
@@ -97,19 +97,7 @@ impl CalibrateStage {
 impl StageKind for CalibrateStage {
     const KIND: &'static str = "calibrate";
     const SUMMARY: &'static str = "error parameters from a campaign with unknown poses: Eq. 13-15 (L1 or L2) or a bundle adjustment";
-    const INPUTS: &'static [Slot] = &[
-        Slot::group(
-            "campaign",
-            true,
-            "a campaign (`import_campaign` or `simulate_campaign`)",
-            campaign::TABLES,
-        ),
-        Slot::table(
-            "start",
-            false,
-            "start values (a params table); fixed and undetermined coefficients keep them",
-        ),
-    ];
+    const INPUTS: &'static [Slot] = &[fitting::CAMPAIGN, fitting::START];
     const OUTPUTS: &'static [&'static str] = &[
         "params",
         "singular_values",

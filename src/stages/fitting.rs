@@ -1,8 +1,10 @@
-//! What the fitting stages (`identify`, `calibrate`) share: the model they
+//! What the fitting stages (`identify`, `calibrate`, `monte_carlo`,
+//! `measurement_uncertainty`) share: the slots they take, the model they
 //! estimate (shapes, fixed parameters, start values) and the tables that
 //! say what the data determined.
 
-use super::{Invalid, StageInputs};
+use super::{Invalid, Slot, StageInputs};
+use crate::campaign;
 use crate::determined::Estimate;
 use crate::error_model::{ErrorModel, ErrorParams, ParamId, Shape};
 use crate::schema::{self, IdentifiedColumns};
@@ -10,6 +12,21 @@ use crate::table::TableBuilder;
 use anyhow::Result;
 use polars::prelude::DataFrame;
 use std::collections::BTreeMap;
+
+/// The slot of a whole campaign every fit of one takes.
+pub const CAMPAIGN: Slot = Slot::group(
+    "campaign",
+    true,
+    "a campaign (`import_campaign` or `simulate_campaign`)",
+    campaign::TABLES,
+);
+
+/// The optional slot of start values every fit takes.
+pub const START: Slot = Slot::table(
+    "start",
+    false,
+    "start values (a params table); fixed and undetermined coefficients keep them",
+);
 
 /// The default relative singular-value threshold of a fit's `rank_tol`.
 pub fn default_rank_tol() -> f64 {

@@ -63,11 +63,7 @@ impl StageKind for IdentifyStage {
             true,
             "readings with reference coordinates (a `measure` stage)",
         ),
-        Slot::table(
-            "start",
-            false,
-            "start values (a params table); fixed and undetermined coefficients keep them",
-        ),
+        fitting::START,
     ];
     const OUTPUTS: &'static [&'static str] = &["params", "singular_values", "combinations", "fit"];
 

@@ -35,9 +35,9 @@
 //! views.
 
 use super::calibrate::CalibrateStage;
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::measurement::{Measured, Measurer};
-use crate::campaign::{self, Campaign};
+use crate::campaign::Campaign;
 use crate::kinematics::{self, Face, Reading};
 use crate::noise::Noise;
 use crate::plots::{self, FieldView};
@@ -137,17 +137,8 @@ impl StageKind for MeasurementUncertaintyStage {
     const KIND: &'static str = "measurement_uncertainty";
     const SUMMARY: &'static str = "corrected coordinates of new readings or a grid over the volume, with the calibration's and the reading's uncertainty (uncertainty field)";
     const INPUTS: &'static [Slot] = &[
-        Slot::group(
-            "campaign",
-            true,
-            "the calibration campaign (`import_campaign` or `simulate_campaign`)",
-            campaign::TABLES,
-        ),
-        Slot::table(
-            "start",
-            false,
-            "start values of the calibration (a params table)",
-        ),
+        fitting::CAMPAIGN,
+        fitting::START,
         Slot::table(
             "readings",
             false,

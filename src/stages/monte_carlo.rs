@@ -35,7 +35,7 @@ use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting
 use crate::calibrate::bundle::Repeated;
 use crate::calibrate::monte_carlo::{self, Estimate, Outcome, Output};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective};
-use crate::campaign::{self, Campaign};
+use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::plots::{self, CoverageRow, PlanPoint};
 use crate::table::TableBuilder;
@@ -127,19 +127,7 @@ impl MonteCarloStage {
 impl StageKind for MonteCarloStage {
     const KIND: &'static str = "monte_carlo";
     const SUMMARY: &'static str = "uncertainty of a bundle calibration by Monte Carlo (GUM Supplement 1, adaptive), beside the linear propagation";
-    const INPUTS: &'static [Slot] = &[
-        Slot::group(
-            "campaign",
-            true,
-            "a campaign (`import_campaign` or `simulate_campaign`)",
-            campaign::TABLES,
-        ),
-        Slot::table(
-            "start",
-            false,
-            "start values (a params table); fixed and undetermined coefficients keep them",
-        ),
-    ];
+    const INPUTS: &'static [Slot] = &[fitting::CAMPAIGN, fitting::START];
     const OUTPUTS: &'static [&'static str] = &["params", "stations", "targets", "trials"];
 
     fn columns(table: &str) -> Option<&'static [&'static str]> {
