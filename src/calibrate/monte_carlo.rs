@@ -32,7 +32,7 @@ use super::Network;
 use super::bundle::{Repeated, Solved};
 use crate::random;
 use anyhow::{Result, anyhow, bail};
-use nalgebra::Vector3;
+use nalgebra::{Rotation3, Vector3};
 use rayon::prelude::*;
 
 /// How to run the trials.
@@ -72,6 +72,11 @@ pub enum Output {
     Param(usize),
     /// A coordinate (0 x, 1 y, 2 z) of a free station's position.
     Station(usize, usize),
+    /// A component of a free station's rotation away from the nominal
+    /// fit's, `Log(R_nominalᵀ·R)` (rad): the body-frame ω of the
+    /// adjustment's pose update, whose covariance the linear propagation
+    /// reports.
+    StationRotation(usize, usize),
     /// A coordinate of a reflector's position.
     Target(usize, usize),
 }
@@ -112,7 +117,7 @@ pub struct Outcome {
 }
 
 /// The outputs of a network, in order: free coefficients, free stations'
-/// coordinates, reflectors' coordinates.
+/// coordinates and rotations, reflectors' coordinates.
 fn outputs(
     net: &Network,
     free: &[bool],
@@ -122,19 +127,46 @@ fn outputs(
     let params = (0..free.len()).filter(|&i| free[i]).map(Output::Param);
     let stations = (0..net.stations.len())
         .filter(|&s| Some(s) != fixed_station)
-        .flat_map(|s| (0..3).map(move |k| Output::Station(s, k)));
+        .flat_map(|s| {
+            (0..3)
+                .map(move |k| Output::Station(s, k))
+                .chain((0..3).map(move |k| Output::StationRotation(s, k)))
+        });
     let targets = (0..net.targets.len())
         .filter(|&t| nominal.points[t].is_some())
         .flat_map(|t| (0..3).map(move |k| Output::Target(t, k)));
     params.chain(stations).chain(targets).collect()
 }
 
-fn value(s: &Solved, o: &Output) -> f64 {
+/// Output `o` of solution `s`, whose rotations are measured from those of
+/// `nominal`.
+fn value(s: &Solved, nominal: &Solved, o: &Output) -> f64 {
     match *o {
         Output::Param(i) => s.params.values()[i],
         Output::Station(st, k) => s.poses[st].translation[k],
+        Output::StationRotation(st, k) => {
+            rotation_vector(&(nominal.poses[st].rotation.inverse() * s.poses[st].rotation))[k]
+        }
         Output::Target(t, k) => s.points[t].map_or(f64::NAN, |p| p[k]),
     }
+}
+
+/// `Log(R)`, the rotation vector of `r` (rad), from its skew part and its
+/// trace by `atan2`: exact for the micro-radian rotations a trial moves a
+/// station by, where `acos` of the trace (nalgebra's `scaled_axis`) loses
+/// every digit or gives NaN.
+fn rotation_vector(r: &Rotation3<f64>) -> Vector3<f64> {
+    let m = r.matrix();
+    let v = Vector3::new(
+        m[(2, 1)] - m[(1, 2)],
+        m[(0, 2)] - m[(2, 0)],
+        m[(1, 0)] - m[(0, 1)],
+    ) / 2.0;
+    let sin = v.norm();
+    if sin == 0.0 {
+        return v;
+    }
+    v * (sin.atan2((m.trace() - 1.0) / 2.0) / sin)
 }
 
 /// The campaign as trial `t` draws it.
@@ -212,7 +244,7 @@ pub fn run(net: &Network, repeated: &Repeated, free: &[bool], s: &Settings) -> R
     let mut stable = false;
     // Shifted sums: the nominal value taken off first, so that positions
     // of tens of metres keep their micrometres in the variance.
-    let centre: Vec<f64> = outs.iter().map(|o| value(&nominal, o)).collect();
+    let centre: Vec<f64> = outs.iter().map(|o| value(&nominal, &nominal, o)).collect();
     while trials < s.max_trials {
         let m = s.block_trials.min(s.max_trials - trials);
         let values: Vec<Vec<f64>> = (trials..trials + m)
@@ -224,7 +256,7 @@ pub fn run(net: &Network, repeated: &Repeated, free: &[bool], s: &Settings) -> R
                 Ok(outs
                     .iter()
                     .zip(&centre)
-                    .map(|(o, c)| value(&sol, o) - c)
+                    .map(|(o, c)| value(&sol, &nominal, o) - c)
                     .collect())
             })
             .collect::<Result<_>>()?;
@@ -305,6 +337,19 @@ pub fn run(net: &Network, repeated: &Repeated, free: &[bool], s: &Settings) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Regression: a station's rotation away from the nominal one came
+    /// out NaN in some trials (`acos` of a trace just above 3).
+    #[test]
+    fn rotation_vector_of_micro_and_large_rotations() {
+        let axis = Vector3::new(1.0, -2.0, 3.0).normalize();
+        for angle in [1e-9, 3e-7, 0.5, 3.0] {
+            let r = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle);
+            let w = rotation_vector(&r);
+            assert!((w - axis * angle).norm() <= 1e-12 * angle, "{angle}: {w}");
+        }
+        assert_eq!(rotation_vector(&Rotation3::identity()), Vector3::zeros());
+    }
 
     /// 7.9.2's example: u = 0.0123 to two digits is 12 × 10⁻³, δ = 0.0005.
     #[test]

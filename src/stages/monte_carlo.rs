@@ -22,8 +22,10 @@
 //! `u_ratio` = `u_mc / u_linear`, `determined`), `stations` and `targets`
 //! (`station`/`target`, `x_mm`, `y_mm`, `z_mm`, `u_x_mm`, `u_y_mm`,
 //! `u_z_mm`, `u_mm` — the root mean square of the three, what the linear
-//! `std_mm` reports —, `u_linear_mm`, `u_ratio`; the station that defines
-//! the frame has none), `trials` (per block: `block`, `trials`,
+//! `std_mm` reports —, `u_linear_mm`, `u_ratio`; the stations also
+//! `u_rotation_urad` — the root mean square of the three components of
+//! the rotation away from the nominal pose —, `u_rotation_linear_urad`,
+//! `u_rotation_ratio`; the station that defines the frame has none), `trials` (per block: `block`, `trials`,
 //! `worst_ratio` — the largest `2s/δ`, ≤ 1 when stable —, `stable`), and
 //! two figures: `coverage.svg`, the determined coefficients' Monte Carlo
 //! coverage intervals beside the linear `±1.96 u` (in units of `u`), and
@@ -155,6 +157,9 @@ impl StageKind for MonteCarloStage {
                 "u_mm",
                 "u_linear_mm",
                 "u_ratio",
+                "u_rotation_urad",
+                "u_rotation_linear_urad",
+                "u_rotation_ratio",
             ]),
             "targets" => Some(&[
                 "target",
@@ -363,6 +368,7 @@ fn place_table(
     ids: &[String],
     places: &BTreeMap<usize, [Estimate; 3]>,
     linear: impl Fn(usize) -> Option<f64>,
+    extra: Vec<(&str, Vec<Option<f64>>)>,
 ) -> Result<DataFrame> {
     let rows: Vec<(&usize, &[Estimate; 3])> = places.iter().collect();
     let u_rms: Vec<f64> = rows
@@ -383,25 +389,63 @@ fn place_table(
     for (k, col) in U_XYZ.iter().enumerate() {
         b = b.f64(col, rows.iter().map(|(_, e)| e[k].u).collect());
     }
-    b.f64("u_mm", u_rms.clone())
+    b = b
+        .f64("u_mm", u_rms.clone())
         .opt_f64("u_linear_mm", lin.clone())
         .opt_f64(
             "u_ratio",
             u_rms.iter().zip(&lin).map(|(u, l)| ratio(*u, *l)).collect(),
-        )
-        .build()
+        );
+    for (col, values) in extra {
+        b = b.opt_f64(col, values);
+    }
+    b.build()
 }
 
+/// Besides the positions, each station's rotation: the root mean square
+/// of its three components' Monte Carlo uncertainty beside the linear one.
 fn stations_table(net: &Network, cal: &Calibration, o: &Outcome) -> Result<DataFrame> {
-    place_table("station", &net.stations, &by_place(o, true), |s| {
-        cal.pose_std[s].map(|p| p.0)
-    })
+    let places = by_place(o, true);
+    let mut rotation: BTreeMap<usize, f64> = BTreeMap::new();
+    for (out, e) in o.outputs.iter().zip(&o.estimates) {
+        if let Output::StationRotation(s, _) = out {
+            *rotation.entry(*s).or_default() += e.u * e.u / 3.0;
+        }
+    }
+    let mc: Vec<Option<f64>> = places
+        .keys()
+        .map(|s| rotation.get(s).map(|v| v.sqrt() * 1e6))
+        .collect();
+    let lin: Vec<Option<f64>> = places
+        .keys()
+        .map(|&s| cal.pose_std[s].map(|p| p.1 * 1e6))
+        .collect();
+    let ratios = mc
+        .iter()
+        .zip(&lin)
+        .map(|(u, l)| u.and_then(|u| ratio(u, *l)))
+        .collect();
+    place_table(
+        "station",
+        &net.stations,
+        &places,
+        |s| cal.pose_std[s].map(|p| p.0),
+        vec![
+            ("u_rotation_urad", mc),
+            ("u_rotation_linear_urad", lin),
+            ("u_rotation_ratio", ratios),
+        ],
+    )
 }
 
 fn targets_table(net: &Network, cal: &Calibration, o: &Outcome) -> Result<DataFrame> {
-    place_table("target", &net.targets, &by_place(o, false), |t| {
-        cal.point_std.get(&t).copied()
-    })
+    place_table(
+        "target",
+        &net.targets,
+        &by_place(o, false),
+        |t| cal.point_std.get(&t).copied(),
+        Vec::new(),
+    )
 }
 
 fn trials_table(o: &Outcome) -> Result<DataFrame> {

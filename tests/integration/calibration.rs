@@ -266,9 +266,9 @@ fn a_large_network_calibrates_by_bundle_and_distance_objectives_are_refused_with
 /// Issue 14: where the problem is nearly linear — the corner, both faces,
 /// the paper's noise — GUM-S1 Monte Carlo through the nonlinear bundle
 /// adjustment and the linear propagation agree within 10 % for every
-/// determined coefficient, station and reflector; the 95 % intervals are
-/// the normal ±1.96 u; and the trials give the same numbers on any thread
-/// count.
+/// determined coefficient, station position and rotation, and reflector;
+/// the 95 % intervals are the normal ±1.96 u; and the trials give the
+/// same numbers on any thread count.
 #[test]
 fn monte_carlo_and_linear_propagation_agree_on_the_corner() {
     use ltcal::stages::monte_carlo::MonteCarloStage;
@@ -301,8 +301,10 @@ fn monte_carlo_and_linear_propagation_agree_on_the_corner() {
     use ltcal::calibrate::monte_carlo::Output;
     let determined = cal.estimate.determined();
     let mut params = 0;
-    // Positions: the linear σ is the RMS of the three coordinates'.
+    // Positions and rotations: the linear σ is the RMS of the three
+    // components'.
     let mut var = std::collections::BTreeMap::<(bool, usize), f64>::new();
+    let mut rotation = std::collections::BTreeMap::<usize, f64>::new();
     for (out, e) in mc.outputs.iter().zip(&mc.estimates) {
         match out {
             Output::Param(i) if determined[*i] => {
@@ -312,6 +314,7 @@ fn monte_carlo_and_linear_propagation_agree_on_the_corner() {
             }
             Output::Param(_) => continue,
             Output::Station(s, _) => *var.entry((true, *s)).or_default() += e.u * e.u / 3.0,
+            Output::StationRotation(s, _) => *rotation.entry(*s).or_default() += e.u * e.u / 3.0,
             Output::Target(t, _) => *var.entry((false, *t)).or_default() += e.u * e.u / 3.0,
         }
         let (lo, hi) = ((e.mean - e.low) / e.u, (e.high - e.mean) / e.u);
@@ -330,6 +333,11 @@ fn monte_carlo_and_linear_propagation_agree_on_the_corner() {
         };
         let ratio = v.sqrt() / linear;
         assert!((0.9..1.1).contains(&ratio), "{station} {i}: {ratio}");
+    }
+    assert_eq!(rotation.len(), 4, "free stations");
+    for (s, v) in rotation {
+        let ratio = v.sqrt() / cal.pose_std[s].unwrap().1;
+        assert!((0.9..1.1).contains(&ratio), "station {s} rotation: {ratio}");
     }
 }
 
