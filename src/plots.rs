@@ -618,7 +618,14 @@ fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
     let (plot, bar) = area.split_horizontally(area.dim_in_pixel().0 as i32 - 85);
     // Cells centred on the grid values, as wide as the spacing.
     let half = |v: &[f64], k: usize| {
-        let left = if k > 0 { v[k] - v[k - 1] } else { v[1] - v[0] };
+        // A lone value gets a cell of width 1.
+        let left = if k > 0 {
+            v[k] - v[k - 1]
+        } else if v.len() > 1 {
+            v[1] - v[0]
+        } else {
+            1.0
+        };
         let right = if k + 1 < v.len() {
             v[k + 1] - v[k]
         } else {
@@ -880,7 +887,10 @@ pub fn coverage_intervals(title: &str, rows: &[CoverageRow]) -> Result<String> {
                 bar
             }))
             .map_err(err)?
-            .label("linear: ±1.96 u")
+            .label(format!(
+                "linear: ±{:.2} u",
+                rows.first().map_or(1.96, |r| r.linear_u)
+            ))
             .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], linear.filled()));
         chart
             .draw_series(rows.iter().rev().enumerate().map(|(i, r)| {

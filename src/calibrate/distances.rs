@@ -33,7 +33,7 @@ use crate::kinematics::nominal_jacobian;
 use crate::solver::LevenbergMarquardt;
 use anyhow::{Result, anyhow, bail};
 use argmin::core::{Error as ArgminError, Jacobian, Operator};
-use nalgebra::{DMatrix, DVector, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 
@@ -470,8 +470,13 @@ pub fn calibrate(
 
 /// One term's row of `A`: its residual (µm) per unit standard-normal draw
 /// of each source of noise it touches, as `(source, ∂r/∂ξ)`. Sources:
-/// reading `i`'s az, el and d at `3i..3i+3`, then each gauge length, then
-/// each reference coordinate (`3k..3k+3` after the gauges).
+/// three per reflector seen in a view — its mean point's noise, whitened
+/// (`3·s..3·s+3`, `s` counting the (view, reflector) pairs) —, then each
+/// gauge length, then each reference coordinate (`3k..3k+3` after the
+/// gauges). A term reads its readings only through such means, so three
+/// whitened sources per mean carry exactly the covariance of all its
+/// readings' az, el and d, and a row holds at most 12 entries (+ 6 for
+/// references) however often a reflector was read.
 type NoiseRow = Vec<(usize, f64)>;
 
 /// `A`, term by term, at `params`: a term touches only the readings of its
@@ -483,36 +488,42 @@ fn noise_rows(
     params: &ErrorParams,
 ) -> Vec<NoiseRow> {
     let eval = params.evaluator();
-    let n_obs = net.obs.len();
-    let reference_col = |k: usize| 3 * n_obs + net.gauge.len() + 3 * k;
-    let pts: Vec<BTreeMap<usize, Vector3<f64>>> = views
+    // Per view and reflector: the mean point, a square root `L` of its
+    // covariance — each reading moved by `J(q)·diag(σ)·ξ` (Eq. 1
+    // linearised at the reading), `C = Σ J·diag(σ²)·Jᵀ / n²` — and its
+    // source index.
+    let mut n_means = 0;
+    let means: Vec<BTreeMap<usize, Mean>> = views
         .iter()
         .map(|view| {
             view.targets
                 .iter()
                 .map(|(&t, idx)| {
-                    let sum: Vector3<f64> = idx
-                        .iter()
-                        .map(|&i| eval.point(net.obs[i].q, &net.obs[i].links))
-                        .sum();
-                    (t, sum / idx.len() as f64)
+                    let n = idx.len() as f64;
+                    let mut sum = Vector3::zeros();
+                    let mut cov = Matrix3::zeros();
+                    for &i in idx {
+                        let o = &net.obs[i];
+                        sum += eval.point(o.q, &o.links);
+                        let j = nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma);
+                        cov += j * j.transpose();
+                    }
+                    n_means += 1;
+                    (t, (sum / n, square_root(&(cov / (n * n))), n_means - 1))
                 })
                 .collect()
         })
         .collect();
-    // `sign · ∂dᵛ_kl`: a view's point is the mean of its readings, each
-    // moved by `J(q)·diag(σ)·ξ` (Eq. 1 linearised at the reading).
+    let reference_col = |k: usize| 3 * n_means + net.gauge.len() + 3 * k;
+    let gauge_col = |g: usize| 3 * n_means + g;
+    // `sign · ∂dᵛ_kl` through the two means' whitened sources.
     let distance = |row: &mut NoiseRow, v: usize, k: usize, l: usize, sign: f64| {
-        let u = (pts[v][&k] - pts[v][&l]).normalize();
+        let u = (means[v][&k].0 - means[v][&l].0).normalize();
         for (t, s) in [(k, 1.0), (l, -1.0)] {
-            let idx = &views[v].targets[&t];
-            let w = sign * s * 1e3 / idx.len() as f64;
-            for &i in idx {
-                let o = &net.obs[i];
-                let g = nominal_jacobian(o.reading).transpose() * u;
-                for c in 0..3 {
-                    row.push((3 * i + c, w * g[c] * o.sigma[c]));
-                }
+            let (_, root, source) = &means[v][&t];
+            let g = root.transpose() * u * (sign * s * 1e3);
+            for c in 0..3 {
+                row.push((3 * source + c, g[c]));
             }
         }
     };
@@ -528,7 +539,7 @@ fn noise_rows(
                 Term::Against { v, k, l, of, .. } => {
                     distance(&mut row, v, k, l, 1.0);
                     match of {
-                        Length::Gauge(g) => row.push((3 * n_obs + g, -1e3 * net.gauge[g].u_mm)),
+                        Length::Gauge(g) => row.push((gauge_col(g), -1e3 * net.gauge[g].u_mm)),
                         Length::References => {
                             if let (Some((a, ua)), Some((b, ub))) =
                                 (net.references[k], net.references[l])
@@ -546,6 +557,17 @@ fn noise_rows(
             row
         })
         .collect()
+}
+
+/// A reflector's mean point in one view, a square root of its covariance
+/// and the index of its three whitened noise sources.
+type Mean = (Vector3<f64>, Matrix3<f64>, usize);
+
+/// A square root `L` of a covariance, `L·Lᵀ = C` (by its eigenvectors:
+/// a noise-free reading gives a singular `C`, which Cholesky refuses).
+fn square_root(c: &Matrix3<f64>) -> Matrix3<f64> {
+    let e = c.symmetric_eigen();
+    e.eigenvectors * Matrix3::from_diagonal(&e.eigenvalues.map(|l| l.max(0.0).sqrt()))
 }
 
 /// The covariance of `z`, the fit's determined directions, from the noise

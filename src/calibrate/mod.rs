@@ -369,7 +369,8 @@ pub struct FitSummary {
     /// words, `nothing-to-estimate` or `irls-converged`.
     pub stop: &'static str,
     /// Where the standard uncertainties come from: `stated-noise` (the
-    /// bundle's inverse normal matrix, weighted by the stated σ),
+    /// bundle's inverse normal matrix, weighted by the stated σ, scaled by
+    /// `χ²/dof` when that exceeds 1),
     /// `sandwich` (Eq. 13–15 in L2) or `sandwich-l1` (in L1), both from the
     /// stated noise of the readings, gauge and references.
     pub std_from: &'static str,

@@ -42,7 +42,8 @@ pub struct Settings {
     pub block_trials: usize,
     /// Significant digits the standard uncertainties must be stable to.
     pub digits: u32,
-    /// Trials at most; the outcome says whether the results were stable.
+    /// Trials at most, in whole blocks; the outcome says whether the
+    /// results were stable.
     pub max_trials: usize,
     /// Coverage probability `p` of the intervals.
     pub coverage: f64,
@@ -62,8 +63,13 @@ pub const MAX_BLOCK_VALUES: usize = 50_000_000;
 /// The smallest block that still resolves a coverage interval of
 /// probability `p` (7.9.4 b: `J = ⌈100/(1 − p)⌉`).
 pub fn min_block_trials(coverage: f64) -> usize {
-    (100.0 / (1.0 - coverage)).ceil() as usize
+    // Less a hair: 100/(1 − 0.9) is 1000.0000000000001 in floating point.
+    (100.0 / (1.0 - coverage) - 1e-9).ceil() as usize
 }
+
+/// The most blocks a run may hold statistics for (`max_trials /
+/// block_trials`): each keeps four numbers per output.
+pub const MAX_BLOCKS: usize = 1000;
 
 /// What an output is.
 #[derive(Clone, Debug, PartialEq)]
@@ -229,6 +235,14 @@ pub fn run(net: &Network, repeated: &Repeated, free: &[bool], s: &Settings) -> R
             min_block_trials(s.coverage)
         );
     }
+    if s.max_trials / s.block_trials.max(1) > MAX_BLOCKS {
+        bail!(
+            "{} trials in blocks of {} would be {} blocks (at most {MAX_BLOCKS}): raise `block_trials` or lower `max_trials`",
+            s.max_trials,
+            s.block_trials,
+            s.max_trials / s.block_trials.max(1)
+        );
+    }
     if s.block_trials.saturating_mul(n_q) > MAX_BLOCK_VALUES {
         bail!(
             "{} trials × {n_q} outputs would hold {} values per block (at most {MAX_BLOCK_VALUES}): lower `block_trials`",
@@ -245,8 +259,10 @@ pub fn run(net: &Network, repeated: &Repeated, free: &[bool], s: &Settings) -> R
     // Shifted sums: the nominal value taken off first, so that positions
     // of tens of metres keep their micrometres in the variance.
     let centre: Vec<f64> = outs.iter().map(|o| value(&nominal, &nominal, o)).collect();
-    while trials < s.max_trials {
-        let m = s.block_trials.min(s.max_trials - trials);
+    // Whole blocks only: a short last block would pull the averaged
+    // interval ends inwards (its extreme order statistics are nearer).
+    while trials + s.block_trials <= s.max_trials {
+        let m = s.block_trials;
         let values: Vec<Vec<f64>> = (trials..trials + m)
             .into_par_iter()
             .map(|t| {
@@ -273,7 +289,7 @@ pub fn run(net: &Network, repeated: &Repeated, free: &[bool], s: &Settings) -> R
                 .collect(),
         );
         let h = per_block.len();
-        let worst_ratio = if h < 2 || m < s.block_trials {
+        let worst_ratio = if h < 2 {
             f64::NAN
         } else {
             (0..n_q)
@@ -362,6 +378,7 @@ mod tests {
     #[test]
     fn a_block_resolves_the_coverage_it_is_asked_for() {
         assert_eq!(min_block_trials(0.95), 2000);
+        assert_eq!(min_block_trials(0.9), 1000);
         assert_eq!(min_block_trials(0.99), 10_000);
     }
 

@@ -246,7 +246,7 @@ pub fn fit_once(j: &BlockJacobian, r: &DVector<f64>, c: &Signature) -> Result<Fi
 /// ridge of 1e-10 of the columns' size before projection: what the base
 /// model absorbs entirely (to round-off) gets β = 0, not a huge β fitting
 /// round-off. Also the solution's covariance, the inverse of that matrix
-/// (zero where it is singular).
+/// (NaN where it is singular: no uncertainty to claim).
 fn lstsq(gram: &DMatrix<f64>, rhs: &DVector<f64>, scale: f64) -> (DVector<f64>, DMatrix<f64>) {
     let mut a = gram.clone();
     for i in 0..a.nrows() {
@@ -255,7 +255,8 @@ fn lstsq(gram: &DMatrix<f64>, rhs: &DVector<f64>, scale: f64) -> (DVector<f64>, 
     let n = gram.nrows();
     a.cholesky()
         .map(|c| (c.solve(rhs), c.inverse()))
-        .unwrap_or_else(|| (DVector::zeros(n), DMatrix::zeros(n, n)))
+        // Not solvable: no estimate, and no uncertainty to claim for it.
+        .unwrap_or_else(|| (DVector::zeros(n), DMatrix::from_element(n, n, f64::NAN)))
 }
 
 /// `N⁻¹·Jᵀ·x` over the blocks `keep` admits, refined once from the

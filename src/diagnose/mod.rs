@@ -437,7 +437,13 @@ fn magnitude_u(
             (up - down) / (2.0 * h)
         }),
     );
-    (g.dot(&(cov * &g)) * var_factor).max(0.0).sqrt()
+    let var = g.dot(&(cov * &g)) * var_factor;
+    // NaN (a fit with no covariance) stays NaN: `max` would make it 0.
+    if var.is_nan() {
+        f64::NAN
+    } else {
+        var.max(0.0).sqrt()
+    }
 }
 
 /// Each effect member's magnitude uncertainty from the joint fit of the

@@ -242,7 +242,7 @@ pub fn verdict(d: &Diagnosis) -> String {
         )
     } else {
         format!(
-            "{} at {}{}: {:.3} ± {:.3} {} (standard uncertainty), {:.1} % of the held-out residual explained",
+            "{} at {}{}: {:.3}{} {}, {:.1} % of the held-out residual explained",
             b.effect,
             b.place,
             if b.detail.is_empty() {
@@ -251,10 +251,20 @@ pub fn verdict(d: &Diagnosis) -> String {
                 format!(" ({})", b.detail)
             },
             b.magnitude,
-            b.magnitude_u,
+            plus_minus(b.magnitude_u),
             b.unit,
             b.score
         )
+    }
+}
+
+/// ` ± u` (a standard uncertainty, to three decimals), or nothing when
+/// there is none.
+fn plus_minus(u: f64) -> String {
+    if u.is_finite() {
+        format!(" ± {u:.3}")
+    } else {
+        String::new()
     }
 }
 
@@ -371,11 +381,7 @@ pub fn report(d: &Diagnosis) -> String {
             r.effect,
             r.place,
             r.magnitude,
-            if r.magnitude_u.is_finite() {
-                format!(" ± {:.3}", r.magnitude_u)
-            } else {
-                String::new()
-            },
+            plus_minus(r.magnitude_u),
             r.unit,
             r.score,
             if r.significant { "yes" } else { "no" },

@@ -214,6 +214,14 @@ impl StageKind for MeasurementUncertaintyStage {
                     name,
                     format!("`{name}` must be [low, high] with low < high, got {r:?}"),
                 ));
+            } else if self.step_mm > 0.0 && (r[1] - r[0]) < self.step_mm {
+                out.push(Invalid::new(
+                    name,
+                    format!(
+                        "`{name}` must span at least one step (step_mm = {}) so that the figure has two grid points, got {r:?}",
+                        self.step_mm
+                    ),
+                ));
             } else if self.step_mm > 0.0 && (r[1] - r[0]) / self.step_mm >= MAX_CELLS as f64 {
                 out.push(Invalid::new(
                     name,

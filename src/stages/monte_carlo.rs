@@ -12,7 +12,7 @@
 //! fixed = []
 //! block_trials = 10000               # M, trials per block (≥ 100/(1 − coverage))
 //! digits = 1                         # significant digits the uncertainties must be stable to
-//! max_trials = 100000                # the outcome says whether they were
+//! max_trials = 100000                # whole blocks only; the outcome says whether they were
 //! coverage = 0.95
 //! seed = 0
 //! ```
@@ -25,13 +25,19 @@
 //! `std_mm` reports —, `u_linear_mm`, `u_ratio`; the stations also
 //! `u_rotation_urad` — the root mean square of the three components of
 //! the rotation away from the nominal pose —, `u_rotation_linear_urad`,
-//! `u_rotation_ratio`; the station that defines the frame has none), `trials` (per block: `block`, `trials`,
-//! `worst_ratio` — the largest `2s/δ`, ≤ 1 when stable —, `stable`), and
-//! two figures: `coverage.svg`, the determined coefficients' Monte Carlo
-//! coverage intervals beside the linear `±1.96 u` (in units of `u`), and
-//! `ellipses.svg`, the reflectors in plan with their 95 % uncertainty
-//! ellipses from the network (the bundle's linear covariance of x, y,
-//! magnified) and the stations.
+//! `u_rotation_ratio`; the station that defines the frame has none),
+//! `trials` (per block: `block`, `trials`, `worst_ratio` — the largest
+//! `2s/δ`, ≤ 1 when stable —, `stable`), and two figures: `coverage.svg`,
+//! the determined coefficients' Monte Carlo coverage intervals beside the
+//! linear `±z·u` (z = 1.96 at 95 %), in units of `u`, and `ellipses.svg`,
+//! the reflectors in plan with their 95 % uncertainty ellipses from the
+//! network (the bundle's linear covariance of x, y, magnified) and the
+//! stations.
+//!
+//! The linear uncertainties are `calibrate`'s: the stated noise, scaled
+//! up by `χ²/dof` when the residuals exceed it; the trials draw the stated
+//! noise alone, so a campaign whose χ²/dof is above 1 shows `u_ratio`
+//! below 1 by `1/√(χ²/dof)` for that reason alone.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::bundle::Repeated;
@@ -204,6 +210,14 @@ impl StageKind for MonteCarloStage {
             out.push(Invalid::new(
                 "max_trials",
                 "`max_trials` must be at least `block_trials`",
+            ));
+        } else if self.max_trials / self.block_trials.max(1) > monte_carlo::MAX_BLOCKS {
+            out.push(Invalid::new(
+                "max_trials",
+                format!(
+                    "`max_trials` allows at most {} blocks of `block_trials`: raise `block_trials` or lower `max_trials`",
+                    monte_carlo::MAX_BLOCKS
+                ),
             ));
         }
         out

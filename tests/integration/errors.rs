@@ -88,6 +88,18 @@ fn mesh_step_of_zero() {
     assert_located(&err, "4:39", "`x.step` must not be zero");
 }
 
+/// Regression: an axis narrower than one step gave the uncertainty field a
+/// single grid point, and the heat map indexed its second one (a panic).
+#[test]
+fn uncertainty_field_axis_narrower_than_a_step() {
+    let (code, err) = run_bad(
+        "[stages.c]\nkind = \"simulate_campaign\"\nname = \"c\"\nlayout = { kind = \"corner\" }\n\n\
+         [stages.f]\nkind = \"measurement_uncertainty\"\ninputs = { campaign = \"c\" }\nz_mm = [0.0, 500.0]\n",
+    );
+    assert_eq!(code, 2);
+    assert_located(&err, "9:8", "`z_mm` must span at least one step");
+}
+
 #[test]
 fn toml_syntax_error() {
     let (code, err) = run_bad("[stages.a\nkind = \"mesh\"\n");
