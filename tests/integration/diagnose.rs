@@ -46,11 +46,15 @@ fn single_effect(truth: &serde_json::Value) -> bool {
     truth["blunders"].is_null() && truth["effects"].as_array().is_none_or(|e| e.len() == 1)
 }
 
+/// Each single-effect example named right, where the truth says, with a
+/// magnitude within 25 % of the truth's and within 3 of its stated
+/// standard uncertainties.
 #[test]
 fn every_single_effect_example_campaign_is_named_right() {
     let files = examples();
     assert_eq!(files.len(), 13);
     let mut checked = 0;
+    let (mut sum_z2, mut with_truth) = (0.0, 0);
     for dir in files {
         let truth: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap())
@@ -78,6 +82,16 @@ fn every_single_effect_example_campaign_is_named_right() {
                 "{effect}: {} vs {m}",
                 best.magnitude
             );
+            // Issue 14: the stated uncertainty covers the truth.
+            let z = (best.magnitude - m) / best.magnitude_u;
+            assert!(
+                z.abs() < 3.0,
+                "{effect}: {} ± {} vs {m}",
+                best.magnitude,
+                best.magnitude_u
+            );
+            sum_z2 += z * z;
+            with_truth += 1;
         }
         if effect != "none" {
             assert!(
@@ -87,6 +101,11 @@ fn every_single_effect_example_campaign_is_named_right() {
         }
     }
     assert_eq!(checked, 9);
+    // Five magnitudes with a comparable truth (measured: Σz² = 7.3, z from
+    // −1.9 to 0.8): their squared errors over u² add up as a χ² with 5
+    // degrees of freedom, below its 99.9 % point.
+    assert_eq!(with_truth, 5);
+    assert!(sum_z2 < 20.52, "Σz² = {sum_z2}");
 }
 
 /// What a `where` of truth.json is called in `diagnosis.csv`.
