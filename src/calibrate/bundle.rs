@@ -155,6 +155,10 @@ struct Bundle<'a> {
     use_references: bool,
     /// Where the solver's last linearisation is kept, when asked.
     last: Option<&'a Mutex<Option<Linearised>>>,
+    /// Residuals already computed at a point (the start, whose residuals
+    /// the fit reports as "before"): the solver's first evaluation there
+    /// reads them instead of recomputing.
+    known: Option<(&'a DVector<f64>, &'a DVector<f64>)>,
 }
 
 /// The linearisation the solver built last. Its last iteration linearises
@@ -422,7 +426,10 @@ impl Operator for Bundle<'_> {
     type Param = DVector<f64>;
     type Output = DVector<f64>;
     fn apply(&self, x: &DVector<f64>) -> Result<DVector<f64>, ArgminError> {
-        Ok(self.residuals(x))
+        Ok(match self.known {
+            Some((at, r)) if at == x => r.clone(),
+            _ => self.residuals(x),
+        })
     }
 }
 
@@ -525,6 +532,7 @@ impl Setup {
             weights: &self.weights,
             use_references: self.use_references,
             last: None,
+            known: None,
         }
     }
 }
@@ -612,15 +620,16 @@ pub fn calibrate(
     let basis = det.basis().clone();
     let layout = setup.layout(net, basis.ncols());
     let last = Mutex::new(None);
+    let x0 = setup.initial(&layout);
+    let r0 = setup.problem(net, start, &basis, &layout).residuals(&x0);
     let problem = Bundle {
         last: Some(&last),
+        known: Some((&x0, &r0)),
         ..setup.problem(net, start, &basis, &layout)
     };
-    let x0 = setup.initial(&layout);
-    let r0 = problem.residuals(&x0);
     let fit = LevenbergMarquardt::new()
         .with_initial_lambda(INITIAL_LAMBDA)
-        .and_then(|lm| lm.minimize(problem, x0, settings.max_iters))
+        .and_then(|lm| lm.minimize(problem, x0.clone(), settings.max_iters))
         .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?;
     let problem = setup.problem(net, start, &basis, &layout);
     let x = fit.x;
@@ -659,17 +668,26 @@ pub fn calibrate(
             })
         })
         .collect();
+    // Each position's covariance is its own: in parallel.
+    let estimated: Vec<(usize, Vector3<f64>, Matrix3<f64>)> = layout
+        .point
+        .par_iter()
+        .enumerate()
+        .filter_map(|(t, off)| {
+            let (o, dense) = (*off)?;
+            let cov = if dense {
+                Matrix3::from_fn(|i, j| cov_a[(o + i, o + j)])
+            } else {
+                factor.point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
+            };
+            Some((t, problem.point(&x, t), cov))
+        })
+        .collect();
     let mut points = BTreeMap::new();
     let mut point_std = BTreeMap::new();
     let mut point_cov = BTreeMap::new();
-    for (t, off) in layout.point.iter().enumerate() {
-        let Some((o, dense)) = off else { continue };
-        points.insert(t, problem.point(&x, t));
-        let cov = if *dense {
-            Matrix3::from_fn(|i, j| cov_a[(o + i, o + j)])
-        } else {
-            factor.point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
-        };
+    for (t, p, cov) in estimated {
+        points.insert(t, p);
         point_std.insert(t, (cov.trace() / 3.0).max(0.0).sqrt());
         point_cov.insert(t, cov);
     }

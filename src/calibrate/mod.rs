@@ -34,6 +34,7 @@ use crate::kinematics::{Face, Joints, Reading};
 use crate::noise::Noise;
 use anyhow::{Result, anyhow, bail};
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 
@@ -414,7 +415,7 @@ pub fn reading_residuals(
 ) -> Vec<ReadingResidual> {
     let eval = params.evaluator();
     net.obs
-        .iter()
+        .par_iter()
         .enumerate()
         .filter_map(|(i, o)| {
             let x = points.get(&o.target)?;

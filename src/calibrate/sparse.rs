@@ -153,9 +153,18 @@ impl BlockJacobian {
     /// `out −= J·Y` for the `k` columns of `Y` (n × k) and `out` (m × k),
     /// both row-major.
     pub fn sub_mul_rows(&self, y: &[f64], k: usize, out: &mut [f64]) {
-        for (b, blk) in self.blocks.iter().enumerate() {
-            self.block_sub_mul_rows(b, y, k, &mut out[blk.row * k..(blk.row + blk.rows) * k]);
+        // Each block writes its own rows: in parallel, the same numbers.
+        let mut rows: Vec<&mut [f64]> = Vec::with_capacity(self.blocks.len());
+        let mut rest = out;
+        for blk in &self.blocks {
+            let (head, tail) = rest.split_at_mut(blk.rows * k);
+            rows.push(head);
+            rest = tail;
         }
+        rows.into_par_iter()
+            .enumerate()
+            .with_min_len(256)
+            .for_each(|(b, o)| self.block_sub_mul_rows(b, y, k, o));
     }
 
     /// `out −= J_b·Y`: block `b`'s rows only (`out` is rows × k).
@@ -638,26 +647,32 @@ impl Factor {
             }
         }
         let (xa, xx) = x.split_at_mut(n_a * k);
-        for (i, p) in self.points.iter().enumerate() {
-            let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
-            let out = &mut xx[3 * i * k..(3 * i + 3) * k];
-            for a in 0..3 {
-                let inv = [p.inv[(a, 0)], p.inv[(a, 1)], p.inv[(a, 2)]];
-                for col in 0..k {
-                    out[a * k + col] =
-                        inv[0] * rx[col] + inv[1] * rx[k + col] + inv[2] * rx[2 * k + col];
-                }
-            }
-            for (row, &c) in p.cols.iter().enumerate() {
-                let xc = &xa[c * k..(c + 1) * k];
+        let xa = &*xa;
+        // Each position's back-substitution is its own: in parallel, the
+        // same numbers.
+        let positions = xx.par_chunks_mut(3 * k).zip(self.points.par_iter());
+        positions
+            .enumerate()
+            .with_min_len(64)
+            .for_each(|(i, (out, p))| {
+                let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
                 for a in 0..3 {
-                    let w = p.w[(row, a)];
-                    for (o, v) in out[a * k..(a + 1) * k].iter_mut().zip(xc) {
-                        *o -= w * v;
+                    let inv = [p.inv[(a, 0)], p.inv[(a, 1)], p.inv[(a, 2)]];
+                    for col in 0..k {
+                        out[a * k + col] =
+                            inv[0] * rx[col] + inv[1] * rx[k + col] + inv[2] * rx[2 * k + col];
                     }
                 }
-            }
-        }
+                for (row, &c) in p.cols.iter().enumerate() {
+                    let xc = &xa[c * k..(c + 1) * k];
+                    for a in 0..3 {
+                        let w = p.w[(row, a)];
+                        for (o, v) in out[a * k..(a + 1) * k].iter_mut().zip(xc) {
+                            *o -= w * v;
+                        }
+                    }
+                }
+            });
         x
     }
 
