@@ -449,8 +449,12 @@ fn magnitude_u(
 /// Each effect member's magnitude uncertainty from the joint fit of the
 /// whole set at `st` (its columns in member order); `None` for blunders.
 fn member_u(st: &State, members: &[Member], rows: &[MemberRow]) -> Vec<Option<f64>> {
+    if st.members.ncols() == 0 {
+        return vec![None; members.len()];
+    }
+    // One joint fit: its covariance, and the χ² it still explains.
     let fit = st.lm.fit(&st.members);
-    let var_factor = ((st.lm.chi2() - st.members_chi2()) / st.dof() as f64).max(1.0);
+    let var_factor = ((st.lm.chi2() - fit.delta_chi2) / st.dof() as f64).max(1.0);
     let mut offset = 0;
     members
         .iter()

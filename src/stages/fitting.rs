@@ -50,10 +50,11 @@ pub fn model(shapes: &BTreeMap<ParamId, Shape>) -> Result<ErrorModel, Invalid> {
 }
 
 /// Start values: zero, or those of the optional `start` input where it has
-/// the same coefficient.
-pub fn start(model: &ErrorModel, inputs: &StageInputs) -> Result<ErrorParams> {
+/// the same coefficient (zero throughout without inputs: a stage called
+/// from the library).
+pub fn start(model: &ErrorModel, inputs: Option<&StageInputs>) -> Result<ErrorParams> {
     let mut start = ErrorParams::zero(model);
-    if let Some(t) = inputs.optional("start") {
+    if let Some(t) = inputs.and_then(|i| i.optional("start")) {
         let given = schema::params_from(&t)?;
         let coefs = start.coefs().to_vec();
         for (c, v) in coefs.iter().zip(start.values_mut()) {

@@ -113,7 +113,7 @@ impl StageKind for IdentifyStage {
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let readings = schema::readings_from(&inputs.get("readings")?)?;
         let model = fitting::model(&self.shapes).map_err(|e| anyhow::anyhow!(e.message))?;
-        let start = fitting::start(&model, inputs)?;
+        let start = fitting::start(&model, Some(inputs))?;
         let free = fitting::free(&start, &self.fixed);
         let obs: Vec<KnownPoint> = readings
             .iter()

@@ -103,10 +103,7 @@ impl MonteCarloStage {
     ) -> Result<(Network, Calibration, Outcome)> {
         let net = Network::from_campaign(c)?;
         let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
-        let start = match inputs {
-            Some(i) => fitting::start(&model, i)?,
-            None => crate::error_model::ErrorParams::zero(&model),
-        };
+        let start = fitting::start(&model, inputs)?;
         let free = fitting::free(&start, &self.fixed);
         let settings = calibrate::Settings {
             objective: Objective::Bundle,
