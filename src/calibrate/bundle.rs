@@ -216,8 +216,9 @@ impl<'a> Bundle<'a> {
             .collect()
     }
 
-    /// One reading's residuals and, when `jac`, its Jacobian blocks. With
-    /// `design`, the Jacobian is that of a consistent network — the
+    /// One reading's residuals and, given `jac` (where its error-parameter
+    /// rows go), its Jacobian blocks. With `design`, the Jacobian is that of
+    /// a consistent network — the
     /// reading's predicted point taken equal to its corrected one — so that
     /// the model's exact redundancies with the poses show as exact zeros,
     /// whatever the current misfit.
@@ -227,8 +228,8 @@ impl<'a> Bundle<'a> {
         station: &StationAt,
         eval: &Evaluator,
         i: usize,
-        jac: bool,
         design: bool,
+        jac: Option<Scratch<'_>>,
     ) -> ReadingBlock {
         let o = &self.net.obs[i];
         let xt = self.point(x, o.target);
@@ -243,19 +244,16 @@ impl<'a> Bundle<'a> {
             Some((q, l, m)) => (*q, l, *m),
             None => (o.q, &o.links, self.weights[i]),
         };
-        if !jac {
+        let Some(Scratch { jz, cols }) = jac else {
             return ReadingBlock {
                 r: m * (eval.point(q, links) - y),
-                jz: Vec::new(),
                 station: None,
                 point: [0.0; 9],
             };
-        }
-        let mut cols = Vec::new();
-        let p = eval.point_with_jacobian(q, links, &mut cols);
+        };
+        let p = eval.point_with_jacobian(q, links, cols);
         // Error-parameter coordinates: 3 × n_free, then onto the basis.
         let nz = self.layout.n_z;
-        let mut jz = vec![0.0; 3 * nz];
         // (`max(1)`: with no coordinate there is nothing to fill.)
         for (&ci, basis_row) in self
             .free_index
@@ -285,7 +283,6 @@ impl<'a> Bundle<'a> {
         });
         ReadingBlock {
             r: m * (p - y),
-            jz,
             station,
             point: row_major(&(-m * rt)),
         }
@@ -308,23 +305,35 @@ impl<'a> Bundle<'a> {
         let params = self.params(x);
         let eval = params.evaluator();
         let stations = self.stations(x);
-        let blocks: Vec<ReadingBlock> = (0..self.net.obs.len())
+        // Every reading's error-parameter rows in one buffer, filled in
+        // place: no allocation per reading.
+        let n_obs = self.net.obs.len();
+        let nz3 = if jac { 3 * self.layout.n_z } else { 0 };
+        let mut jz_all = vec![0.0; n_obs * nz3];
+        let jz_rows: Vec<&mut [f64]> = if nz3 > 0 {
+            jz_all.chunks_exact_mut(nz3).collect()
+        } else {
+            (0..n_obs).map(|_| &mut [][..]).collect()
+        };
+        let blocks: Vec<ReadingBlock> = jz_rows
             .into_par_iter()
+            .enumerate()
             .with_min_len(256)
-            .map(|i| {
+            .map_init(Vec::new, |cols, (i, jz)| {
                 let s = &stations[self.net.obs[i].station];
-                self.reading_block(x, s, &eval, i, jac, design)
+                let out = jac.then_some(Scratch { jz, cols });
+                self.reading_block(x, s, &eval, i, design, out)
             })
             .collect();
-        for (o, b) in self.net.obs.iter().zip(&blocks) {
+        for (i, (o, b)) in self.net.obs.iter().zip(&blocks).enumerate() {
             if !jac {
                 f(3, b.r.as_slice(), &[]);
                 continue;
             }
             let (po, _) = self.layout.point[o.target].expect("seen");
             let mut parts: Vec<(usize, &[f64])> = Vec::with_capacity(3);
-            if !b.jz.is_empty() {
-                parts.push((0, &b.jz));
+            if nz3 > 0 {
+                parts.push((0, &jz_all[i * nz3..(i + 1) * nz3]));
             }
             if let Some((so, part)) = &b.station {
                 parts.push((*so, part));
@@ -397,12 +406,19 @@ struct StationAt {
     jr_minus_w: Matrix3<f64>,
 }
 
-/// One reading's residuals (units of σ) and Jacobian blocks, row-major:
-/// on the error-parameter coordinates (3 × n_z), its station's pose
-/// (3 × 6, when free) and its reflector (3 × 3).
+/// Where [`Bundle::reading_block`] writes: the reading's rows on the
+/// error-parameter coordinates (3 × n_z, row-major, zeroed; empty without a
+/// Jacobian) and a buffer for the model's columns, one per thread.
+struct Scratch<'a> {
+    jz: &'a mut [f64],
+    cols: &'a mut Vec<Vector3<f64>>,
+}
+
+/// One reading's residuals (units of σ) and Jacobian blocks, row-major, on
+/// its station's pose (3 × 6, when free) and its reflector (3 × 3); its
+/// rows on the error-parameter coordinates went to its [`Scratch`].
 struct ReadingBlock {
     r: Vector3<f64>,
-    jz: Vec<f64>,
     station: Option<(usize, [f64; 18])>,
     point: [f64; 9],
 }

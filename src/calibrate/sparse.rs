@@ -128,26 +128,75 @@ impl BlockJacobian {
 
     /// `Jᵀ·X` over the blocks `keep` admits, for the `k` columns of `X`
     /// (m × k, row-major: a row's `k` values side by side); n × k, row-major.
-    pub fn tr_mul_rows(&self, x: &[f64], k: usize, keep: impl Fn(usize) -> bool) -> Vec<f64> {
+    ///
+    /// The output's rows are split into ranges of about equal work, filled
+    /// in parallel; each range visits every block in order and keeps the
+    /// columns that fall in it, so every entry is summed in block order —
+    /// the same numbers as one pass, whatever the number of threads.
+    pub fn tr_mul_rows(
+        &self,
+        x: &[f64],
+        k: usize,
+        keep: impl Fn(usize) -> bool + Sync,
+    ) -> Vec<f64> {
         let mut g = vec![0.0; self.n * k];
-        for (b, blk) in self.blocks.iter().enumerate() {
-            if !keep(b) {
-                continue;
-            }
-            for (col, w, v) in self.parts_of(blk) {
-                for row in 0..blk.rows {
-                    let xr = &x[(blk.row + row) * k..(blk.row + row + 1) * k];
-                    for a in 0..w {
-                        let coef = v[row * w + a];
-                        let out = &mut g[(col + a) * k..(col + a + 1) * k];
-                        for (o, x) in out.iter_mut().zip(xr) {
-                            *o += coef * x;
+        let ranges = self.balanced_column_ranges(tasks_for(k));
+        let mut outs: Vec<(usize, usize, &mut [f64])> = Vec::with_capacity(ranges.len());
+        let mut rest = g.as_mut_slice();
+        for &(lo, hi) in &ranges {
+            let (head, tail) = rest.split_at_mut((hi - lo) * k);
+            outs.push((lo, hi, head));
+            rest = tail;
+        }
+        outs.into_par_iter().for_each(|(lo, hi, out)| {
+            for (b, blk) in self.blocks.iter().enumerate() {
+                if !keep(b) {
+                    continue;
+                }
+                for (col, w, v) in self.parts_of(blk) {
+                    let (a0, a1) = (lo.max(col), hi.min(col + w));
+                    for row in 0..blk.rows {
+                        let xr = &x[(blk.row + row) * k..(blk.row + row + 1) * k];
+                        for c in a0..a1 {
+                            let coef = v[row * w + c - col];
+                            let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
+                            for (o, x) in o.iter_mut().zip(xr) {
+                                *o += coef * x;
+                            }
                         }
                     }
                 }
             }
-        }
+        });
         g
+    }
+
+    /// At most `parts` ranges `[lo, hi)` covering the columns in order,
+    /// each holding about the same number of Jacobian values.
+    fn balanced_column_ranges(&self, parts: usize) -> Vec<(usize, usize)> {
+        let mut per_col = vec![0usize; self.n];
+        for blk in &self.blocks {
+            for p in &self.parts[blk.parts.0..blk.parts.1] {
+                per_col[p.col..p.col + p.width]
+                    .iter_mut()
+                    .for_each(|w| *w += blk.rows);
+            }
+        }
+        let total: usize = per_col.iter().sum();
+        let target = total.div_ceil(parts.max(1)).max(1);
+        let mut ranges = Vec::with_capacity(parts);
+        let (mut lo, mut acc) = (0, 0);
+        for (c, w) in per_col.iter().enumerate() {
+            acc += w;
+            if acc >= target {
+                ranges.push((lo, c + 1));
+                (lo, acc) = (c + 1, 0);
+            }
+        }
+        if lo < self.n || ranges.is_empty() {
+            ranges.push((lo, self.n));
+        }
+        ranges
     }
 
     /// `out −= J·Y` for the `k` columns of `Y` (n × k) and `out` (m × k),
@@ -627,17 +676,28 @@ impl Factor {
     pub fn solve_rows(&self, rhs: &[f64], k: usize) -> Vec<f64> {
         let n_a = self.n_a;
         // The dense part's right-hand side, reduced: b_A − Σ W_x·b_x.
+        // Rows of `b` split into ranges filled in parallel, each visiting
+        // the positions in order: every row summed in position order, the
+        // same numbers whatever the number of threads.
         let mut b = rhs[..n_a * k].to_vec();
-        for (i, p) in self.points.iter().enumerate() {
-            let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
-            for (row, &c) in p.cols.iter().enumerate() {
-                let w = [p.w[(row, 0)], p.w[(row, 1)], p.w[(row, 2)]];
-                let out = &mut b[c * k..(c + 1) * k];
-                for (col, o) in out.iter_mut().enumerate() {
-                    *o -= w[0] * rx[col] + w[1] * rx[k + col] + w[2] * rx[2 * k + col];
+        let per = n_a.div_ceil(tasks_for(k)).max(1);
+        b.par_chunks_mut(per * k).enumerate().for_each(|(t, out)| {
+            let (lo, hi) = (t * per, (t * per + out.len() / k));
+            for (i, p) in self.points.iter().enumerate() {
+                let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
+                let first = p.cols.partition_point(|&c| c < lo);
+                for (row, &c) in p.cols.iter().enumerate().skip(first) {
+                    if c >= hi {
+                        break;
+                    }
+                    let w = [p.w[(row, 0)], p.w[(row, 1)], p.w[(row, 2)]];
+                    let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
+                    for (col, o) in o.iter_mut().enumerate() {
+                        *o -= w[0] * rx[col] + w[1] * rx[k + col] + w[2] * rx[2 * k + col];
+                    }
                 }
             }
-        }
+        });
         let scaled = DMatrix::from_fn(n_a, k, |r, c| b[r * k + c] * self.d[r]);
         let xa = self.chol.solve(&scaled);
         let mut x = vec![0.0; rhs.len()];
@@ -811,7 +871,7 @@ pub fn solve_ls_rows(
     f: &Factor,
     x: &[f64],
     k: usize,
-    keep: impl Fn(usize) -> bool,
+    keep: impl Fn(usize) -> bool + Sync,
 ) -> Vec<f64> {
     let mut y = f.solve_rows(&j.tr_mul_rows(x, k, &keep), k);
     let mut res = x.to_vec();
@@ -823,6 +883,17 @@ pub fn solve_ls_rows(
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// How many parallel tasks a product with `k` right-hand sides is split
+/// into: each task visits every block, which pays only when the blocks
+/// carry several columns' work. (Any split gives the same numbers.)
+fn tasks_for(k: usize) -> usize {
+    if k >= 4 {
+        rayon::current_num_threads()
+    } else {
+        1
+    }
 }
 
 fn min_max(a: usize, b: usize) -> (usize, usize) {

@@ -265,7 +265,7 @@ fn solve_ls(
     j: &BlockJacobian,
     f: &Factor,
     x: &DVector<f64>,
-    keep: &dyn Fn(usize) -> bool,
+    keep: &(dyn Fn(usize) -> bool + Sync),
 ) -> DVector<f64> {
     DVector::from_vec(sparse::solve_ls_rows(j, f, x.as_slice(), 1, keep))
 }
