@@ -3,6 +3,7 @@
 //! The library holds the paper's models (one module per concept) and the
 //! pipeline runner; the `ltcal` binary is a thin shell over [`run`].
 
+pub mod b89;
 pub mod calibrate;
 pub mod campaign;
 pub mod cli;
@@ -20,6 +21,7 @@ pub mod kinematics;
 pub mod layout;
 pub mod mesh;
 pub mod noise;
+pub mod physical;
 pub mod pipeline;
 pub mod plots;
 pub mod random;
