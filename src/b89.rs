@@ -22,9 +22,12 @@
 //!   azimuths by default (36 tests).
 //! * **Length**: a reference length (2.3 m, the standard's scale bar) read at
 //!   both ends in the front face; the error is the measured minus the true
-//!   length. The bar is centred at each distance and azimuth, across the line
-//!   of sight — horizontal, vertical, right and left diagonal — or along it
-//!   (`ranging`: from the distance outwards).
+//!   length. The bar is centred at each distance, height and azimuth,
+//!   across the line of sight — horizontal, vertical, right and left
+//!   diagonal — or along it (`ranging`: from the distance outwards). At the
+//!   tracker's own height (the default) a bar lies symmetric about the line
+//!   of sight, and an error that moves its two ends symmetrically cancels
+//!   (a beam tilt, for one): other heights show it.
 //!
 //! A test's error under given parameters is simulated exactly: the tracker
 //! with errors reads each point ([`ErrorParams::reading_of`]) and reports its
@@ -42,6 +45,8 @@ pub struct Positions {
     pub length_m: f64,
     /// Horizontal distances of the bar's centre (of its near end, ranging), m.
     pub length_distances_m: Vec<f64>,
+    /// Heights of the bar's centre above the tracker, m.
+    pub length_heights_m: Vec<f64>,
     /// Horizontal distances of the two-face reflector, m.
     pub two_face_distances_m: Vec<f64>,
     /// Heights of the two-face reflector above the tracker, m.
@@ -55,6 +60,7 @@ impl Default for Positions {
         Positions {
             length_m: 2.3,
             length_distances_m: vec![1.0, 6.0],
+            length_heights_m: vec![0.0],
             two_face_distances_m: vec![1.0, 3.0, 6.0],
             two_face_heights_m: vec![-1.5, 0.0, 1.5],
             azimuths_deg: vec![0.0, 90.0, 180.0, 270.0],
@@ -142,8 +148,13 @@ pub fn tests(pos: &Positions) -> Vec<Test> {
     let half = 0.5 * pos.length_m * 1e3;
     for o in Orientation::ALL {
         for &d in &pos.length_distances_m {
-            for &az in &pos.azimuths_deg {
-                let centre = horizontal(az, d * 1e3);
+            for (&h, &az) in pos
+                .length_heights_m
+                .iter()
+                .flat_map(|h| pos.azimuths_deg.iter().map(move |az| (h, az)))
+            {
+                let lift = Vector3::new(0.0, 0.0, h * 1e3);
+                let centre = horizontal(az, d * 1e3) + lift;
                 let across = horizontal(az + 90.0, 1.0);
                 let up = Vector3::z();
                 let (a, b) = match o {
@@ -157,13 +168,13 @@ pub fn tests(pos: &Positions) -> Vec<Test> {
                         let u = (up - across) / 2f64.sqrt();
                         (centre - half * u, centre + half * u)
                     }
-                    Orientation::Ranging => (centre, horizontal(az, d * 1e3 + 2.0 * half)),
+                    Orientation::Ranging => (centre, horizontal(az, d * 1e3 + 2.0 * half) + lift),
                 };
                 out.push(Test {
-                    id: format!("length {} d{d}m az{az}", o.name()),
+                    id: format!("length {} d{d}m h{h:+}m az{az}", o.name()),
                     orientation: Some(o),
                     distance_m: d,
-                    height_m: 0.0,
+                    height_m: h,
                     az_deg: az,
                     a,
                     b,
@@ -218,10 +229,14 @@ pub fn simulate(tests: &[Test], params: &ErrorParams) -> Result<Vec<f64>, Invers
 /// pairs, per display unit.
 pub type Direction = Vec<(usize, f64)>;
 
+/// Sensitivities below this (µm per µm or µrad) are the round-off of
+/// points millimetres to metres away, not a test seeing a parameter.
+pub const ROUND_OFF_UM: f64 = 1e-6;
+
 /// `[test][direction]`: each test's error per display unit of each
 /// direction (µm per µm or per µrad), linear at zero error. Two-face
 /// sensitivities are the separation's length (≥ 0); length sensitivities
-/// are signed.
+/// are signed; either is exactly zero below [`ROUND_OFF_UM`].
 pub fn sensitivity(tests: &[Test], zero: &ErrorParams, directions: &[Direction]) -> Vec<Vec<f64>> {
     let eval = zero.evaluator();
     let mut cols = Vec::new();
@@ -244,10 +259,12 @@ pub fn sensitivity(tests: &[Test], zero: &ErrorParams, directions: &[Direction])
                 .zip(&sb)
                 .map(|(da, db)| {
                     let moved = da - db;
-                    1e3 * match t.orientation {
-                        None => moved.norm(),
-                        Some(_) => u.dot(&moved),
-                    }
+                    let s = 1e3
+                        * match t.orientation {
+                            None => moved.norm(),
+                            Some(_) => u.dot(&moved),
+                        };
+                    if s.abs() < ROUND_OFF_UM { 0.0 } else { s }
                 })
                 .collect()
         })
@@ -324,10 +341,10 @@ mod tests {
         };
         // The range offset: no two-face test sees it, nor a bar along the
         // beam (both ends move alike); a bar across the line of sight does.
-        assert!(max_over("range_offset", "two-face") < 1e-9);
+        assert_eq!(max_over("range_offset", "two-face"), 0.0);
         for (x, row) in t.iter().zip(&s) {
             if x.orientation == Some(Orientation::Ranging) {
-                assert!(row[col("range_offset")].abs() < 1e-9, "{}", x.id);
+                assert_eq!(row[col("range_offset")], 0.0, "{}", x.id);
             }
         }
         // Beam offset: 2 µm per µm in every two-face test.
@@ -340,7 +357,23 @@ mod tests {
         let far = (6f64.powi(2) + 1.5f64.powi(2)).sqrt();
         assert!((max_over("beam_tilt_el", "two-face") - 2.0 * far).abs() < 1e-6);
         // Even harmonics: no two-face test sees them, length tests do.
-        assert!(max_over("az_h2_sin", "two-face") < 1e-9);
+        assert_eq!(max_over("az_h2_sin", "two-face"), 0.0);
         assert!(max_over("az_h2_sin", "length") > 1.0);
+        // A bar at the tracker's height is symmetric about the line of
+        // sight: a beam tilt moves both ends alike and no length test sees
+        // it; raised by a metre, the horizontal and diagonal bars do.
+        assert_eq!(max_over("beam_tilt_el", "length"), 0.0);
+        let raised = tests(&Positions {
+            length_heights_m: vec![1.0],
+            ..Positions::default()
+        });
+        let s = sensitivity(&raised, &zero, &physical_directions(&zero));
+        let seen = raised
+            .iter()
+            .zip(&s)
+            .filter(|(x, _)| x.kind() == "length")
+            .map(|(_, row)| row[col("beam_tilt_el")].abs())
+            .fold(0.0, f64::max);
+        assert!(seen > 0.1, "{seen}");
     }
 }

@@ -1330,6 +1330,68 @@ pub fn grouped_bars(
     })
 }
 
+/// A sensitivity matrix: one row per parameter, one cell per test (tests in
+/// the groups `col_groups` names, `(label, count)`, left to right), each
+/// cell shaded by its magnitude against the row's largest, which is written
+/// at the row's end — so that a parameter's pattern over the tests shows
+/// whatever its size.
+pub fn sensitivity_matrix(
+    title: &str,
+    rows: &[String],
+    col_groups: &[(String, usize)],
+    values: &[Vec<f64>],
+) -> Result<String> {
+    let (n_rows, n_cols) = (rows.len().max(1), values.first().map_or(1, Vec::len).max(1));
+    let (cell_w, cell_h) = (12_i32, 22_i32);
+    let (left, top) = (190_i32, 60_i32);
+    let width = left + cell_w * n_cols as i32 + 130;
+    let height = top + cell_h * n_rows as i32 + 90;
+    figure((width as u32, height as u32), |root| {
+        let style = ("sans-serif", 18).into_text_style(root);
+        root.draw_text(title, &style, (20, 16)).map_err(err)?;
+        for (i, (label, row)) in rows.iter().zip(values).enumerate() {
+            let y = top + cell_h * i as i32;
+            label_at(root, label, (left - 8, y + 4), HPos::Right)?;
+            let max = row.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            for (j, v) in row.iter().enumerate() {
+                let x = left + cell_w * j as i32;
+                let colour = if *v != 0.0 {
+                    viridis(v.abs() / max)
+                } else {
+                    RGBColor(240, 240, 240)
+                };
+                root.draw(&Rectangle::new(
+                    [(x, y), (x + cell_w - 1, y + cell_h - 2)],
+                    colour.filled(),
+                ))
+                .map_err(err)?;
+            }
+            let x_end = left + cell_w * n_cols as i32 + 8;
+            label_at(root, &format!("{max:.3}"), (x_end, y + 4), HPos::Left)?;
+        }
+        // The test groups under the columns, with a tick at each boundary.
+        let y_axis = top + cell_h * n_rows as i32 + 4;
+        let mut at = 0_i32;
+        for (label, count) in col_groups {
+            let (x0, w) = (left + cell_w * at, cell_w * *count as i32);
+            root.draw(&PathElement::new(
+                [(x0, y_axis), (x0, y_axis + 30)],
+                BLACK.stroke_width(1),
+            ))
+            .map_err(err)?;
+            label_at(root, label, (x0 + w / 2, y_axis + 14), HPos::Center)?;
+            at += *count as i32;
+        }
+        label_at(
+            root,
+            "largest |sensitivity| of the row (µm per µm or µrad)",
+            (left + cell_w * n_cols as i32 + 8, top - 22),
+            HPos::Right,
+        )?;
+        Ok(())
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

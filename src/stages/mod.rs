@@ -6,6 +6,7 @@
 //! config except through [`StageConfig`]. Adding a kind means adding a module
 //! and one line to [`stage_kinds!`].
 
+pub mod b89_tests;
 pub mod blind_check;
 pub mod calibrate;
 mod campaign_tables;
@@ -329,4 +330,5 @@ stage_kinds! {
     MonteCarlo => monte_carlo::MonteCarloStage,
     Spread => spread::SpreadStage,
     MeasurementUncertainty => measurement_uncertainty::MeasurementUncertaintyStage,
+    B89Tests => b89_tests::B89TestsStage,
 }

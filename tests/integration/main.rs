@@ -1,5 +1,6 @@
 //! ltcal's integration tests: one binary, one module per area.
 
+mod b89;
 mod cache_safety;
 mod calibration;
 mod campaign_io;

@@ -1,0 +1,427 @@
+//! `b89_tests`: the ASME B89.4.19 two-face and length tests simulated
+//! ([`crate::b89`]) — what a tracker with given errors shows in each, and
+//! which test sees which error parameter.
+//!
+//! ```toml
+//! [stages.b89]
+//! kind = "b89_tests"
+//! parameters = "physical"           # the sensitivity's parameters: "physical" (the 16
+//!                                   # misalignments of `physical`) or "dh" (the paper's
+//!                                   # 18 DH constants and the encoder harmonics)
+//! length_m = 2.3                    # the reference length
+//! length_distances_m = [1, 6]       # bar centre (near end when ranging), horizontal
+//! length_heights_m = [0]            # bar centre above the tracker
+//! two_face_distances_m = [1, 3, 6]
+//! two_face_heights_m = [-1.5, 0, 1.5]   # above the tracker
+//! azimuths_deg = [0, 90, 180, 270]
+//! misalignments = { beam_offset_el = 10, transit_tilt = 5 }   # optional, µm / µrad
+//! inputs = { params = "truth.params" }  # optional: a tracker's errors (`inject`,
+//!                                       # `identify`, `calibrate`), added to the above
+//! ```
+//!
+//! Outputs:
+//! * `tests` — `test`, `kind` (`two-face`, `length`), `orientation`,
+//!   `distance_m`, `height_m`, `az_deg`, `err_um`: each test's error with the
+//!   given errors, simulated exactly (the two-face separation; measured minus
+//!   true length), zero without errors.
+//! * `sensitivity` — `test`, `kind`, `parameter`, `unit`, `sens_um_per_unit`:
+//!   each test's error per µm or µrad of each parameter (linear, at zero).
+//! * `visibility` — per parameter: `two_face_max_um`, `length_max_um` (the
+//!   largest |sensitivity| over each kind of test) and `seen_by`.
+//! * `b89-sensitivity.svg` — the sensitivity matrix, parameters by tests.
+
+use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
+use crate::b89::{self, Direction, Positions, Test};
+use crate::error_model::{Coef, ErrorParams};
+use crate::physical::{self, CORRESPONDENCE, Misalignment};
+use crate::plots;
+use crate::schema;
+use crate::table::TableBuilder;
+use anyhow::{Result, anyhow};
+use polars::prelude::DataFrame;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Which parameters the sensitivity is given for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Parameters {
+    /// The misalignments of [`crate::physical`].
+    #[default]
+    Physical,
+    /// Every coefficient of [`physical::dh_model`].
+    Dh,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct B89TestsStage {
+    #[serde(default)]
+    pub parameters: Parameters,
+    #[serde(default = "default_length")]
+    pub length_m: f64,
+    #[serde(default = "default_length_distances")]
+    pub length_distances_m: Vec<f64>,
+    #[serde(default = "default_length_heights")]
+    pub length_heights_m: Vec<f64>,
+    #[serde(default = "default_two_face_distances")]
+    pub two_face_distances_m: Vec<f64>,
+    #[serde(default = "default_two_face_heights")]
+    pub two_face_heights_m: Vec<f64>,
+    #[serde(default = "default_azimuths")]
+    pub azimuths_deg: Vec<f64>,
+    #[serde(default)]
+    pub misalignments: BTreeMap<String, f64>,
+}
+
+fn default_length() -> f64 {
+    Positions::default().length_m
+}
+fn default_length_distances() -> Vec<f64> {
+    Positions::default().length_distances_m
+}
+fn default_length_heights() -> Vec<f64> {
+    Positions::default().length_heights_m
+}
+fn default_two_face_distances() -> Vec<f64> {
+    Positions::default().two_face_distances_m
+}
+fn default_two_face_heights() -> Vec<f64> {
+    Positions::default().two_face_heights_m
+}
+fn default_azimuths() -> Vec<f64> {
+    Positions::default().azimuths_deg
+}
+
+/// A tracker's reach, m: farther positions are a typing mistake.
+const MAX_DISTANCE_M: f64 = 200.0;
+/// At most this many tests (the standard has 36 + 35).
+const MAX_TESTS: usize = 20_000;
+
+impl B89TestsStage {
+    fn positions(&self) -> Positions {
+        Positions {
+            length_m: self.length_m,
+            length_distances_m: self.length_distances_m.clone(),
+            length_heights_m: self.length_heights_m.clone(),
+            two_face_distances_m: self.two_face_distances_m.clone(),
+            two_face_heights_m: self.two_face_heights_m.clone(),
+            azimuths_deg: self.azimuths_deg.clone(),
+        }
+    }
+
+    /// The parameters' names, units and directions in the coefficients of
+    /// `zero`.
+    fn directions(&self, zero: &ErrorParams) -> Vec<(String, String, Direction)> {
+        let at = |c: Coef| {
+            zero.coefs()
+                .iter()
+                .position(|x| *x == c)
+                .expect("the DH model holds every coefficient named")
+        };
+        match self.parameters {
+            Parameters::Physical => CORRESPONDENCE
+                .iter()
+                .map(|m| {
+                    (
+                        m.id.to_string(),
+                        m.unit.to_string(),
+                        vec![(at(m.coef()), m.sign)],
+                    )
+                })
+                .collect(),
+            Parameters::Dh => zero
+                .coefs()
+                .iter()
+                .map(|c| (c.name(), c.unit(), vec![(at(*c), 1.0)]))
+                .collect(),
+        }
+    }
+
+    /// The tracker's errors: the `params` input's coefficients plus the
+    /// settings' misalignments.
+    fn errors(&self, inputs: &StageInputs) -> Result<ErrorParams> {
+        let mut values: BTreeMap<Coef, f64> = BTreeMap::new();
+        if let Some(t) = inputs.optional("params") {
+            let p = schema::params_from(&t)?;
+            for (c, v) in p.coefs().iter().zip(p.values()) {
+                *values.entry(*c).or_default() += v;
+            }
+        }
+        for (id, v) in &self.misalignments {
+            let m = Misalignment::parse(id).expect("validated");
+            *values.entry(m.coef()).or_default() += m.sign * v;
+        }
+        let (coefs, vals) = values.into_iter().unzip();
+        Ok(ErrorParams::from_parts(coefs, vals))
+    }
+}
+
+impl StageKind for B89TestsStage {
+    const KIND: &'static str = "b89_tests";
+    const SUMMARY: &'static str = "the ASME B89.4.19 two-face and length tests simulated: each test's error and its sensitivity to each parameter";
+    const INPUTS: &'static [Slot] = &[Slot::table(
+        "params",
+        false,
+        "a tracker's error parameters (`inject`, `identify`, `calibrate`)",
+    )];
+    const OUTPUTS: &'static [&'static str] = &["tests", "sensitivity", "visibility"];
+
+    fn columns(table: &str) -> Option<&'static [&'static str]> {
+        match table {
+            "tests" => Some(&[
+                "test",
+                "kind",
+                "orientation",
+                "distance_m",
+                "height_m",
+                "az_deg",
+                "err_um",
+            ]),
+            "sensitivity" => Some(&["test", "kind", "parameter", "unit", "sens_um_per_unit"]),
+            "visibility" => Some(&[
+                "parameter",
+                "unit",
+                "meaning",
+                "two_face_max_um",
+                "length_max_um",
+                "seen_by",
+            ]),
+            _ => None,
+        }
+    }
+
+    fn validate(&self) -> Vec<Invalid> {
+        let mut out = Vec::new();
+        if !(self.length_m.is_finite() && self.length_m > 0.0 && self.length_m <= MAX_DISTANCE_M) {
+            out.push(Invalid::new(
+                "length_m",
+                format!(
+                    "`length_m` must lie in (0, {MAX_DISTANCE_M}], got {}",
+                    self.length_m
+                ),
+            ));
+        }
+        let lists: [(&str, &[f64], f64, f64); 5] = [
+            (
+                "length_distances_m",
+                &self.length_distances_m,
+                0.0,
+                MAX_DISTANCE_M,
+            ),
+            (
+                "length_heights_m",
+                &self.length_heights_m,
+                -MAX_DISTANCE_M,
+                MAX_DISTANCE_M,
+            ),
+            (
+                "two_face_distances_m",
+                &self.two_face_distances_m,
+                0.0,
+                MAX_DISTANCE_M,
+            ),
+            (
+                "two_face_heights_m",
+                &self.two_face_heights_m,
+                -MAX_DISTANCE_M,
+                MAX_DISTANCE_M,
+            ),
+            ("azimuths_deg", &self.azimuths_deg, -360.0, 360.0),
+        ];
+        for (name, values, lo, hi) in lists {
+            for (i, &v) in values.iter().enumerate() {
+                // Distances must stay off the standing axis: above zero.
+                let above = if lo == 0.0 { v > lo } else { v >= lo };
+                if !(v.is_finite() && above && v <= hi) {
+                    out.push(Invalid::new(
+                        format!("{name}.{i}"),
+                        format!("`{name}` values must lie in ({lo}, {hi}], got {v}"),
+                    ));
+                }
+            }
+        }
+        let n_az = self.azimuths_deg.len();
+        // Saturating: lists long enough to overflow are refused all the same.
+        let n_tests = [
+            self.two_face_distances_m.len(),
+            self.two_face_heights_m.len(),
+            n_az,
+        ]
+        .iter()
+        .fold(1usize, |a, &b| a.saturating_mul(b))
+        .saturating_add(
+            [
+                b89::Orientation::ALL.len(),
+                self.length_distances_m.len(),
+                self.length_heights_m.len(),
+                n_az,
+            ]
+            .iter()
+            .fold(1usize, |a, &b| a.saturating_mul(b)),
+        );
+        if n_tests == 0 {
+            out.push(Invalid::new(
+                "azimuths_deg",
+                "no test: give at least one azimuth and one distance",
+            ));
+        } else if n_tests > MAX_TESTS {
+            out.push(Invalid::new(
+                "azimuths_deg",
+                format!("{n_tests} tests: at most {MAX_TESTS}"),
+            ));
+        }
+        for (id, v) in &self.misalignments {
+            let field = format!("misalignments.{id}");
+            if Misalignment::parse(id).is_none() {
+                let known: Vec<&str> = CORRESPONDENCE.iter().map(|m| m.id).collect();
+                out.push(Invalid::new(
+                    field,
+                    format!("`{id}` is not a misalignment: one of {}", known.join(", ")),
+                ));
+            } else if !v.is_finite() {
+                out.push(Invalid::new(
+                    field,
+                    format!("`{id}` must be finite, got {v}"),
+                ));
+            }
+        }
+        out
+    }
+
+    fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+        let tests = b89::tests(&self.positions());
+        let errors = self.errors(inputs)?;
+        let err_um = b89::simulate(&tests, &errors).map_err(|e| {
+            anyhow!("the tracker with these errors cannot read a test's point: {e:?}")
+        })?;
+        let zero = ErrorParams::zero(&physical::dh_model());
+        let dirs = self.directions(&zero);
+        let only: Vec<Direction> = dirs.iter().map(|(_, _, d)| d.clone()).collect();
+        let sens = b89::sensitivity(&tests, &zero, &only);
+
+        let rows: Vec<String> = dirs.iter().map(|(n, u, _)| format!("{n} ({u})")).collect();
+        let groups = column_groups(&tests);
+        // Rows of the figure: parameters; columns: tests.
+        let by_param: Vec<Vec<f64>> = (0..dirs.len())
+            .map(|k| sens.iter().map(|row| row[k]).collect())
+            .collect();
+        let svg = plots::sensitivity_matrix(
+            "B89.4.19 tests: each test's error per unit of each parameter",
+            &rows,
+            &groups,
+            &by_param,
+        )?;
+        Ok(StageOutput::default()
+            .table("tests", tests_table(&tests, &err_um)?)
+            .table("sensitivity", sensitivity_table(&tests, &dirs, &sens)?)
+            .table("visibility", self.visibility_table(&tests, &dirs, &sens)?)
+            .file("b89-sensitivity.svg".into(), svg.into_bytes()))
+    }
+}
+
+impl B89TestsStage {
+    fn visibility_table(
+        &self,
+        tests: &[Test],
+        dirs: &[(String, String, Direction)],
+        sens: &[Vec<f64>],
+    ) -> Result<DataFrame> {
+        let max_over = |k: usize, kind: &str| {
+            tests
+                .iter()
+                .zip(sens)
+                .filter(|(t, _)| t.kind() == kind)
+                .map(|(_, row)| row[k].abs())
+                .fold(0.0, f64::max)
+        };
+        let two_face: Vec<f64> = (0..dirs.len()).map(|k| max_over(k, "two-face")).collect();
+        let length: Vec<f64> = (0..dirs.len()).map(|k| max_over(k, "length")).collect();
+        let seen = |v: f64| v > 0.0;
+        let seen_by: Vec<&str> = two_face
+            .iter()
+            .zip(&length)
+            .map(|(&a, &b)| match (seen(a), seen(b)) {
+                (true, true) => "both",
+                (true, false) => "two-face only",
+                (false, true) => "length only",
+                (false, false) => "neither",
+            })
+            .collect();
+        let meaning: Vec<String> = dirs
+            .iter()
+            .map(|(name, _, _)| match self.parameters {
+                Parameters::Physical => Misalignment::parse(name)
+                    .map(|m| m.meaning.to_string())
+                    .unwrap_or_default(),
+                Parameters::Dh => Coef::parse(name).map(|c| c.symbol()).unwrap_or_default(),
+            })
+            .collect();
+        let names: Vec<&str> = dirs.iter().map(|(n, _, _)| n.as_str()).collect();
+        let units: Vec<&str> = dirs.iter().map(|(_, u, _)| u.as_str()).collect();
+        TableBuilder::new()
+            .str("parameter", &names)
+            .str("unit", &units)
+            .str("meaning", &meaning)
+            .f64("two_face_max_um", two_face)
+            .f64("length_max_um", length)
+            .str("seen_by", &seen_by)
+            .build()
+    }
+}
+
+fn tests_table(tests: &[Test], err_um: &[f64]) -> Result<DataFrame> {
+    let ids: Vec<&str> = tests.iter().map(|t| t.id.as_str()).collect();
+    let kinds: Vec<&str> = tests.iter().map(Test::kind).collect();
+    let orient: Vec<&str> = tests
+        .iter()
+        .map(|t| t.orientation.map_or("", |o| o.name()))
+        .collect();
+    TableBuilder::new()
+        .str("test", &ids)
+        .str("kind", &kinds)
+        .str("orientation", &orient)
+        .f64("distance_m", tests.iter().map(|t| t.distance_m).collect())
+        .f64("height_m", tests.iter().map(|t| t.height_m).collect())
+        .f64("az_deg", tests.iter().map(|t| t.az_deg).collect())
+        .f64("err_um", err_um.to_vec())
+        .build()
+}
+
+fn sensitivity_table(
+    tests: &[Test],
+    dirs: &[(String, String, Direction)],
+    sens: &[Vec<f64>],
+) -> Result<DataFrame> {
+    let (mut test, mut kind, mut param, mut unit, mut value) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (t, row) in tests.iter().zip(sens) {
+        for ((name, u, _), v) in dirs.iter().zip(row) {
+            test.push(t.id.as_str());
+            kind.push(t.kind());
+            param.push(name.as_str());
+            unit.push(u.as_str());
+            value.push(*v);
+        }
+    }
+    TableBuilder::new()
+        .str("test", &test)
+        .str("kind", &kind)
+        .str("parameter", &param)
+        .str("unit", &unit)
+        .f64("sens_um_per_unit", value)
+        .build()
+}
+
+/// The figure's column groups: runs of tests of one kind and orientation.
+fn column_groups(tests: &[Test]) -> Vec<(String, usize)> {
+    let mut out: Vec<(String, usize)> = Vec::new();
+    for t in tests {
+        let label = t.orientation.map_or("two-face", |o| o.name()).to_string();
+        match out.last_mut() {
+            Some((l, n)) if *l == label => *n += 1,
+            _ => out.push((label, 1)),
+        }
+    }
+    out
+}
