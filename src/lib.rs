@@ -20,6 +20,7 @@ pub mod identify;
 pub mod kinematics;
 pub mod layout;
 pub mod mesh;
+pub mod mirror;
 pub mod noise;
 pub mod physical;
 pub mod pipeline;
