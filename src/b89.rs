@@ -34,8 +34,9 @@
 //! nominal coordinates. A sensitivity is linear, at zero error: the
 //! reported point moves by `−Δ`, `Δ` the forward model's derivative.
 
-use crate::error_model::{ErrorParams, InverseError, Links};
-use crate::kinematics::{Face, nominal_point, nominal_reading};
+use crate::error_model::{ErrorParams, Links};
+use crate::kinematics::{Face, Reading, nominal_point, nominal_reading};
+use crate::mirror::{self, MirrorErrors, MirrorTracker};
 use nalgebra::Vector3;
 
 /// Where the tests are made (metres and degrees).
@@ -210,18 +211,79 @@ impl Test {
     }
 }
 
-/// Each test's error, µm, shown by a tracker with errors `params`.
-pub fn simulate(tests: &[Test], params: &ErrorParams) -> Result<Vec<f64>, InverseError> {
-    let eval = params.evaluator();
+/// What a test needs of a tracker: the reading it takes when its beam
+/// reaches a point (`None`: it cannot).
+pub trait Tracker {
+    fn read(&self, p: &Vector3<f64>, face: Face) -> Option<Reading>;
+}
+
+impl Tracker for ErrorParams {
+    fn read(&self, p: &Vector3<f64>, face: Face) -> Option<Reading> {
+        self.reading_of(p, face).ok()
+    }
+}
+
+impl Tracker for MirrorTracker {
+    fn read(&self, p: &Vector3<f64>, face: Face) -> Option<Reading> {
+        self.reading_of(p, face)
+    }
+}
+
+/// Each test's error, µm, shown by `tracker`; `Err` names the first test
+/// whose point it cannot read.
+pub fn simulate(tests: &[Test], tracker: &dyn Tracker) -> Result<Vec<f64>, String> {
     tests
         .iter()
         .map(|t| {
             let [fa, fb] = t.faces();
-            let ra = nominal_point(eval.reading_of(&t.a, fa)?);
-            let rb = nominal_point(eval.reading_of(&t.b, fb)?);
-            Ok(t.error_um(&ra, &rb))
+            let read = |p, f| {
+                tracker
+                    .read(p, f)
+                    .map(nominal_point)
+                    .ok_or_else(|| format!("the tracker cannot read the points of `{}`", t.id))
+            };
+            Ok(t.error_um(&read(&t.a, fa)?, &read(&t.b, fb)?))
         })
         .collect()
+}
+
+/// The misalignments' step of [`mirror_sensitivity`]'s central
+/// differences, display units: large enough that the inverse's 1e-9 mm
+/// tolerance stays below [`ROUND_OFF_UM`], small enough that the third
+/// order is far below it.
+const MIRROR_STEP: f64 = 10.0;
+
+/// `[test][misalignment]`: each test's error per µm or µrad of each of the
+/// mirror tracker's misalignments ([`mirror::IDS`]), by central
+/// differences of the exact model (signs and zeros as [`sensitivity`]).
+pub fn mirror_sensitivity(tests: &[Test]) -> Result<Vec<Vec<f64>>, String> {
+    let columns: Vec<Vec<f64>> = mirror::IDS
+        .iter()
+        .map(|(id, _, _)| {
+            let at = |v: f64| {
+                let mut e = MirrorErrors::default();
+                e.set(id, v);
+                simulate(tests, &MirrorTracker::new(&e))
+            };
+            let (plus, minus) = (at(MIRROR_STEP)?, at(-MIRROR_STEP)?);
+            Ok(tests
+                .iter()
+                .zip(plus.iter().zip(&minus))
+                .map(|(t, (p, m))| {
+                    // A two-face error is a length (≥ 0): its slope is the
+                    // mean of the two, the signed one's half their difference.
+                    let s = match t.orientation {
+                        None => 0.5 * (p + m) / MIRROR_STEP,
+                        Some(_) => 0.5 * (p - m) / MIRROR_STEP,
+                    };
+                    if s.abs() < ROUND_OFF_UM { 0.0 } else { s }
+                })
+                .collect())
+        })
+        .collect::<Result<_, String>>()?;
+    Ok((0..tests.len())
+        .map(|i| columns.iter().map(|c| c[i]).collect())
+        .collect())
 }
 
 /// A direction in the coefficient space of a model: one physical
@@ -318,6 +380,37 @@ mod tests {
                     sim[i]
                 );
             }
+        }
+    }
+
+    #[test]
+    fn the_mirror_offset_separates_the_faces_by_four_times_itself() {
+        // It moves a point by 2·mo along the mirror's normal, which the
+        // back face reverses (`mirror::tests`).
+        let t = tests(&Positions::default());
+        let s = mirror_sensitivity(&t).unwrap();
+        let k = mirror::IDS
+            .iter()
+            .position(|(id, _, _)| *id == "mirror_offset")
+            .unwrap();
+        for (x, row) in t.iter().zip(&s) {
+            if x.kind() == "two-face" {
+                assert!((row[k] - 4.0).abs() < 1e-6, "{}: {}", x.id, row[k]);
+            }
+        }
+        // And the differences are the simulated errors' slopes.
+        let e = MirrorErrors {
+            mirror_tilt: 3.0,
+            ..MirrorErrors::default()
+        };
+        let sim = simulate(&t, &MirrorTracker::new(&e)).unwrap();
+        let k = mirror::IDS
+            .iter()
+            .position(|(id, _, _)| *id == "mirror_tilt")
+            .unwrap();
+        for (i, x) in t.iter().enumerate() {
+            let lin = 3.0 * s[i][k];
+            assert!((sim[i] - lin).abs() <= 1e-3 * lin.abs() + 1e-3, "{}", x.id);
         }
     }
 

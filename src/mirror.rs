@@ -67,18 +67,51 @@ pub struct MirrorErrors {
     pub range_offset: f64,
 }
 
-/// The ids of [`MirrorErrors`]' fields, in order, with their units.
-pub const IDS: [(&str, &str); 10] = [
-    ("beam_offset_x", "µm"),
-    ("beam_offset_y", "µm"),
-    ("beam_tilt_x", "µrad"),
-    ("beam_tilt_y", "µrad"),
-    ("transit_offset", "µm"),
-    ("transit_tilt", "µrad"),
-    ("mirror_offset", "µm"),
-    ("mirror_tilt", "µrad"),
-    ("vertical_index", "µrad"),
-    ("range_offset", "µm"),
+/// The ids of [`MirrorErrors`]' fields, in order, with their units and
+/// meanings.
+pub const IDS: [(&str, &str, &str); 10] = [
+    (
+        "beam_offset_x",
+        "µm",
+        "incoming beam's offset from the standing axis, x",
+    ),
+    (
+        "beam_offset_y",
+        "µm",
+        "incoming beam's offset from the standing axis, y",
+    ),
+    (
+        "beam_tilt_x",
+        "µrad",
+        "incoming beam's tilt from the standing axis, x",
+    ),
+    (
+        "beam_tilt_y",
+        "µrad",
+        "incoming beam's tilt from the standing axis, y",
+    ),
+    (
+        "transit_offset",
+        "µm",
+        "transit axis offset from the standing axis, towards the beam",
+    ),
+    (
+        "transit_tilt",
+        "µrad",
+        "transit axis out of square with the standing axis",
+    ),
+    (
+        "mirror_offset",
+        "µm",
+        "reflecting surface's offset from the transit axis",
+    ),
+    (
+        "mirror_tilt",
+        "µrad",
+        "mirror normal out of the plane square to the transit axis",
+    ),
+    ("vertical_index", "µrad", "elevation encoder zero offset"),
+    ("range_offset", "µm", "distance zero (R0)"),
 ];
 
 impl MirrorErrors {
@@ -87,13 +120,13 @@ impl MirrorErrors {
         self.as_array()
             .into_iter()
             .zip(IDS)
-            .find(|(_, (i, _))| *i == id)
+            .find(|(_, (i, _, _))| *i == id)
             .map(|(v, _)| v)
     }
 
     /// Sets misalignment `id`; `false` when there is none of that name.
     pub fn set(&mut self, id: &str, value: f64) -> bool {
-        let Some(k) = IDS.iter().position(|(i, _)| *i == id) else {
+        let Some(k) = IDS.iter().position(|(i, _, _)| *i == id) else {
             return false;
         };
         let mut a = self.as_array();
@@ -377,7 +410,7 @@ mod tests {
     #[test]
     fn errors_by_id() {
         let mut e = MirrorErrors::default();
-        for (k, (id, _)) in IDS.iter().enumerate() {
+        for (k, (id, _, _)) in IDS.iter().enumerate() {
             assert!(e.set(id, k as f64 + 1.0));
             assert_eq!(e.get(id), Some(k as f64 + 1.0));
         }

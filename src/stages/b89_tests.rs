@@ -5,6 +5,7 @@
 //! ```toml
 //! [stages.b89]
 //! kind = "b89_tests"
+//! model = "api-tracker3"            # or "mirror-tracker" (`mirror`: its ten misalignments)
 //! parameters = "physical"           # the sensitivity's parameters: "physical" (the 16
 //!                                   # misalignments of `physical`) or "dh" (the paper's
 //!                                   # 18 DH constants and the encoder harmonics)
@@ -14,9 +15,11 @@
 //! two_face_distances_m = [1, 3, 6]
 //! two_face_heights_m = [-1.5, 0, 1.5]   # above the tracker
 //! azimuths_deg = [0, 90, 180, 270]
-//! misalignments = { beam_offset_el = 10, transit_tilt = 5 }   # optional, µm / µrad
-//! inputs = { params = "truth.params" }  # optional: a tracker's errors (`inject`,
-//!                                       # `identify`, `calibrate`), added to the above
+//! misalignments = { beam_offset_el = 10, transit_tilt = 5 }   # optional, µm / µrad,
+//!                                   # by the model's ids
+//! inputs = { params = "truth.params" }  # optional, api-tracker3 only: a tracker's DH
+//!                                       # errors (`inject`, `identify`, `calibrate`),
+//!                                       # added to the above
 //! ```
 //!
 //! Outputs:
@@ -25,7 +28,9 @@
 //!   given errors, simulated exactly (the two-face separation; measured minus
 //!   true length), zero without errors.
 //! * `sensitivity` — `test`, `kind`, `parameter`, `unit`, `sens_um_per_unit`:
-//!   each test's error per µm or µrad of each parameter (linear, at zero).
+//!   each test's error per µm or µrad of each parameter (linear, at zero:
+//!   the analytic Jacobian for the head-laser model, central differences of
+//!   the exact beam path for the mirror tracker).
 //! * `visibility` — per parameter: `two_face_max_um`, `length_max_um` (the
 //!   largest |sensitivity| over each kind of test) and `seen_by`.
 //! * `b89-sensitivity.svg` — the sensitivity matrix, parameters by tests.
@@ -33,11 +38,12 @@
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::b89::{self, Direction, Positions, Test};
 use crate::error_model::{Coef, ErrorParams};
+use crate::mirror::{self, MirrorErrors, MirrorTracker};
 use crate::physical::{self, CORRESPONDENCE, Misalignment};
 use crate::plots;
 use crate::schema;
 use crate::table::TableBuilder;
-use anyhow::{Result, anyhow};
+use anyhow::{Result, anyhow, bail};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -53,9 +59,22 @@ pub enum Parameters {
     Dh,
 }
 
+/// The tracker's construction, by the ids of `campaign-format.md`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Model {
+    /// The paper's tracker, the laser in the head ([`crate::physical`]).
+    #[default]
+    ApiTracker3,
+    /// The laser in the base, a mirror on the transit axis ([`crate::mirror`]).
+    MirrorTracker,
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct B89TestsStage {
+    #[serde(default)]
+    pub model: Model,
     #[serde(default)]
     pub parameters: Parameters,
     #[serde(default = "default_length")]
@@ -110,9 +129,9 @@ impl B89TestsStage {
         }
     }
 
-    /// The parameters' names, units and directions in the coefficients of
-    /// `zero`.
-    fn directions(&self, zero: &ErrorParams) -> Vec<(String, String, Direction)> {
+    /// The head-laser parameters' rows and directions in the coefficients
+    /// of `zero`.
+    fn directions(&self, zero: &ErrorParams) -> Vec<(Row, Direction)> {
         let at = |c: Coef| {
             zero.coefs()
                 .iter()
@@ -123,18 +142,53 @@ impl B89TestsStage {
             Parameters::Physical => CORRESPONDENCE
                 .iter()
                 .map(|m| {
-                    (
-                        m.id.to_string(),
-                        m.unit.to_string(),
-                        vec![(at(m.coef()), m.sign)],
-                    )
+                    let row = Row::new(m.id, m.unit, m.meaning);
+                    (row, vec![(at(m.coef()), m.sign)])
                 })
                 .collect(),
             Parameters::Dh => zero
                 .coefs()
                 .iter()
-                .map(|c| (c.name(), c.unit(), vec![(at(*c), 1.0)]))
+                .map(|c| {
+                    let row = Row::new(&c.name(), &c.unit(), &c.symbol());
+                    (row, vec![(at(*c), 1.0)])
+                })
                 .collect(),
+        }
+    }
+
+    /// Each test's error and sensitivities, with the parameters' rows.
+    fn evaluate(&self, tests: &[Test], inputs: &StageInputs) -> Result<Evaluated> {
+        let cannot = |e: String| anyhow!("with these errors {e}");
+        match self.model {
+            Model::ApiTracker3 => {
+                let errors = self.errors(inputs)?;
+                let err_um = b89::simulate(tests, &errors).map_err(cannot)?;
+                let zero = ErrorParams::zero(&physical::dh_model());
+                let (rows, dirs): (Vec<Row>, Vec<Direction>) =
+                    self.directions(&zero).into_iter().unzip();
+                let sens = b89::sensitivity(tests, &zero, &dirs);
+                Ok(Evaluated { rows, err_um, sens })
+            }
+            Model::MirrorTracker => {
+                if inputs.optional("params").is_some() {
+                    bail!(
+                        "a `params` table holds the head-laser model's DH coefficients: it cannot \
+                         describe a mirror tracker (give its `misalignments` instead)"
+                    );
+                }
+                let mut e = MirrorErrors::default();
+                for (id, v) in &self.misalignments {
+                    e.set(id, *v);
+                }
+                let err_um = b89::simulate(tests, &MirrorTracker::new(&e)).map_err(cannot)?;
+                let sens = b89::mirror_sensitivity(tests).map_err(cannot)?;
+                let rows = mirror::IDS
+                    .iter()
+                    .map(|(id, unit, meaning)| Row::new(id, unit, meaning))
+                    .collect();
+                Ok(Evaluated { rows, err_um, sens })
+            }
         }
     }
 
@@ -271,13 +325,20 @@ impl StageKind for B89TestsStage {
                 format!("{n_tests} tests: at most {MAX_TESTS}"),
             ));
         }
+        let known: Vec<&str> = match self.model {
+            Model::ApiTracker3 => CORRESPONDENCE.iter().map(|m| m.id).collect(),
+            Model::MirrorTracker => mirror::IDS.iter().map(|(id, _, _)| *id).collect(),
+        };
         for (id, v) in &self.misalignments {
             let field = format!("misalignments.{id}");
-            if Misalignment::parse(id).is_none() {
-                let known: Vec<&str> = CORRESPONDENCE.iter().map(|m| m.id).collect();
+            if !known.contains(&id.as_str()) {
                 out.push(Invalid::new(
                     field,
-                    format!("`{id}` is not a misalignment: one of {}", known.join(", ")),
+                    format!(
+                        "`{id}` is not a misalignment of the {} model: one of {}",
+                        self.model.id(),
+                        known.join(", ")
+                    ),
                 ));
             } else if !v.is_finite() {
                 out.push(Invalid::new(
@@ -286,88 +347,110 @@ impl StageKind for B89TestsStage {
                 ));
             }
         }
+        if self.model == Model::MirrorTracker && self.parameters == Parameters::Dh {
+            out.push(Invalid::new(
+                "parameters",
+                "the mirror tracker has no DH parameters: use `parameters = \"physical\"`",
+            ));
+        }
         out
     }
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let tests = b89::tests(&self.positions());
-        let errors = self.errors(inputs)?;
-        let err_um = b89::simulate(&tests, &errors).map_err(|e| {
-            anyhow!("the tracker with these errors cannot read a test's point: {e:?}")
-        })?;
-        let zero = ErrorParams::zero(&physical::dh_model());
-        let dirs = self.directions(&zero);
-        let only: Vec<Direction> = dirs.iter().map(|(_, _, d)| d.clone()).collect();
-        let sens = b89::sensitivity(&tests, &zero, &only);
-
-        let rows: Vec<String> = dirs.iter().map(|(n, u, _)| format!("{n} ({u})")).collect();
-        let groups = column_groups(&tests);
+        let Evaluated { rows, err_um, sens } = self.evaluate(&tests, inputs)?;
+        let labels: Vec<String> = rows
+            .iter()
+            .map(|r| format!("{} ({})", r.name, r.unit))
+            .collect();
         // Rows of the figure: parameters; columns: tests.
-        let by_param: Vec<Vec<f64>> = (0..dirs.len())
+        let by_param: Vec<Vec<f64>> = (0..rows.len())
             .map(|k| sens.iter().map(|row| row[k]).collect())
             .collect();
         let svg = plots::sensitivity_matrix(
-            "B89.4.19 tests: each test's error per unit of each parameter",
-            &rows,
-            &groups,
+            &format!(
+                "B89.4.19 tests, {}: each test's error per unit of each parameter",
+                self.model.id()
+            ),
+            &labels,
+            &column_groups(&tests),
             &by_param,
         )?;
         Ok(StageOutput::default()
             .table("tests", tests_table(&tests, &err_um)?)
-            .table("sensitivity", sensitivity_table(&tests, &dirs, &sens)?)
-            .table("visibility", self.visibility_table(&tests, &dirs, &sens)?)
+            .table("sensitivity", sensitivity_table(&tests, &rows, &sens)?)
+            .table("visibility", visibility_table(&tests, &rows, &sens)?)
             .file("b89-sensitivity.svg".into(), svg.into_bytes()))
     }
 }
 
-impl B89TestsStage {
-    fn visibility_table(
-        &self,
-        tests: &[Test],
-        dirs: &[(String, String, Direction)],
-        sens: &[Vec<f64>],
-    ) -> Result<DataFrame> {
-        let max_over = |k: usize, kind: &str| {
-            tests
-                .iter()
-                .zip(sens)
-                .filter(|(t, _)| t.kind() == kind)
-                .map(|(_, row)| row[k].abs())
-                .fold(0.0, f64::max)
-        };
-        let two_face: Vec<f64> = (0..dirs.len()).map(|k| max_over(k, "two-face")).collect();
-        let length: Vec<f64> = (0..dirs.len()).map(|k| max_over(k, "length")).collect();
-        let seen = |v: f64| v > 0.0;
-        let seen_by: Vec<&str> = two_face
-            .iter()
-            .zip(&length)
-            .map(|(&a, &b)| match (seen(a), seen(b)) {
-                (true, true) => "both",
-                (true, false) => "two-face only",
-                (false, true) => "length only",
-                (false, false) => "neither",
-            })
-            .collect();
-        let meaning: Vec<String> = dirs
-            .iter()
-            .map(|(name, _, _)| match self.parameters {
-                Parameters::Physical => Misalignment::parse(name)
-                    .map(|m| m.meaning.to_string())
-                    .unwrap_or_default(),
-                Parameters::Dh => Coef::parse(name).map(|c| c.symbol()).unwrap_or_default(),
-            })
-            .collect();
-        let names: Vec<&str> = dirs.iter().map(|(n, _, _)| n.as_str()).collect();
-        let units: Vec<&str> = dirs.iter().map(|(_, u, _)| u.as_str()).collect();
-        TableBuilder::new()
-            .str("parameter", &names)
-            .str("unit", &units)
-            .str("meaning", &meaning)
-            .f64("two_face_max_um", two_face)
-            .f64("length_max_um", length)
-            .str("seen_by", &seen_by)
-            .build()
+impl Model {
+    fn id(self) -> &'static str {
+        match self {
+            Model::ApiTracker3 => "api-tracker3",
+            Model::MirrorTracker => "mirror-tracker",
+        }
     }
+}
+
+/// A parameter as the tables name it.
+struct Row {
+    name: String,
+    unit: String,
+    meaning: String,
+}
+
+impl Row {
+    fn new(name: &str, unit: &str, meaning: &str) -> Row {
+        Row {
+            name: name.into(),
+            unit: unit.into(),
+            meaning: meaning.into(),
+        }
+    }
+}
+
+/// What [`B89TestsStage::evaluate`] finds: the parameters, each test's
+/// error (µm) and `[test][parameter]` sensitivities.
+struct Evaluated {
+    rows: Vec<Row>,
+    err_um: Vec<f64>,
+    sens: Vec<Vec<f64>>,
+}
+
+fn visibility_table(tests: &[Test], rows: &[Row], sens: &[Vec<f64>]) -> Result<DataFrame> {
+    let max_over = |k: usize, kind: &str| {
+        tests
+            .iter()
+            .zip(sens)
+            .filter(|(t, _)| t.kind() == kind)
+            .map(|(_, row)| row[k].abs())
+            .fold(0.0, f64::max)
+    };
+    let two_face: Vec<f64> = (0..rows.len()).map(|k| max_over(k, "two-face")).collect();
+    let length: Vec<f64> = (0..rows.len()).map(|k| max_over(k, "length")).collect();
+    let seen = |v: f64| v > 0.0;
+    let seen_by: Vec<&str> = two_face
+        .iter()
+        .zip(&length)
+        .map(|(&a, &b)| match (seen(a), seen(b)) {
+            (true, true) => "both",
+            (true, false) => "two-face only",
+            (false, true) => "length only",
+            (false, false) => "neither",
+        })
+        .collect();
+    let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
+    let units: Vec<&str> = rows.iter().map(|r| r.unit.as_str()).collect();
+    let meaning: Vec<&str> = rows.iter().map(|r| r.meaning.as_str()).collect();
+    TableBuilder::new()
+        .str("parameter", &names)
+        .str("unit", &units)
+        .str("meaning", &meaning)
+        .f64("two_face_max_um", two_face)
+        .f64("length_max_um", length)
+        .str("seen_by", &seen_by)
+        .build()
 }
 
 fn tests_table(tests: &[Test], err_um: &[f64]) -> Result<DataFrame> {
@@ -388,19 +471,15 @@ fn tests_table(tests: &[Test], err_um: &[f64]) -> Result<DataFrame> {
         .build()
 }
 
-fn sensitivity_table(
-    tests: &[Test],
-    dirs: &[(String, String, Direction)],
-    sens: &[Vec<f64>],
-) -> Result<DataFrame> {
+fn sensitivity_table(tests: &[Test], rows: &[Row], sens: &[Vec<f64>]) -> Result<DataFrame> {
     let (mut test, mut kind, mut param, mut unit, mut value) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for (t, row) in tests.iter().zip(sens) {
-        for ((name, u, _), v) in dirs.iter().zip(row) {
+        for (r, v) in rows.iter().zip(row) {
             test.push(t.id.as_str());
             kind.push(t.kind());
-            param.push(name.as_str());
-            unit.push(u.as_str());
+            param.push(r.name.as_str());
+            unit.push(r.unit.as_str());
             value.push(*v);
         }
     }

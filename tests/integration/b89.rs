@@ -66,6 +66,47 @@ fn b89_pipeline_says_which_test_sees_which_misalignment() {
         worst(&comp)
     );
     assert!(std::path::Path::new(&dir.path().join("b89/physical/b89-sensitivity.svg")).exists());
+
+    // The mirror tracker: the same plane reflects in both faces, so its
+    // incoming beam's offset and tilt and the mirror's tilt separate no
+    // faces; the mirror's offset, reversed with its normal, by 4 µm/µm.
+    let m = table(dir.path(), "b89", "mirror", "visibility");
+    let (m_names, m_two_face) = (strs(&m, "parameter"), col(&m, "two_face_max_um"));
+    let m_row = |id: &str| m_names.iter().position(|n| n == id).unwrap();
+    for id in [
+        "beam_offset_x",
+        "beam_offset_y",
+        "beam_tilt_x",
+        "beam_tilt_y",
+        "mirror_tilt",
+    ] {
+        assert_eq!(m_two_face[m_row(id)], 0.0, "{id}");
+        assert!(col(&m, "length_max_um")[m_row(id)] > 0.5, "{id}");
+    }
+    assert!((m_two_face[m_row("mirror_offset")] - 4.0).abs() < 1e-6);
+}
+
+#[test]
+fn b89_misalignment_of_the_other_model_is_located() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("bad.toml");
+    std::fs::write(
+        &file,
+        "[stages.t]\nkind = \"b89_tests\"\nmodel = \"mirror-tracker\"\nmisalignments = { beam_offset_el = 5 }\n",
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(["run", file.to_str().unwrap(), "--results"])
+        .arg(dir.path().join("results"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("bad.toml:4:"), "{err}");
+    assert!(
+        err.contains("`beam_offset_el` is not a misalignment of the mirror-tracker model"),
+        "{err}"
+    );
 }
 
 #[test]
