@@ -14,6 +14,7 @@
 
 use anyhow::{Result, anyhow, bail};
 use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
 
 /// A bound on the SVD's sweeps, far above what a finite matrix of our size
 /// needs (tens), so that a pathological one fails instead of hanging.
@@ -52,14 +53,7 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Result<Analysis> {
         );
     }
     let n = j.ncols();
-    // Reduce a tall Jacobian to its triangular factor first: same singular
-    // values and right vectors, a fraction of the work.
-    let r = if j.nrows() > n {
-        j.clone().qr().r()
-    } else {
-        j.clone()
-    };
-    let svd = r
+    let svd = triangular_factor(j)
         .try_svd(false, true, 5.0 * f64::EPSILON, MAX_SVD_ITERS)
         .ok_or_else(|| anyhow!("the singular value decomposition did not converge"))?;
     let v_t = svd.v_t.expect("right singular vectors were requested");
@@ -86,6 +80,42 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Result<Analysis> {
         row_basis,
         null_basis,
     })
+}
+
+/// Row blocks a tall matrix is reduced in, in parallel: a fixed number, so
+/// that the factor is the same whatever the number of threads.
+const TSQR_BLOCKS: usize = 8;
+
+/// A tall matrix reduced to its triangular factor `R` (`JᵀJ = RᵀR`): the
+/// same singular values and right vectors, a fraction of the SVD's work.
+/// A tall-skinny QR: each block of rows factorised on its own (in
+/// parallel), their `R`s stacked and factorised once more (Demmel et al.,
+/// 2012) — the bundle adjustment's projected Jacobian has thousands of rows
+/// and a handful of columns.
+fn triangular_factor(j: &DMatrix<f64>) -> DMatrix<f64> {
+    let (m, n) = j.shape();
+    if m <= n {
+        return j.clone();
+    }
+    let per = m.div_ceil(TSQR_BLOCKS);
+    if per < 4 * n {
+        return j.clone().qr().r();
+    }
+    let rs: Vec<DMatrix<f64>> = (0..m.div_ceil(per))
+        .into_par_iter()
+        .map(|b| {
+            let first = b * per;
+            j.rows(first, per.min(m - first)).into_owned().qr().r()
+        })
+        .collect();
+    // (The last block may hold fewer than n rows, and its factor as many.)
+    let mut stacked = DMatrix::zeros(rs.iter().map(|r| r.nrows()).sum(), n);
+    let mut at = 0;
+    for r in &rs {
+        stacked.rows_mut(at, r.nrows()).copy_from(r);
+        at += r.nrows();
+    }
+    stacked.qr().r()
 }
 
 /// The observability indices of robot calibration, computed over the
@@ -284,6 +314,32 @@ fn trim_number(v: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_tall_skinny_factor_has_the_singular_values_of_the_matrix() {
+        // 57 × 2: blocks of 8 rows, the last of one row only.
+        let j = DMatrix::from_fn(57, 2, |i, k| ((i * 7 + k * 13) % 17) as f64 - 8.0);
+        let (jtj, r) = (j.transpose() * &j, triangular_factor(&j));
+        assert_eq!(r.shape(), (2, 2));
+        assert!((&jtj - r.transpose() * &r).amax() <= 1e-12 * jtj.amax());
+        // 1 003 × 5: eight blocks, the last shorter.
+        let j = DMatrix::from_fn(1003, 5, |i, k| {
+            ((i * 7 + k * 13) % 17) as f64 - 8.0 + k as f64 * 1e-3
+        });
+        let r = triangular_factor(&j);
+        assert_eq!(r.shape(), (5, 5));
+        let (a, b) = (j.singular_values(), r.singular_values());
+        let (mut a, mut b): (Vec<f64>, Vec<f64>) =
+            (a.iter().copied().collect(), b.iter().copied().collect());
+        a.sort_by(f64::total_cmp);
+        b.sort_by(f64::total_cmp);
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() <= 1e-10 * a[4], "{x} vs {y}");
+        }
+        assert!(
+            (j.transpose() * &j - r.transpose() * &r).amax() <= 1e-9 * (j.transpose() * &j).amax()
+        );
+    }
 
     #[test]
     fn a_non_finite_jacobian_is_an_error_not_a_hang() {
