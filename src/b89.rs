@@ -7,8 +7,9 @@
 //! The standard's tests are how a tracker is accepted and re-verified; the
 //! paper (Section 1) sets its calibration against them. Which test sees which
 //! misalignment decides what a verification can vouch for: a range offset is
-//! invisible to every two-face test, an even encoder harmonic to the face
-//! average, a beam tilt grows with distance. Simulating the tests through the
+//! invisible to every two-face test, and so is an even encoder harmonic
+//! (an odd one cancels in the face average instead); a beam tilt grows
+//! with distance. Simulating the tests through the
 //! same forward model as everything else answers that for any parameter set,
 //! the physical misalignments of [`crate::physical`] or the paper's DH
 //! coefficients alike.

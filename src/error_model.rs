@@ -471,10 +471,11 @@ impl ErrorParams {
     }
 }
 
-const MAX_INVERSE_ITERS: usize = 50;
+/// Newton steps of a tracker's inverse (here and in `mirror`).
+pub(crate) const MAX_INVERSE_ITERS: usize = 50;
 /// The round trip holds to 1e-9 mm; ask for more where rounding allows.
-const INVERSE_TOL_MM: f64 = 1e-11;
-const INVERSE_MAX_MISS_MM: f64 = 1e-9;
+pub(crate) const INVERSE_TOL_MM: f64 = 1e-11;
+pub(crate) const INVERSE_MAX_MISS_MM: f64 = 1e-9;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum InverseError {

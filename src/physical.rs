@@ -15,9 +15,9 @@
 //! model (the encoder terms through the Fourier shapes of Eq. 9), up to sign
 //! and to the angle its harmonic is written in. The model is therefore the
 //! DH model restricted to [`CORRESPONDENCE`]'s coefficients, with
-//! physical names; [`to_dh`] maps values across and
-//! [`first_order_displacement`] is the classical first-order observation
-//! model, derived on its own, against which the tests hold the mapping.
+//! physical names; [`to_dh`] maps values across. The tests hold the
+//! mapping against the classical first-order observation model (the `Δ`
+//! column below), derived on its own.
 //!
 //! # Correspondence (frames of `error_model`'s module doc)
 //!
@@ -55,8 +55,6 @@
 //! holds each of these statements.
 
 use crate::error_model::{Coef, ErrorModel, ErrorParams, ParamId, Shape};
-use crate::kinematics::Reading;
-use nalgebra::Vector3;
 
 /// One physical misalignment and its DH coefficient.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -216,11 +214,6 @@ impl Misalignment {
     pub fn coef(&self) -> Coef {
         Coef::parse(self.dh).expect("the correspondence names valid coefficients")
     }
-
-    /// Display unit → internal unit (µm → mm, µrad → rad).
-    pub fn scale(&self) -> f64 {
-        if self.unit == "µm" { 1e-3 } else { 1e-6 }
-    }
 }
 
 /// The DH error model that holds every misalignment: the paper's 18
@@ -249,50 +242,51 @@ pub fn to_dh(values: &[(&Misalignment, f64)]) -> ErrorParams {
     p
 }
 
-/// The reading's local directions `(e_R, e_az, e_el)` in the station frame.
-pub fn local_frame(r: Reading) -> [Vector3<f64>; 3] {
-    let (sa, ca) = r.az.sin_cos();
-    let (se, ce) = r.el.sin_cos();
-    [
-        Vector3::new(ce * ca, ce * sa, se),
-        Vector3::new(-sa, ca, 0.0),
-        Vector3::new(-se * ca, -se * sa, ce),
-    ]
-}
-
-/// The classical first-order observation model: how far misalignment `m`
-/// at `value` (display units) moves the point a reading reaches, in mm —
-/// the module doc's `Δ` column, derived from the geometry of each
-/// misalignment alone, not from the DH chain.
-pub fn first_order_displacement(m: &Misalignment, value: f64, r: Reading) -> Vector3<f64> {
-    let [e_r, e_az, e_el] = local_frame(r);
-    let v = value * m.scale();
-    let (az, el, d) = (r.az, r.el, r.d);
-    match m.id {
-        "beam_offset_el" => v * e_el,
-        "beam_offset_az" => v * e_az,
-        "transit_offset" => v * (el.cos() * e_r - el.sin() * e_el),
-        "beam_tilt_el" | "vertical_index" => v * d * e_el,
-        "beam_tilt_az" => v * d * e_az,
-        "transit_tilt" => v * d * el.sin() * e_az,
-        "range_offset" => v * e_r,
-        "az_ecc_sin" => v * az.sin() * d * el.cos() * e_az,
-        "az_ecc_cos" => v * az.cos() * d * el.cos() * e_az,
-        "az_h2_sin" => v * (2.0 * az).sin() * d * el.cos() * e_az,
-        "az_h2_cos" => v * (2.0 * az).cos() * d * el.cos() * e_az,
-        "el_ecc_sin" => v * el.sin() * d * e_el,
-        "el_ecc_cos" => v * el.cos() * d * e_el,
-        "el_h2_sin" => v * (2.0 * el).sin() * d * e_el,
-        "el_h2_cos" => v * (2.0 * el).cos() * d * e_el,
-        other => unreachable!("`{other}` is in CORRESPONDENCE without a displacement"),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::error_model::rotation_xyz;
-    use crate::kinematics::{Face, nominal_point, nominal_reading};
+    use crate::kinematics::{Face, Reading, nominal_point, nominal_reading};
+    use nalgebra::Vector3;
+
+    /// The reading's local directions `(e_R, e_az, e_el)` in the station frame.
+    fn local_frame(r: Reading) -> [Vector3<f64>; 3] {
+        let (sa, ca) = r.az.sin_cos();
+        let (se, ce) = r.el.sin_cos();
+        [
+            Vector3::new(ce * ca, ce * sa, se),
+            Vector3::new(-sa, ca, 0.0),
+            Vector3::new(-se * ca, -se * sa, ce),
+        ]
+    }
+
+    /// The classical first-order observation model: how far misalignment `m`
+    /// at `value` (display units) moves the point a reading reaches, in mm —
+    /// the module doc's `Δ` column, derived from the geometry of each
+    /// misalignment alone, not from the DH chain.
+    fn first_order_displacement(m: &Misalignment, value: f64, r: Reading) -> Vector3<f64> {
+        let [e_r, e_az, e_el] = local_frame(r);
+        let v = value * if m.unit == "µm" { 1e-3 } else { 1e-6 };
+        let (az, el, d) = (r.az, r.el, r.d);
+        match m.id {
+            "beam_offset_el" => v * e_el,
+            "beam_offset_az" => v * e_az,
+            "transit_offset" => v * (el.cos() * e_r - el.sin() * e_el),
+            "beam_tilt_el" | "vertical_index" => v * d * e_el,
+            "beam_tilt_az" => v * d * e_az,
+            "transit_tilt" => v * d * el.sin() * e_az,
+            "range_offset" => v * e_r,
+            "az_ecc_sin" => v * az.sin() * d * el.cos() * e_az,
+            "az_ecc_cos" => v * az.cos() * d * el.cos() * e_az,
+            "az_h2_sin" => v * (2.0 * az).sin() * d * el.cos() * e_az,
+            "az_h2_cos" => v * (2.0 * az).cos() * d * el.cos() * e_az,
+            "el_ecc_sin" => v * el.sin() * d * e_el,
+            "el_ecc_cos" => v * el.cos() * d * e_el,
+            "el_h2_sin" => v * (2.0 * el).sin() * d * e_el,
+            "el_h2_cos" => v * (2.0 * el).cos() * d * e_el,
+            other => unreachable!("`{other}` is in CORRESPONDENCE without a displacement"),
+        }
+    }
 
     /// Readings over the volume, both faces.
     fn readings() -> Vec<Reading> {

@@ -126,6 +126,7 @@ impl BlockJacobian {
             let (p0, at0) = (self.parts.len(), at);
             for (col, width) in layout {
                 debug_assert!(col + width <= self.n);
+                debug_assert!(col + width <= self.n_a || (col >= self.n_a && width == 3));
                 self.parts.push(Part { col, width, at });
                 at += rows * width;
             }
@@ -222,6 +223,9 @@ impl BlockJacobian {
     /// At most `parts` ranges `[lo, hi)` covering the columns in order,
     /// each holding about the same number of Jacobian values.
     fn balanced_column_ranges(&self, parts: usize) -> Vec<(usize, usize)> {
+        if parts <= 1 {
+            return vec![(0, self.n)];
+        }
         let mut per_col = vec![0usize; self.n];
         for blk in &self.blocks {
             for p in &self.parts[blk.parts.0..blk.parts.1] {
@@ -241,8 +245,14 @@ impl BlockJacobian {
                 (lo, acc) = (c + 1, 0);
             }
         }
-        if lo < self.n || ranges.is_empty() {
-            ranges.push((lo, self.n));
+        // Columns left after the last full range join it (they hold less
+        // than a range's share), so there are never more than `parts`.
+        let full = ranges.len() == parts;
+        match ranges.last_mut() {
+            Some(last) if lo < self.n && full => last.1 = self.n,
+            None => ranges.push((0, self.n)),
+            Some(_) if lo < self.n => ranges.push((lo, self.n)),
+            Some(_) => {}
         }
         ranges
     }
@@ -722,6 +732,9 @@ impl Factor {
     /// values side by side, so every inner loop runs over contiguous
     /// memory.
     pub fn solve_rows(&self, rhs: &[f64], k: usize) -> Vec<f64> {
+        if k == 0 {
+            return Vec::new();
+        }
         let n_a = self.n_a;
         // The dense part's right-hand side, reduced: b_A − Σ W_x·b_x.
         // Rows of `b` split into ranges filled in parallel, each visiting
@@ -1066,6 +1079,18 @@ mod tests {
             let h = leverage(&j, &f, b);
             assert!((h - hat.view((3 * b, 3 * b), (3, 3))).norm() < 1e-10);
         }
+    }
+
+    /// Regression: splitting the Schur reduction into row ranges of `k`
+    /// values each made a chunk size of zero, and rayon panics on it, when
+    /// every error parameter is fixed (no column to project).
+    #[test]
+    fn projecting_no_column_returns_none_instead_of_panicking() {
+        let (j, _) = problem();
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        assert!(f.solve_rows(&[], 0).is_empty());
+        let none = DMatrix::zeros(j.nrows(), 0);
+        assert_eq!(project_out_columns(&j, &f, &none).shape(), (j.nrows(), 0));
     }
 
     #[test]

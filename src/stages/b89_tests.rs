@@ -26,7 +26,7 @@
 //! * `tests` — `test`, `kind` (`two-face`, `length`), `orientation`,
 //!   `distance_m`, `height_m`, `az_deg`, `err_um`: each test's error with the
 //!   given errors, simulated exactly (the two-face separation; measured minus
-//!   true length), zero without errors.
+//!   true length), zero (to rounding) without errors.
 //! * `sensitivity` — `test`, `kind`, `parameter`, `unit`, `sens_um_per_unit`:
 //!   each test's error per µm or µrad of each parameter (linear, at zero:
 //!   the analytic Jacobian for the head-laser model, central differences of
@@ -114,7 +114,7 @@ fn default_azimuths() -> Vec<f64> {
 
 /// A tracker's reach, m: farther positions are a typing mistake.
 const MAX_DISTANCE_M: f64 = 200.0;
-/// At most this many tests (the standard has 36 + 35).
+/// At most this many tests (36 two-face and 40 length tests by default).
 const MAX_TESTS: usize = 20_000;
 
 impl B89TestsStage {
@@ -179,7 +179,9 @@ impl B89TestsStage {
                 }
                 let mut e = MirrorErrors::default();
                 for (id, v) in &self.misalignments {
-                    e.set(id, *v);
+                    if !e.set(id, *v) {
+                        bail!("`{id}` is not a misalignment of the mirror-tracker model");
+                    }
                 }
                 let err_um = b89::simulate(tests, &MirrorTracker::new(&e)).map_err(cannot)?;
                 let sens = b89::mirror_sensitivity(tests).map_err(cannot)?;
@@ -202,9 +204,20 @@ impl B89TestsStage {
                 *values.entry(*c).or_default() += v;
             }
         }
-        for (id, v) in &self.misalignments {
-            let m = Misalignment::parse(id).expect("validated");
-            *values.entry(m.coef()).or_default() += m.sign * v;
+        let given = self
+            .misalignments
+            .iter()
+            .map(|(id, v)| {
+                Misalignment::parse(id).map(|m| (m, *v)).ok_or_else(|| {
+                    anyhow!("`{id}` is not a misalignment of the api-tracker3 model")
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let mapped = physical::to_dh(&given);
+        for (c, v) in mapped.coefs().iter().zip(mapped.values()) {
+            if *v != 0.0 {
+                *values.entry(*c).or_default() += v;
+            }
         }
         let (coefs, vals) = values.into_iter().unzip();
         Ok(ErrorParams::from_parts(coefs, vals))
@@ -286,11 +299,21 @@ impl StageKind for B89TestsStage {
         for (name, values, lo, hi) in lists {
             for (i, &v) in values.iter().enumerate() {
                 // Distances must stay off the standing axis: above zero.
-                let above = if lo == 0.0 { v > lo } else { v >= lo };
+                let (above, open) = if lo == 0.0 {
+                    (v > lo, "(")
+                } else {
+                    (v >= lo, "[")
+                };
                 if !(v.is_finite() && above && v <= hi) {
                     out.push(Invalid::new(
                         format!("{name}.{i}"),
-                        format!("`{name}` values must lie in ({lo}, {hi}], got {v}"),
+                        format!("`{name}` values must lie in {open}{lo}, {hi}], got {v}"),
+                    ));
+                } else if values[..i].contains(&v) {
+                    // Each test is named by its position: no two alike.
+                    out.push(Invalid::new(
+                        format!("{name}.{i}"),
+                        format!("`{name}` holds {v} twice"),
                     ));
                 }
             }
@@ -315,8 +338,19 @@ impl StageKind for B89TestsStage {
             .fold(1usize, |a, &b| a.saturating_mul(b)),
         );
         if n_tests == 0 {
+            // Name the first empty list that leaves no test.
+            let empty = [
+                ("azimuths_deg", n_az),
+                ("two_face_distances_m", self.two_face_distances_m.len()),
+                ("two_face_heights_m", self.two_face_heights_m.len()),
+                ("length_distances_m", self.length_distances_m.len()),
+                ("length_heights_m", self.length_heights_m.len()),
+            ]
+            .into_iter()
+            .find(|(_, n)| *n == 0)
+            .map_or("azimuths_deg", |(name, _)| name);
             out.push(Invalid::new(
-                "azimuths_deg",
+                empty,
                 "no test: give at least one azimuth and one distance",
             ));
         } else if n_tests > MAX_TESTS {

@@ -40,8 +40,8 @@ fn b89_pipeline_says_which_test_sees_which_misalignment() {
         assert!(length_raised[row(id)] > 0.5, "{id}");
     }
 
-    // The DH view: the tracker's placement (δ1, ε1, the constant εz1, δy2)
-    // and the rotation about the beam (εz3) show in no test.
+    // The DH view: the tracker's placement (δ1, ε1, the constant εz1, δy2),
+    // εy2 (≡ −εz1) and the rotation about the beam (εz3) show in no test.
     let dh = table(dir.path(), "b89", "dh", "visibility");
     let (dh_names, dh_seen) = (strs(&dh, "parameter"), strs(&dh, "seen_by"));
     for (n, s) in dh_names.iter().zip(&dh_seen) {
@@ -128,4 +128,27 @@ fn b89_unknown_misalignment_is_located() {
     assert!(err.contains("bad.toml:3:"), "{err}");
     assert!(err.contains("`beam_offset` is not a misalignment"), "{err}");
     assert!(!dir.path().join("results").exists());
+}
+
+#[test]
+fn b89_repeated_position_is_located() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("bad.toml");
+    std::fs::write(
+        &file,
+        "[stages.t]\nkind = \"b89_tests\"\ntwo_face_distances_m = [1, 3, 1]\n",
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(["run", file.to_str().unwrap(), "--results"])
+        .arg(dir.path().join("results"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("bad.toml:3:"), "{err}");
+    assert!(
+        err.contains("`two_face_distances_m` holds 1 twice"),
+        "{err}"
+    );
 }
