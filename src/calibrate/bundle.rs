@@ -288,16 +288,59 @@ impl<'a> Bundle<'a> {
         }
     }
 
-    /// The residual blocks after the readings, in order — each gauge
-    /// length, then each reference coordinate — as `(rows, residuals,
-    /// parts)` with the parts `(first column, rows × width values,
-    /// row-major)` when `jac`, none otherwise.
-    fn visit_ties(
+    /// Visits every residual block in order — each reading's three rows,
+    /// then each gauge length, then each reference coordinate — as
+    /// `(rows, residuals, parts)` with the parts `(first column, rows ×
+    /// width values, row-major)` when `jac`, none otherwise (`design`: see
+    /// [`Self::reading_block`]). The readings are evaluated in parallel,
+    /// each on its own, and visited in order: the same numbers whatever
+    /// the number of threads.
+    fn visit(
         &self,
         x: &DVector<f64>,
         jac: bool,
+        design: bool,
         mut f: impl FnMut(usize, &[f64], &[(usize, &[f64])]),
     ) {
+        let params = self.params(x);
+        let eval = params.evaluator();
+        let stations = self.stations(x);
+        // Every reading's error-parameter rows in one buffer, filled in
+        // place: no allocation per reading.
+        let n_obs = self.net.obs.len();
+        let nz3 = if jac { 3 * self.layout.n_z } else { 0 };
+        let mut jz_all = vec![0.0; n_obs * nz3];
+        let jz_rows: Vec<&mut [f64]> = if nz3 > 0 {
+            jz_all.chunks_exact_mut(nz3).collect()
+        } else {
+            (0..n_obs).map(|_| &mut [][..]).collect()
+        };
+        let blocks: Vec<ReadingBlock> = jz_rows
+            .into_par_iter()
+            .enumerate()
+            .with_min_len(256)
+            .map_init(Vec::new, |cols, (i, jz)| {
+                let s = &stations[self.net.obs[i].station];
+                let out = jac.then_some(Scratch { jz, cols });
+                self.reading_block(x, s, &eval, i, design, out)
+            })
+            .collect();
+        for (i, (o, b)) in self.net.obs.iter().zip(&blocks).enumerate() {
+            if !jac {
+                f(3, b.r.as_slice(), &[]);
+                continue;
+            }
+            let (po, _) = self.layout.point[o.target].expect("seen");
+            let mut parts: Vec<(usize, &[f64])> = Vec::with_capacity(3);
+            if nz3 > 0 {
+                parts.push((0, &jz_all[i * nz3..(i + 1) * nz3]));
+            }
+            if let Some((so, part)) = &b.station {
+                parts.push((*so, part));
+            }
+            parts.push((po, &b.point));
+            f(3, b.r.as_slice(), &parts);
+        }
         for g in &self.net.gauge {
             let (Some((oa, _)), Some((ob, _))) = (self.layout.point[g.a], self.layout.point[g.b])
             else {
@@ -331,37 +374,11 @@ impl<'a> Bundle<'a> {
     }
 
     /// The Jacobian, as its blocks, and the residuals of the network at `x`
-    /// (`design`: of the consistent network, see [`Self::reading_block`]):
-    /// each reading's three rows, then the ties of [`Self::visit_ties`].
-    /// The readings are evaluated in parallel, each on its own and each
-    /// straight into its place: the same numbers whatever the number of
-    /// threads.
+    /// (`design`: of the consistent network, see [`Self::visit`]).
     fn jacobian_at(&self, x: &DVector<f64>, design: bool) -> (BlockJacobian, DVector<f64>) {
-        let params = self.params(x);
-        let eval = params.evaluator();
-        let stations = self.stations(x);
-        let nz = self.layout.n_z;
         let mut j = BlockJacobian::new(self.layout.n_a, self.layout.n);
-        let layouts = self.net.obs.iter().map(|o| {
-            let (po, _) = self.layout.point[o.target].expect("seen");
-            let station = stations[o.station].free.map(|so| (so, 6));
-            [(nz > 0).then_some((0, nz)), station, Some((po, 3))]
-                .into_iter()
-                .flatten()
-        });
-        let readings = j.push_filled(3, layouts, Vec::new, |cols, i, values| {
-            let s = &stations[self.net.obs[i].station];
-            let (jz, rest) = values.split_at_mut(3 * nz);
-            let b = self.reading_block(x, s, &eval, i, design, Some(Scratch { jz, cols }));
-            let (station, point) = rest.split_at_mut(rest.len() - 9);
-            if let Some((_, part)) = &b.station {
-                station.copy_from_slice(part);
-            }
-            point.copy_from_slice(&b.point);
-            b.r
-        });
-        let mut r: Vec<f64> = readings.iter().flat_map(|v| v.iter().copied()).collect();
-        self.visit_ties(x, true, |rows, res, parts| {
+        let mut r = Vec::new();
+        self.visit(x, true, design, |rows, res, parts| {
             j.push(rows, parts);
             r.extend_from_slice(res);
         });
@@ -369,19 +386,8 @@ impl<'a> Bundle<'a> {
     }
 
     fn residuals(&self, x: &DVector<f64>) -> DVector<f64> {
-        let params = self.params(x);
-        let eval = params.evaluator();
-        let stations = self.stations(x);
-        let readings: Vec<Vector3<f64>> = (0..self.net.obs.len())
-            .into_par_iter()
-            .with_min_len(256)
-            .map(|i| {
-                let s = &stations[self.net.obs[i].station];
-                self.reading_block(x, s, &eval, i, false, None).r
-            })
-            .collect();
-        let mut out: Vec<f64> = readings.iter().flat_map(|v| v.iter().copied()).collect();
-        self.visit_ties(x, false, |_, r, _| out.extend_from_slice(r));
+        let mut out = Vec::new();
+        self.visit(x, false, false, |_, r, _| out.extend_from_slice(r));
         DVector::from_vec(out)
     }
 }

@@ -105,55 +105,6 @@ impl BlockJacobian {
         self.m += rows;
     }
 
-    /// Appends one residual block of `rows` rows per item of `layouts` —
-    /// its parts' `(first column, width)` in order — and has `fill` write
-    /// each block's values (its parts' `rows × width` values one after
-    /// another, row-major) in place, in parallel, with a scratch value per
-    /// task from `init`. Returns what `fill` returns, block by block. The
-    /// same Jacobian as [`Self::push`] block after block, without copying
-    /// the values.
-    pub fn push_filled<S, T: Send>(
-        &mut self,
-        rows: usize,
-        layouts: impl Iterator<Item = impl IntoIterator<Item = (usize, usize)>>,
-        init: impl Fn() -> S + Sync + Send,
-        fill: impl Fn(&mut S, usize, &mut [f64]) -> T + Sync + Send,
-    ) -> Vec<T> {
-        let first_value = self.values.len();
-        let mut sizes = Vec::new();
-        let mut at = first_value;
-        for layout in layouts {
-            let (p0, at0) = (self.parts.len(), at);
-            for (col, width) in layout {
-                debug_assert!(col + width <= self.n);
-                debug_assert!(col + width <= self.n_a || (col >= self.n_a && width == 3));
-                self.parts.push(Part { col, width, at });
-                at += rows * width;
-            }
-            self.blocks.push(Block {
-                row: self.m,
-                rows,
-                parts: (p0, self.parts.len()),
-            });
-            self.m += rows;
-            sizes.push(at - at0);
-        }
-        self.values.resize(at, 0.0);
-        let mut slices: Vec<&mut [f64]> = Vec::with_capacity(sizes.len());
-        let mut rest = &mut self.values[first_value..];
-        for &n in &sizes {
-            let (head, tail) = rest.split_at_mut(n);
-            slices.push(head);
-            rest = tail;
-        }
-        slices
-            .into_par_iter()
-            .enumerate()
-            .with_min_len(256)
-            .map_init(init, |s, (k, v)| fill(s, k, v))
-            .collect()
-    }
-
     /// Whether every entry is finite.
     pub fn is_finite(&self) -> bool {
         self.values.iter().all(|v| v.is_finite())
