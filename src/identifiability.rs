@@ -85,6 +85,10 @@ pub fn analyse(j: &DMatrix<f64>, rel_tol: f64) -> Result<Analysis> {
 /// Row blocks a tall matrix is reduced in, in parallel: a fixed number, so
 /// that the factor is the same whatever the number of threads.
 const TSQR_BLOCKS: usize = 8;
+/// Below this many rows one QR is cheaper than eight in parallel (the
+/// sphere of Section 5.1, 1 440 rows, and the paper's campaigns factorise
+/// as one; the 600-reflector hall's 14 400 in blocks).
+const TSQR_MIN_ROWS: usize = 4096;
 
 /// A tall matrix reduced to its triangular factor `R` (`JᵀJ = RᵀR`): the
 /// same singular values and right vectors, a fraction of the SVD's work.
@@ -98,7 +102,7 @@ fn triangular_factor(j: &DMatrix<f64>) -> DMatrix<f64> {
         return j.clone();
     }
     let per = m.div_ceil(TSQR_BLOCKS);
-    if per < 4 * n {
+    if m < TSQR_MIN_ROWS || per < 4 * n {
         return j.clone().qr().r();
     }
     let rs: Vec<DMatrix<f64>> = (0..m.div_ceil(per))
@@ -317,13 +321,13 @@ mod tests {
 
     #[test]
     fn the_tall_skinny_factor_has_the_singular_values_of_the_matrix() {
-        // 57 × 2: blocks of 8 rows, the last of one row only.
+        // 57 × 2: one QR, as below TSQR_MIN_ROWS.
         let j = DMatrix::from_fn(57, 2, |i, k| ((i * 7 + k * 13) % 17) as f64 - 8.0);
         let (jtj, r) = (j.transpose() * &j, triangular_factor(&j));
         assert_eq!(r.shape(), (2, 2));
         assert!((&jtj - r.transpose() * &r).amax() <= 1e-12 * jtj.amax());
-        // 1 003 × 5: eight blocks, the last shorter.
-        let j = DMatrix::from_fn(1003, 5, |i, k| {
+        // 4 099 × 5: eight blocks of 513 rows, the last of 508.
+        let j = DMatrix::from_fn(4099, 5, |i, k| {
             ((i * 7 + k * 13) % 17) as f64 - 8.0 + k as f64 * 1e-3
         });
         let r = triangular_factor(&j);
