@@ -86,22 +86,30 @@ fn b89_pipeline_says_which_test_sees_which_misalignment() {
     assert!((m_two_face[m_row("mirror_offset")] - 4.0).abs() < 1e-6);
 }
 
-#[test]
-fn b89_misalignment_of_the_other_model_is_located() {
+/// Runs `ltcal run` on a pipeline of `text`; its exit code and stderr, and
+/// that nothing was written.
+fn run_bad(text: &str) -> (Option<i32>, String) {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("bad.toml");
-    std::fs::write(
-        &file,
-        "[stages.t]\nkind = \"b89_tests\"\nmodel = \"mirror-tracker\"\nmisalignments = { beam_offset_el = 5 }\n",
-    )
-    .unwrap();
+    std::fs::write(&file, text).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
         .args(["run", file.to_str().unwrap(), "--results"])
         .arg(dir.path().join("results"))
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(!dir.path().join("results").exists(), "results were written");
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn b89_misalignment_of_the_other_model_is_located() {
+    let (code, err) = run_bad(
+        "[stages.t]\nkind = \"b89_tests\"\nmodel = \"mirror-tracker\"\nmisalignments = { beam_offset_el = 5 }\n",
+    );
+    assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("bad.toml:4:"), "{err}");
     assert!(
         err.contains("`beam_offset_el` is not a misalignment of the mirror-tracker model"),
@@ -111,41 +119,18 @@ fn b89_misalignment_of_the_other_model_is_located() {
 
 #[test]
 fn b89_unknown_misalignment_is_located() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("bad.toml");
-    std::fs::write(
-        &file,
-        "[stages.t]\nkind = \"b89_tests\"\nmisalignments = { beam_offset = 5 }\n",
-    )
-    .unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
-        .args(["run", file.to_str().unwrap(), "--results"])
-        .arg(dir.path().join("results"))
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
+    let (code, err) =
+        run_bad("[stages.t]\nkind = \"b89_tests\"\nmisalignments = { beam_offset = 5 }\n");
+    assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("bad.toml:3:"), "{err}");
     assert!(err.contains("`beam_offset` is not a misalignment"), "{err}");
-    assert!(!dir.path().join("results").exists());
 }
 
 #[test]
 fn b89_repeated_position_is_located() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("bad.toml");
-    std::fs::write(
-        &file,
-        "[stages.t]\nkind = \"b89_tests\"\ntwo_face_distances_m = [1, 3, 1]\n",
-    )
-    .unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_ltcal"))
-        .args(["run", file.to_str().unwrap(), "--results"])
-        .arg(dir.path().join("results"))
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
+    let (code, err) =
+        run_bad("[stages.t]\nkind = \"b89_tests\"\ntwo_face_distances_m = [1, 3, 1]\n");
+    assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("bad.toml:3:"), "{err}");
     assert!(
         err.contains("`two_face_distances_m` holds 1 twice"),
