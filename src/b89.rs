@@ -117,16 +117,6 @@ pub struct Test {
     pub b: Vector3<f64>,
 }
 
-impl Test {
-    pub fn kind(&self) -> &'static str {
-        if self.orientation.is_some() {
-            "length"
-        } else {
-            "two-face"
-        }
-    }
-}
-
 /// Every test at `pos`: the two-face tests, then the length tests, each
 /// distance by azimuth in the settings' order.
 pub fn tests(pos: &Positions) -> Vec<Test> {
@@ -194,6 +184,14 @@ fn horizontal(az_deg: f64, r_mm: f64) -> Vector3<f64> {
 }
 
 impl Test {
+    pub fn kind(&self) -> &'static str {
+        if self.orientation.is_some() {
+            "length"
+        } else {
+            "two-face"
+        }
+    }
+
     /// The faces of the two readings.
     fn faces(&self) -> [Face; 2] {
         match self.orientation {
@@ -273,11 +271,10 @@ pub fn mirror_sensitivity(tests: &[Test]) -> Result<Vec<Vec<f64>>, String> {
                 .map(|(t, (p, m))| {
                     // A two-face error is a length (≥ 0): its slope is the
                     // mean of the two, the signed one's half their difference.
-                    let s = match t.orientation {
+                    snap(match t.orientation {
                         None => 0.5 * (p + m) / MIRROR_STEP,
                         Some(_) => 0.5 * (p - m) / MIRROR_STEP,
-                    };
-                    if s.abs() < ROUND_OFF_UM { 0.0 } else { s }
+                    })
                 })
                 .collect())
         })
@@ -287,14 +284,19 @@ pub fn mirror_sensitivity(tests: &[Test]) -> Result<Vec<Vec<f64>>, String> {
         .collect())
 }
 
-/// A direction in the coefficient space of a model: one physical
-/// misalignment, or one DH coefficient — `(coefficient index, factor)`
-/// pairs, per display unit.
-pub type Direction = Vec<(usize, f64)>;
+/// A parameter as a direction in the DH model's coefficients: one physical
+/// misalignment (its coefficient and sign, [`crate::physical`]) or one DH
+/// coefficient (sign 1) — `(coefficient index, sign)`, per display unit.
+pub type Direction = (usize, f64);
 
 /// Sensitivities below this (µm per µm or µrad) are the round-off of
 /// points millimetres to metres away, not a test seeing a parameter.
 pub const ROUND_OFF_UM: f64 = 1e-6;
+
+/// A sensitivity, exactly zero below [`ROUND_OFF_UM`].
+fn snap(s: f64) -> f64 {
+    if s.abs() < ROUND_OFF_UM { 0.0 } else { s }
+}
 
 /// `[test][direction]`: each test's error per display unit of each
 /// direction (µm per µm or per µrad), linear at zero error. Two-face
@@ -309,7 +311,7 @@ pub fn sensitivity(tests: &[Test], zero: &ErrorParams, directions: &[Direction])
         eval.point_with_jacobian(q, &Links::new(q), &mut cols);
         directions
             .iter()
-            .map(|dir| -dir.iter().map(|&(c, f)| f * cols[c]).sum::<Vector3<f64>>())
+            .map(|&(c, sign)| -sign * cols[c])
             .collect()
     };
     tests
@@ -317,17 +319,14 @@ pub fn sensitivity(tests: &[Test], zero: &ErrorParams, directions: &[Direction])
         .map(|t| {
             let [fa, fb] = t.faces();
             let (sa, sb) = (shifts(&t.a, fa), shifts(&t.b, fb));
-            let u = (t.a - t.b).normalize();
+            // A two-face test reads one point: its separation has a length,
+            // a length test's change lies along the bar.
+            let along = t.orientation.map(|_| (t.a - t.b).normalize());
             sa.iter()
                 .zip(&sb)
                 .map(|(da, db)| {
                     let moved = da - db;
-                    let s = 1e3
-                        * match t.orientation {
-                            None => moved.norm(),
-                            Some(_) => u.dot(&moved),
-                        };
-                    if s.abs() < ROUND_OFF_UM { 0.0 } else { s }
+                    snap(1e3 * along.map_or_else(|| moved.norm(), |u| u.dot(&moved)))
                 })
                 .collect()
         })
@@ -344,7 +343,7 @@ mod tests {
             .iter()
             .map(|m| {
                 let at = zero.coefs().iter().position(|c| *c == m.coef()).unwrap();
-                vec![(at, m.sign)]
+                (at, m.sign)
             })
             .collect()
     }

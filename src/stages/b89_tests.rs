@@ -143,16 +143,14 @@ impl B89TestsStage {
                 .iter()
                 .map(|m| {
                     let row = Row::new(m.id, m.unit, m.meaning);
-                    (row, vec![(at(m.coef()), m.sign)])
+                    (row, (at(m.coef()), m.sign))
                 })
                 .collect(),
             Parameters::Dh => zero
                 .coefs()
                 .iter()
-                .map(|c| {
-                    let row = Row::new(&c.name(), &c.unit(), &c.symbol());
-                    (row, vec![(at(*c), 1.0)])
-                })
+                .enumerate()
+                .map(|(i, c)| (Row::new(&c.name(), &c.unit(), &c.symbol()), (i, 1.0)))
                 .collect(),
         }
     }
