@@ -30,14 +30,34 @@
 //!
 //! Parameter values are held in display units: µm for δ, µrad for ε (and µm/mᵏ,
 //! µrad/mᵏ for the d-polynomial terms). Geometry inside is in mm and rad.
+//!
+//! # Other trackers
+//!
+//! The coefficient space is shared by every tracker model
+//! ([`TrackerModel`]): a [`ParamId`] is one of the 18 DH parameters or one of
+//! the mirror tracker's 10 misalignments ([`crate::mirror`], constants only),
+//! and a parameter set holds the parameters of one model. Everything that
+//! fits or simulates goes through the [`Evaluator`] — a point and its
+//! derivative by each coefficient, and the inverse — so identification,
+//! the bundle adjustment, the diagnosis and simulation fit either tracker
+//! without knowing which. The mirror model's derivatives are central
+//! differences of its exact beam path (a reflection has no tidy chain rule);
+//! a step of one display unit leaves a truncation error of the order of the
+//! third derivative, below 1e-9 of the derivative
+//! (`tests::mirror_derivatives_match_a_finer_difference`).
 
+pub use crate::kinematics::InverseError;
 use crate::kinematics::{self, Face, Joints, Reading, link1_rotation, link2_rotation};
+use crate::mirror::{self, MirrorErrors, MirrorTracker};
+use crate::tracker::TrackerModel;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::fmt;
 
-/// Number of error parameters: 6 per joint, 3 joints.
+/// Number of error parameters of the DH model: 6 per joint, 3 joints.
 pub const N_PARAMS: usize = 18;
+/// Every model's parameters: the DH model's, then the mirror tracker's.
+const N_ALL: usize = N_PARAMS + mirror::IDS.len();
 
 /// The joint an error transform belongs to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -64,7 +84,8 @@ impl Joint {
     }
 }
 
-/// One of the 18 error parameters: `δx, δy, δz, εx, εy, εz` of joint 1, 2 or 3.
+/// One error parameter of one tracker model: `δx, δy, δz, εx, εy, εz` of
+/// joint 1, 2 or 3 of the DH model, or a misalignment of the mirror tracker.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ParamId(u8);
 
@@ -78,38 +99,64 @@ const SYMBOLS: [&str; N_PARAMS] = [
 ];
 
 impl ParamId {
-    pub fn all() -> impl Iterator<Item = ParamId> {
-        (0..N_PARAMS as u8).map(ParamId)
+    /// The parameters of one tracker model, in table order.
+    pub fn of(model: TrackerModel) -> impl Iterator<Item = ParamId> {
+        let range = match model {
+            TrackerModel::ApiTracker3 => 0..N_PARAMS,
+            TrackerModel::MirrorTracker => N_PARAMS..N_ALL,
+        };
+        range.map(|i| ParamId(i as u8))
     }
+    /// The model this parameter belongs to.
+    pub fn tracker(self) -> TrackerModel {
+        if self.index() < N_PARAMS {
+            TrackerModel::ApiTracker3
+        } else {
+            TrackerModel::MirrorTracker
+        }
+    }
+    /// The place in the DH model's arrays (`dx1` = 0 … `ez3` = 17), or past
+    /// them for the mirror tracker's misalignments.
     pub fn index(self) -> usize {
         self.0 as usize
     }
     pub fn from_index(i: usize) -> ParamId {
-        assert!(i < N_PARAMS);
+        assert!(i < N_ALL);
         ParamId(i as u8)
     }
-    pub fn joint(self) -> Joint {
+    /// The joint of a DH parameter; `None` for the mirror tracker's.
+    pub fn joint(self) -> Option<Joint> {
         match self.0 / 6 {
-            0 => Joint::Theta,
-            1 => Joint::Phi,
-            _ => Joint::D,
+            _ if self.index() >= N_PARAMS => None,
+            0 => Some(Joint::Theta),
+            1 => Some(Joint::Phi),
+            _ => Some(Joint::D),
         }
     }
-    /// 0, 1, 2 for x, y, z.
-    pub fn axis(self) -> usize {
-        (self.0 % 3) as usize
-    }
-    /// A rotation error ε (as opposed to a translation δ).
+    /// A rotation error ε or a tilt (as opposed to a translation δ or an offset).
     pub fn is_angular(self) -> bool {
-        self.0 % 6 >= 3
+        match self.mirror_index() {
+            Some(k) => mirror::IDS[k].1 == "µrad",
+            None => self.0 % 6 >= 3,
+        }
     }
-    /// The ASCII id used in TOML and tables: `dx1` … `ez3`.
+    fn mirror_index(self) -> Option<usize> {
+        self.index().checked_sub(N_PARAMS)
+    }
+    /// The ASCII id used in TOML and tables: `dx1` … `ez3`, or the mirror
+    /// tracker's `beam_offset_x` … `range_offset`.
     pub fn id(self) -> &'static str {
-        IDS[self.index()]
+        match self.mirror_index() {
+            Some(k) => mirror::IDS[k].0,
+            None => IDS[self.index()],
+        }
     }
-    /// The paper's symbol: `δx1` … `εz3`.
+    /// The paper's symbol (`δx1` … `εz3`); a mirror misalignment's id.
     pub fn symbol(self) -> &'static str {
-        SYMBOLS[self.index()]
+        match self.mirror_index() {
+            Some(k) => mirror::IDS[k].0,
+            None => SYMBOLS[self.index()],
+        }
     }
     /// The display unit of a constant value.
     pub fn unit(self) -> &'static str {
@@ -119,12 +166,18 @@ impl ParamId {
     pub fn scale(self) -> f64 {
         if self.is_angular() { 1e-6 } else { 1e-3 }
     }
-    /// Accepts the ASCII id or the paper's symbol.
+    /// Accepts the ASCII id or the paper's symbol, of any model.
     pub fn parse(s: &str) -> Option<ParamId> {
         let s = s.trim();
         IDS.iter()
             .position(|&i| i == s)
             .or_else(|| SYMBOLS.iter().position(|&i| i == s))
+            .or_else(|| {
+                mirror::IDS
+                    .iter()
+                    .position(|(i, _, _)| *i == s)
+                    .map(|k| k + N_PARAMS)
+            })
             .map(|i| ParamId(i as u8))
     }
 }
@@ -146,7 +199,8 @@ impl<'de> Deserialize<'de> for ParamId {
         let s = String::deserialize(d)?;
         ParamId::parse(&s).ok_or_else(|| {
             serde::de::Error::custom(format!(
-                "unknown error parameter `{s}`; expected one of dx1 … ez3 (δx1 … εz3)"
+                "unknown error parameter `{s}`; expected one of dx1 … ez3 (δx1 … εz3) \
+                 or a mirror tracker's misalignment (beam_offset_x … range_offset)"
             ))
         })
     }
@@ -260,15 +314,18 @@ impl Coef {
             }
         };
         let param = ParamId::parse(p)?;
-        if matches!(term, Term::Sin(_) | Term::Cos(_)) && param.joint() == Joint::D {
-            return None;
+        match (param.joint(), term) {
+            // The mirror tracker's misalignments are constants.
+            (None, Term::Const) | (Some(Joint::Theta | Joint::Phi), _) => {}
+            (None, _) | (Some(Joint::D), Term::Sin(_) | Term::Cos(_)) => return None,
+            (Some(Joint::D), _) => {}
         }
         Some(Coef { param, term })
     }
 
     /// The paper-style symbol: `δx1`, `εz1·sin2θ`, `δz3·d²`.
     pub fn symbol(&self) -> String {
-        let q = self.param.joint().symbol();
+        let q = self.param.joint().map_or("", Joint::symbol);
         match self.term {
             Term::Const => self.param.symbol().to_string(),
             Term::Sin(k) => format!("{}·sin{}{q}", self.param.symbol(), harmonic(k)),
@@ -285,9 +342,9 @@ impl Coef {
     /// The term's value at the joints (the basis function).
     fn basis(&self, q: Joints) -> f64 {
         let angle = match self.param.joint() {
-            Joint::Theta => q.theta,
-            Joint::Phi => q.phi,
-            Joint::D => 0.0,
+            Some(Joint::Theta) => q.theta,
+            Some(Joint::Phi) => q.phi,
+            Some(Joint::D) | None => 0.0,
         };
         match self.term {
             Term::Const => 1.0,
@@ -313,10 +370,18 @@ fn superscript(k: u32) -> String {
         .collect()
 }
 
-/// The shape of every parameter: which coefficients a parameter set has.
-#[derive(Clone, Debug, PartialEq, Eq, Hash, Default)]
+/// A tracker model and the shape of every parameter: which coefficients a
+/// parameter set has.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct ErrorModel {
-    shapes: [Shape; N_PARAMS],
+    tracker: TrackerModel,
+    shapes: [Shape; N_ALL],
+}
+
+impl Default for ErrorModel {
+    fn default() -> ErrorModel {
+        ErrorModel::of(TrackerModel::ApiTracker3)
+    }
 }
 
 impl ErrorModel {
@@ -325,13 +390,45 @@ impl ErrorModel {
         ErrorModel::default()
     }
 
-    /// Sets one parameter's shape; Fourier needs a rotary joint (a joint angle).
+    /// A tracker model's parameters, every one a constant.
+    pub fn of(tracker: TrackerModel) -> ErrorModel {
+        ErrorModel {
+            tracker,
+            shapes: [Shape::Constant; N_ALL],
+        }
+    }
+
+    pub fn tracker(&self) -> TrackerModel {
+        self.tracker
+    }
+
+    /// Sets one parameter's shape; it must be a parameter of this model,
+    /// and Fourier needs a rotary joint (a joint angle).
     pub fn with_shape(mut self, p: ParamId, shape: Shape) -> Result<ErrorModel, String> {
-        if matches!(shape, Shape::Fourier(_)) && p.joint() == Joint::D {
+        if p.tracker() != self.tracker {
             return Err(format!(
-                "{} belongs to the beam joint, which has no angle: use \"poly:N\" (Eq. 10) instead of \"{shape}\"",
-                p.id()
+                "`{}` is a parameter of the {} model, not of the {} model",
+                p.id(),
+                p.tracker(),
+                self.tracker
             ));
+        }
+        match (p.joint(), shape) {
+            (_, Shape::Constant)
+            | (Some(Joint::Theta | Joint::Phi), _)
+            | (Some(Joint::D), Shape::Poly(_)) => {}
+            (Some(Joint::D), _) => {
+                return Err(format!(
+                    "{} belongs to the beam joint, which has no angle: use \"poly:N\" (Eq. 10) instead of \"{shape}\"",
+                    p.id()
+                ));
+            }
+            (None, _) => {
+                return Err(format!(
+                    "`{}` is a misalignment of the mirror tracker, a constant: it takes no shape",
+                    p.id()
+                ));
+            }
         }
         self.shapes[p.index()] = shape;
         Ok(self)
@@ -344,7 +441,7 @@ impl ErrorModel {
     /// All coefficients, parameter by parameter, in a fixed order.
     pub fn coefs(&self) -> Vec<Coef> {
         let mut out = Vec::new();
-        for p in ParamId::all() {
+        for p in ParamId::of(self.tracker) {
             out.push(Coef {
                 param: p,
                 term: Term::Const,
@@ -380,6 +477,7 @@ impl ErrorModel {
 /// A model with a value for every coefficient (display units).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ErrorParams {
+    tracker: TrackerModel,
     coefs: Vec<Coef>,
     values: Vec<f64>,
 }
@@ -388,7 +486,11 @@ impl ErrorParams {
     pub fn zero(model: &ErrorModel) -> ErrorParams {
         let coefs = model.coefs();
         let values = vec![0.0; coefs.len()];
-        ErrorParams { coefs, values }
+        ErrorParams {
+            tracker: model.tracker,
+            coefs,
+            values,
+        }
     }
 
     /// Table 2: every parameter 10 µm or 10 µrad (NOTES item 8).
@@ -399,10 +501,36 @@ impl ErrorParams {
     }
 
     /// Builds a parameter set from coefficients and values; every coefficient
-    /// must belong to a shape that a model can hold.
+    /// must belong to a shape that a model can hold, and all to one tracker
+    /// model ([`ErrorParams::tracker_of`] checks coefficients from input).
     pub fn from_parts(coefs: Vec<Coef>, values: Vec<f64>) -> ErrorParams {
         assert_eq!(coefs.len(), values.len());
-        ErrorParams { coefs, values }
+        let tracker = ErrorParams::tracker_of(&coefs).expect("coefficients of one tracker model");
+        ErrorParams {
+            tracker,
+            coefs,
+            values,
+        }
+    }
+
+    /// The one tracker model these coefficients belong to (the paper's when
+    /// there are none), or the first two that disagree.
+    pub fn tracker_of(coefs: &[Coef]) -> Result<TrackerModel, (Coef, Coef)> {
+        let Some(first) = coefs.first() else {
+            return Ok(TrackerModel::ApiTracker3);
+        };
+        match coefs
+            .iter()
+            .find(|c| c.param.tracker() != first.param.tracker())
+        {
+            Some(other) => Err((*first, *other)),
+            None => Ok(first.param.tracker()),
+        }
+    }
+
+    /// The tracker model these parameters describe.
+    pub fn tracker(&self) -> TrackerModel {
+        self.tracker
     }
 
     pub fn coefs(&self) -> &[Coef] {
@@ -432,8 +560,10 @@ impl ErrorParams {
             .map(|i| self.values[i])
     }
 
-    /// The 18 parameters at a joint position, in internal units (mm, rad).
+    /// The 18 parameters of a DH parameter set at a joint position, in
+    /// internal units (mm, rad).
     pub fn base_at(&self, q: Joints) -> [f64; N_PARAMS] {
+        debug_assert_eq!(self.tracker, TrackerModel::ApiTracker3);
         let mut base = [0.0; N_PARAMS];
         for (c, v) in self.coefs.iter().zip(&self.values) {
             base[c.param.index()] += v * c.basis(q) * c.param.scale();
@@ -441,9 +571,21 @@ impl ErrorParams {
         base
     }
 
-    /// Eq. (8): the point a tracker with these errors reaches at these joints.
+    /// Eq. (8) (or the mirror tracker's beam path): the point a tracker with
+    /// these errors reaches at these joints.
     pub fn point(&self, q: Joints) -> Vector3<f64> {
-        ErrorFrames::new(&self.base_at(q)).forward(&Links::new(q))
+        self.evaluator().point(q, &Links::new(q))
+    }
+
+    /// The mirror tracker's misalignments of a mirror parameter set.
+    fn mirror_errors(&self, values: &[f64]) -> MirrorErrors {
+        let mut a = [0.0; mirror::IDS.len()];
+        for (c, v) in self.coefs.iter().zip(values) {
+            if let Some(k) = c.param.mirror_index() {
+                a[k] += v;
+            }
+        }
+        MirrorErrors::from_array(a)
     }
 
     /// The corrected coordinates of a reading: Eq. (8) at the reading's joints.
@@ -453,16 +595,38 @@ impl ErrorParams {
 
     /// An evaluator for many readings with the same parameters.
     pub fn evaluator(&self) -> Evaluator<'_> {
-        let constant = self.coefs.iter().all(|c| c.term == Term::Const);
-        let q0 = Joints {
-            theta: 0.0,
-            phi: 0.0,
-            d: 0.0,
+        let kind = match self.tracker {
+            TrackerModel::ApiTracker3 => {
+                let constant = self.coefs.iter().all(|c| c.term == Term::Const);
+                let q0 = Joints {
+                    theta: 0.0,
+                    phi: 0.0,
+                    d: 0.0,
+                };
+                Kind::Dh(constant.then(|| ErrorFrames::new(&self.base_at(q0))))
+            }
+            TrackerModel::MirrorTracker => {
+                let tracker = |k: Option<(usize, f64)>| {
+                    let mut v = self.values.clone();
+                    if let Some((k, step)) = k {
+                        v[k] += step;
+                    }
+                    MirrorTracker::new(&self.mirror_errors(&v))
+                };
+                Kind::Mirror {
+                    at: tracker(None),
+                    steps: (0..self.coefs.len())
+                        .map(|k| {
+                            [
+                                tracker(Some((k, MIRROR_STEP))),
+                                tracker(Some((k, -MIRROR_STEP))),
+                            ]
+                        })
+                        .collect(),
+                }
+            }
         };
-        Evaluator {
-            params: self,
-            constant: constant.then(|| ErrorFrames::new(&self.base_at(q0))),
-        }
+        Evaluator { params: self, kind }
     }
     /// Section 5.1, measuring: the reading a tracker with these errors takes
     /// when its beam reaches `target` ([`Evaluator::reading_of`]).
@@ -471,30 +635,40 @@ impl ErrorParams {
     }
 }
 
-/// Newton steps of a tracker's inverse (here and in `mirror`).
-pub(crate) const MAX_INVERSE_ITERS: usize = 50;
-/// The round trip holds to 1e-9 mm; ask for more where rounding allows.
-pub(crate) const INVERSE_TOL_MM: f64 = 1e-11;
-pub(crate) const INVERSE_MAX_MISS_MM: f64 = 1e-9;
+/// The step of the mirror model's central differences, display units (1 µm
+/// or 1 µrad): far above rounding (coordinates of 10⁴ mm round at 10⁻¹² mm),
+/// far below where the model bends (its second order is 10⁻⁸ of its first
+/// at this size).
+const MIRROR_STEP: f64 = 1.0;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-pub enum InverseError {
-    #[error("the target is on the standing axis or at the station: no unique reading")]
-    Singular,
-    #[error("the inverse of the error model did not converge (errors too large?)")]
-    NoConvergence,
-}
-
-/// Evaluates one parameter set at many joint positions, building the error
-/// frames once when every coefficient is a constant.
+/// Evaluates one parameter set at many joint positions, building what does
+/// not depend on the joints once: the DH error frames when every
+/// coefficient is a constant, the mirror tracker and its stepped copies.
 pub struct Evaluator<'a> {
     params: &'a ErrorParams,
-    constant: Option<ErrorFrames>,
+    kind: Kind,
+}
+
+enum Kind {
+    /// The DH chain; its error frames when constant.
+    Dh(Option<ErrorFrames>),
+    /// The mirror tracker at the values, and at each coefficient stepped
+    /// up and down by [`MIRROR_STEP`].
+    Mirror {
+        at: MirrorTracker,
+        steps: Vec<[MirrorTracker; 2]>,
+    },
 }
 
 impl Evaluator<'_> {
-    fn with_frames<T>(&self, q: Joints, f: impl FnOnce(&ErrorFrames) -> T) -> T {
-        match &self.constant {
+    /// The DH error frames at `q` (a DH parameter set only).
+    fn with_frames<T>(
+        &self,
+        constant: &Option<ErrorFrames>,
+        q: Joints,
+        f: impl FnOnce(&ErrorFrames) -> T,
+    ) -> T {
+        match constant {
             Some(fr) => f(fr),
             None => f(&ErrorFrames::new(&self.params.base_at(q))),
         }
@@ -502,34 +676,20 @@ impl Evaluator<'_> {
 
     /// Section 5.1, measuring: the reading a tracker with these errors takes
     /// when its beam reaches `target` — the joint values that solve Eq. (8)
-    /// exactly, found by Newton iteration from the nominal reading.
+    /// (or the mirror's beam path) exactly ([`kinematics::invert`]).
     pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Result<Reading, InverseError> {
-        let mut r = kinematics::nominal_reading(target, face);
-        let mut last = f64::INFINITY;
-        for _ in 0..MAX_INVERSE_ITERS {
+        kinematics::invert(target, face, |r| {
             let q = r.joints();
-            let miss = self.point(q, &Links::new(q)) - target;
-            let m = miss.norm();
-            // Converged, or down to the rounding noise of coordinates of
-            // this size (which can sit just above the target tolerance).
-            if m <= INVERSE_TOL_MM || (m >= last && m <= INVERSE_MAX_MISS_MM) {
-                return Ok(r);
-            }
-            last = m;
-            // The nominal Jacobian differs from the true one by the error
-            // parameters (≈1e-5), so each step gains about five digits.
-            let j = kinematics::nominal_jacobian(r);
-            let step = j.lu().solve(&miss).ok_or(InverseError::Singular)?;
-            r.az -= step.x;
-            r.el -= step.y;
-            r.d -= step.z;
-        }
-        Err(InverseError::NoConvergence)
+            self.point(q, &Links::new(q))
+        })
     }
 
     /// Eq. (8) at joints `q` whose link rotations are `links`.
     pub fn point(&self, q: Joints, links: &Links) -> Vector3<f64> {
-        self.with_frames(q, |fr| fr.forward(links))
+        match &self.kind {
+            Kind::Dh(constant) => self.with_frames(constant, q, |fr| fr.forward(links)),
+            Kind::Mirror { at, .. } => at.point(q.reading()),
+        }
     }
 
     /// The point and `∂P/∂value` for every coefficient (mm per display unit).
@@ -539,15 +699,29 @@ impl Evaluator<'_> {
         links: &Links,
         jac: &mut Vec<Vector3<f64>>,
     ) -> Vector3<f64> {
-        let (p, dbase) = self.with_frames(q, |fr| fr.forward_with_jacobian(links));
         jac.clear();
-        jac.extend(
-            self.params
-                .coefs
-                .iter()
-                .map(|c| dbase[c.param.index()] * (c.basis(q) * c.param.scale())),
-        );
-        p
+        match &self.kind {
+            Kind::Dh(constant) => {
+                let (p, dbase) =
+                    self.with_frames(constant, q, |fr| fr.forward_with_jacobian(links));
+                jac.extend(
+                    self.params
+                        .coefs
+                        .iter()
+                        .map(|c| dbase[c.param.index()] * (c.basis(q) * c.param.scale())),
+                );
+                p
+            }
+            Kind::Mirror { at, steps } => {
+                let r = q.reading();
+                jac.extend(
+                    steps
+                        .iter()
+                        .map(|[up, down]| (up.point(r) - down.point(r)) / (2.0 * MIRROR_STEP)),
+                );
+                at.point(r)
+            }
+        }
     }
 }
 

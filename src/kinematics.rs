@@ -20,10 +20,6 @@
 use nalgebra::{Matrix3, Matrix4, Vector3};
 use std::f64::consts::{FRAC_PI_2, PI};
 
-/// The `[tracker] model` of a campaign whose readings this chain describes
-/// (campaign-format.md).
-pub const MODEL: &str = "api-tracker3";
-
 /// Which face of the tracker took a reading. The back face turns the head 180°
 /// in azimuth and flips the elevation axis: it reads `(az + 180°, 180° − el, d)`
 /// for the same point.
@@ -215,6 +211,53 @@ pub fn nominal_reading(p: &Vector3<f64>, face: Face) -> Reading {
             d,
         },
     }
+}
+
+/// Newton steps of a tracker's inverse.
+const MAX_INVERSE_ITERS: usize = 50;
+/// The round trip holds to 1e-9 mm; ask for more where rounding allows.
+const INVERSE_TOL_MM: f64 = 1e-11;
+const INVERSE_MAX_MISS_MM: f64 = 1e-9;
+
+/// Section 5.1, measuring, for any tracker model: the reading whose point
+/// (`point`, the model's forward kinematics with its errors) is `target`,
+/// by Newton iteration from the nominal reading. The nominal Jacobian
+/// differs from the true one by the errors (≈1e-5), so each step gains about
+/// five digits.
+pub fn invert(
+    target: &Vector3<f64>,
+    face: Face,
+    point: impl Fn(Reading) -> Vector3<f64>,
+) -> Result<Reading, InverseError> {
+    let mut r = nominal_reading(target, face);
+    let mut last = f64::INFINITY;
+    for _ in 0..MAX_INVERSE_ITERS {
+        let miss = point(r) - target;
+        let m = miss.norm();
+        // Converged, or down to the rounding noise of coordinates of this
+        // size (which can sit just above the target tolerance).
+        if m <= INVERSE_TOL_MM || (m >= last && m <= INVERSE_MAX_MISS_MM) {
+            return Ok(r);
+        }
+        last = m;
+        let step = nominal_jacobian(r)
+            .lu()
+            .solve(&miss)
+            .ok_or(InverseError::Singular)?;
+        r.az -= step.x;
+        r.el -= step.y;
+        r.d -= step.z;
+    }
+    Err(InverseError::NoConvergence)
+}
+
+/// Why a tracker cannot take a reading of a target.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum InverseError {
+    #[error("the target is on the standing axis or at the station: no unique reading")]
+    Singular,
+    #[error("the inverse of the error model did not converge (errors too large?)")]
+    NoConvergence,
 }
 
 /// `∂p/∂(az, el, d)` of [`nominal_point`], columns in that order.

@@ -32,6 +32,7 @@ pub mod simulate;
 pub mod solver;
 pub mod stages;
 pub mod table;
+pub mod tracker;
 
 /// The version that enters every cache key.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");

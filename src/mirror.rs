@@ -49,9 +49,8 @@
 //! model. The test of the model is an independent ray trace
 //! (`tests::an_independent_ray_trace_agrees_to_a_nanometre`).
 
-use crate::error_model::{INVERSE_MAX_MISS_MM, INVERSE_TOL_MM, MAX_INVERSE_ITERS};
 use crate::kinematics::{self, Face, Reading};
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Rotation3, Vector3};
 
 /// The misalignments of a mirror tracker, display units (µm, µrad).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -142,7 +141,7 @@ impl MirrorErrors {
         ]
     }
 
-    fn from_array(a: [f64; 10]) -> MirrorErrors {
+    pub(crate) fn from_array(a: [f64; 10]) -> MirrorErrors {
         MirrorErrors {
             beam_offset_x: a[0],
             beam_offset_y: a[1],
@@ -212,29 +211,10 @@ impl MirrorTracker {
         at + (r.d + self.range_offset - t) * out
     }
 
-    /// The reading this tracker takes when its beam reaches `target`, by
-    /// Newton iteration from the nominal reading (the misalignments are
-    /// small, so the nominal Jacobian converges in a few steps), to the
-    /// head-laser model's tolerance; `None` when it does not converge.
+    /// The reading this tracker takes when its beam reaches `target`
+    /// ([`kinematics::invert`]); `None` when there is none.
     pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Option<Reading> {
-        let mut r = kinematics::nominal_reading(target, face);
-        let mut last = f64::INFINITY;
-        for _ in 0..MAX_INVERSE_ITERS {
-            let miss = self.point(r) - target;
-            let m = miss.norm();
-            // Converged, or down to the rounding noise of coordinates of
-            // this size.
-            if m <= INVERSE_TOL_MM || (m >= last && m <= INVERSE_MAX_MISS_MM) {
-                return Some(r);
-            }
-            last = m;
-            let j: Matrix3<f64> = kinematics::nominal_jacobian(r);
-            let step = j.lu().solve(&miss)?;
-            r.az -= step.x;
-            r.el -= step.y;
-            r.d -= step.z;
-        }
-        None
+        kinematics::invert(target, face, |r| self.point(r)).ok()
     }
 }
 
@@ -242,6 +222,7 @@ impl MirrorTracker {
 mod tests {
     use super::*;
     use crate::kinematics::{nominal_point, nominal_reading};
+    use nalgebra::Matrix3;
 
     fn readings() -> Vec<Reading> {
         let mut out = Vec::new();

@@ -11,6 +11,7 @@
 
 use crate::error_model::{ErrorModel, ErrorParams, InverseError, ParamId};
 use crate::kinematics::{Face, Reading, nominal_point, nominal_reading};
+use crate::tracker::TrackerModel;
 use nalgebra::Vector3;
 
 /// The error a single parameter produces at one point.
@@ -28,14 +29,20 @@ impl FieldPoint {
 }
 
 /// The measurement error over `points` of a tracker whose only error is
-/// parameter `p` at `value` (µm or µrad): reported minus true position.
+/// parameter `p` at `value` (µm or µrad): reported minus true position. The
+/// tracker is the model `p` belongs to (either construction).
 pub fn error_field(
     p: ParamId,
     value: f64,
     points: &[Vector3<f64>],
 ) -> Result<Vec<FieldPoint>, InverseError> {
-    let mut e = ErrorParams::zero(&ErrorModel::constant());
-    e.values_mut()[p.index()] = value;
+    let mut e = ErrorParams::zero(&ErrorModel::of(p.tracker()));
+    let k = e
+        .coefs()
+        .iter()
+        .position(|c| c.param == p)
+        .expect("every parameter of a model has its constant");
+    e.values_mut()[k] = value;
     points
         .iter()
         .map(|x| {
@@ -106,31 +113,36 @@ pub fn classify(field: &[FieldPoint], rel_tol: f64) -> Classification {
     }
 }
 
-/// Section 6's statement for each parameter (NOTES item 11).
-pub fn paper_statement(p: ParamId) -> &'static str {
-    match p.id() {
+/// Section 6's statement for each parameter (NOTES item 11); none for a
+/// parameter of another tracker than the paper's.
+pub fn paper_statement(p: ParamId) -> Option<&'static str> {
+    if p.tracker() != TrackerModel::ApiTracker3 {
+        return None;
+    }
+    Some(match p.id() {
         "ex1" | "ey1" | "ez1" => "varies with θ, φ, d",
         "ex2" | "ey2" => "varies with φ, d",
         "ez2" | "ex3" | "ey3" => "varies with d",
         "ez3" => "no error",
         _ => "constant",
-    }
+    })
 }
 
 /// Section 6's statement as a [`Classification`], for comparing field by field.
-pub fn paper_classification(p: ParamId) -> Classification {
+pub fn paper_classification(p: ParamId) -> Option<Classification> {
+    paper_statement(p)?;
     let (theta, phi, d) = match p.id() {
         "ex1" | "ey1" | "ez1" => (true, true, true),
         "ex2" | "ey2" => (false, true, true),
         "ez2" | "ex3" | "ey3" => (false, false, true),
         _ => (false, false, false),
     };
-    Classification {
+    Some(Classification {
         produces_error: p.id() != "ez3",
         theta,
         phi,
         d,
-    }
+    })
 }
 
 /// How many distinct values of θ, φ and d a mesh has: a coordinate with one
@@ -159,14 +171,17 @@ impl MeshSpan {
 }
 
 /// Why `ours` differs from the paper's statement for `p`, in words; empty
-/// when they agree. `rel_tol` is the threshold [`classify`] used.
+/// when they agree or the paper says nothing of `p`. `rel_tol` is the
+/// threshold [`classify`] used.
 pub fn explain_difference(
     p: ParamId,
     ours: &Classification,
     span: MeshSpan,
     rel_tol: f64,
 ) -> String {
-    let paper = paper_classification(p);
+    let Some(paper) = paper_classification(p) else {
+        return String::new();
+    };
     if ours == &paper {
         return String::new();
     }
@@ -371,7 +386,7 @@ mod tests {
                 .into_iter()
                 .map(|m| m.p)
                 .collect();
-        for p in ParamId::all() {
+        for p in ParamId::of(TrackerModel::ApiTracker3) {
             let field = error_field(p, 1.0, &pts).unwrap();
             let ours = classify(&field, 1e-6).describe();
             // The one difference from the paper: a rotation about the
@@ -379,7 +394,7 @@ mod tests {
             let expect = if p.id() == "ez1" {
                 "varies with φ, d"
             } else {
-                paper_statement(p)
+                paper_statement(p).unwrap()
             };
             assert_eq!(ours, expect, "parameter {}", p.id());
         }
@@ -387,9 +402,56 @@ mod tests {
 
     #[test]
     fn paper_classification_says_what_the_paper_says() {
-        for p in ParamId::all() {
-            assert_eq!(paper_classification(p).describe(), paper_statement(p));
+        for p in ParamId::of(TrackerModel::ApiTracker3) {
+            assert_eq!(
+                paper_classification(p).map(|c| c.describe()).as_deref(),
+                paper_statement(p)
+            );
         }
+        // The paper says nothing of the mirror tracker.
+        for p in ParamId::of(TrackerModel::MirrorTracker) {
+            assert_eq!(paper_statement(p), None);
+            assert_eq!(
+                explain_difference(
+                    p,
+                    &Classification {
+                        produces_error: true,
+                        theta: true,
+                        phi: true,
+                        d: true
+                    },
+                    MeshSpan {
+                        theta: 2,
+                        phi: 2,
+                        d: 2
+                    },
+                    1e-6
+                ),
+                ""
+            );
+        }
+    }
+
+    #[test]
+    fn mirror_offsets_are_constant_errors_and_its_tilts_vary() {
+        // A mirror offset moves every point by 2·mo along the mirror normal
+        // (`mirror` tests), whose direction follows the elevation; the
+        // incoming beam's offset is a constant shift of every point.
+        let pts: Vec<Vector3<f64>> =
+            mesh::sphere(&mesh::SPHERE_H_DEG, &mesh::SPHERE_V_DEG, &mesh::SPHERE_R_MM)
+                .into_iter()
+                .map(|m| m.p)
+                .collect();
+        let class = |id: &str| {
+            classify(
+                &error_field(ParamId::parse(id).unwrap(), 1.0, &pts).unwrap(),
+                1e-6,
+            )
+            .describe()
+        };
+        assert_eq!(class("beam_offset_x"), "constant");
+        assert_eq!(class("range_offset"), "constant");
+        assert_eq!(class("transit_tilt"), "varies with φ, d");
     }
 
     #[test]
@@ -412,15 +474,10 @@ mod tests {
             "{note}"
         );
         let ex1 = ParamId::parse("ex1").unwrap();
-        assert_eq!(
-            explain_difference(ex1, &paper_classification(ex1), span, 1e-6),
-            ""
-        );
+        let paper = paper_classification(ex1).unwrap();
+        assert_eq!(explain_difference(ex1, &paper, span, 1e-6), "");
         // A mesh with one distance cannot show a variation with d.
-        let flat = Classification {
-            d: false,
-            ..paper_classification(ex1)
-        };
+        let flat = Classification { d: false, ..paper };
         let note = explain_difference(ex1, &flat, MeshSpan { d: 1, ..span }, 1e-6);
         assert_eq!(
             note,

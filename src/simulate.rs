@@ -15,6 +15,7 @@ use crate::kinematics::{Face, Reading};
 use crate::layout::Layout;
 use crate::noise::Noise;
 use crate::random;
+use crate::tracker::TrackerModel;
 use nalgebra::{Rotation3, Vector3};
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
@@ -309,7 +310,11 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
             name: spec.name.clone(),
             description: format!("simulated by ltcal {}", crate::VERSION),
             tracker: Tracker {
-                model: crate::kinematics::MODEL.into(),
+                model: spec
+                    .errors
+                    .map_or(TrackerModel::default(), ErrorParams::tracker)
+                    .id()
+                    .into(),
                 sigma_angle_urad: Some(spec.noise.sigma_angle_urad),
                 sigma_range_um: Some(spec.noise.sigma_range_um),
                 sigma_range_ppm: Some(spec.noise.sigma_range_ppm),

@@ -9,7 +9,8 @@
 //! module's.
 
 use super::Campaign;
-use crate::kinematics::{self, nominal_point};
+use crate::kinematics::nominal_point;
+use crate::tracker::TrackerModel;
 use nalgebra::Vector3;
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
@@ -124,14 +125,14 @@ impl Campaign {
         if m.name.is_empty() {
             issue("name", "`name` must not be empty".into());
         }
-        if m.tracker.model != kinematics::MODEL {
+        if TrackerModel::parse(&m.tracker.model).is_none() {
             issue(
                 "tracker.model",
                 format!(
-                    "the readings come from tracker model \"{}\", but ltcal models only \"{}\" \
-                     (the paper's Table 1): another kinematic chain would be calibrated wrongly",
+                    "the readings come from tracker model \"{}\", which ltcal does not know: \
+                     it models {} (another kinematic chain would be calibrated wrongly)",
                     m.tracker.model,
-                    kinematics::MODEL
+                    TrackerModel::expected()
                 ),
             );
         }

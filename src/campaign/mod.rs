@@ -26,6 +26,7 @@ pub use usable::{MAX_RANGE_MM, POLE_COS_EL, SIGMA_RANGE};
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};
+use crate::tracker::TrackerModel;
 use nalgebra::Vector3;
 
 /// The tables a campaign travels as between stages (a group input slot:
@@ -150,5 +151,11 @@ impl Campaign {
 
     pub fn target(&self, id: &str) -> Option<&Target> {
         self.targets.iter().find(|t| t.id == id)
+    }
+
+    /// The tracker model of `[tracker] model` (the paper's when the id is
+    /// unknown, which [`Campaign::check`] reports).
+    pub fn tracker_model(&self) -> TrackerModel {
+        TrackerModel::parse(&self.meta.tracker.model).unwrap_or_default()
     }
 }

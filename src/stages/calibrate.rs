@@ -7,6 +7,7 @@
 //! inputs = { campaign = "corner" }    # a whole campaign (import or simulate); start = "…" optional
 //! objective = "eq15"                  # "eq13", "eq14", "eq15" or "bundle"
 //! norm = "l1"                         # "l1" (the paper's |…|) or "l2"; the bundle is "l2"
+//! model = "mirror-tracker"            # the tracker model to fit; the campaign's by default
 //! fixed = ["ez3"]                     # held at their start value
 //! shapes = { dz3 = "poly:1" }         # the model to fit; constants by default
 //! reject_blunders = false             # bundle only: iterated data snooping (Baarda's w-test)
@@ -36,7 +37,8 @@ use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
 use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::table::TableBuilder;
-use anyhow::{Result, anyhow};
+use crate::tracker::TrackerModel;
+use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -47,6 +49,8 @@ pub struct CalibrateStage {
     pub objective: Objective,
     #[serde(default)]
     pub norm: Norm,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<TrackerModel>,
     #[serde(default)]
     pub fixed: Vec<ParamId>,
     #[serde(default)]
@@ -73,7 +77,8 @@ impl CalibrateStage {
         inputs: Option<&StageInputs>,
     ) -> Result<(Network, Calibration, Vec<Rejected>)> {
         let net = Network::from_campaign(c)?;
-        let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
+        let tracker = fitting::tracker(self.model, c);
+        let model = fitting::run_model(tracker, &self.shapes, &self.fixed)?;
         let start = fitting::start(&model, inputs)?;
         let free = fitting::free(&start, &self.fixed);
         let settings = Settings {
@@ -161,7 +166,13 @@ impl StageKind for CalibrateStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
+        let mut out = fitting::check(
+            self.model,
+            &self.shapes,
+            &self.fixed,
+            self.rank_tol,
+            self.max_iters,
+        );
         if self.objective == Objective::Bundle && self.norm == Norm::L1 {
             out.push(Invalid::new(
                 "norm",

@@ -6,6 +6,7 @@
 //! [stages.diagnosis]
 //! kind = "diagnose"
 //! inputs = { campaign = "corner" }   # a whole campaign (import or simulate)
+//! model = "api-tracker3"             # the tracker model to fit (the campaign's by default)
 //! shapes = {}                        # the base model (the paper's 18 constants by default)
 //! fixed = []
 //! folds = 5                          # cross-validation
@@ -31,13 +32,16 @@ use crate::campaign::{self, Campaign};
 use crate::diagnose::{self, Diagnosis, Settings, output};
 use crate::effects;
 use crate::error_model::{ParamId, Shape};
-use anyhow::{Result, anyhow};
+use crate::tracker::TrackerModel;
+use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DiagnoseStage {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<TrackerModel>,
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
     #[serde(default)]
@@ -73,6 +77,7 @@ fn default_alpha() -> f64 {
 impl Default for DiagnoseStage {
     fn default() -> Self {
         DiagnoseStage {
+            model: None,
             shapes: BTreeMap::new(),
             fixed: Vec::new(),
             folds: default_folds(),
@@ -86,9 +91,12 @@ impl Default for DiagnoseStage {
 }
 
 impl DiagnoseStage {
-    pub fn settings(&self) -> Result<Settings> {
+    /// The diagnosis settings for campaign `c` (whose tracker model is the
+    /// default).
+    pub fn settings(&self, c: &Campaign) -> Result<Settings> {
+        let tracker = fitting::tracker(self.model, c);
         Ok(Settings {
-            model: fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?,
+            model: fitting::run_model(tracker, &self.shapes, &self.fixed)?,
             fixed: self.fixed.clone(),
             folds: self.folds,
             mc_draws: self.mc_draws,
@@ -100,7 +108,7 @@ impl DiagnoseStage {
     }
 
     pub fn diagnose(&self, c: &Campaign) -> Result<Diagnosis> {
-        diagnose::diagnose(c, &self.settings()?)
+        diagnose::diagnose(c, &self.settings(c)?)
     }
 }
 
@@ -199,7 +207,7 @@ impl StageKind for DiagnoseStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out: Vec<Invalid> = fitting::model(&self.shapes).err().into_iter().collect();
+        let mut out: Vec<Invalid> = fitting::check(self.model, &self.shapes, &self.fixed, 0.5, 1);
         if !(2..=20).contains(&self.folds) {
             out.push(Invalid::new(
                 "folds",

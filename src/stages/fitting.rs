@@ -1,7 +1,11 @@
 //! What the fitting stages (`identify`, `calibrate`, `monte_carlo`,
-//! `measurement_uncertainty`) share: the slots they take, the model they
-//! estimate (shapes, fixed parameters, start values) and the tables that
-//! say what the data determined.
+//! `measurement_uncertainty`, `diagnose`) share: the slots they take, the
+//! model they estimate (tracker model, shapes, fixed parameters, start
+//! values) and the tables that say what the data determined.
+//!
+//! The tracker model a fit of a campaign uses is its `model` setting, else
+//! the campaign's own `[tracker] model`: a campaign names its tracker, and
+//! fitting it with another model is a choice the pipeline writes down.
 
 use super::{Invalid, Slot, StageInputs};
 use crate::campaign;
@@ -9,6 +13,7 @@ use crate::determined::Estimate;
 use crate::error_model::{ErrorModel, ErrorParams, ParamId, Shape};
 use crate::schema::{self, IdentifiedColumns};
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::Result;
 use polars::prelude::DataFrame;
 use std::collections::BTreeMap;
@@ -38,24 +43,61 @@ pub fn default_max_iters() -> u64 {
     100
 }
 
-/// The error model with the given shapes (constants elsewhere).
-pub fn model(shapes: &BTreeMap<ParamId, Shape>) -> Result<ErrorModel, Invalid> {
-    let mut m = ErrorModel::constant();
+/// The tracker model a fit uses: the stage's `model`, else the campaign's.
+pub fn tracker(setting: Option<TrackerModel>, campaign: &campaign::Campaign) -> TrackerModel {
+    setting.unwrap_or_else(|| campaign.tracker_model())
+}
+
+/// The error model of a tracker with the given shapes (constants
+/// elsewhere); `fixed` parameters must be the model's too.
+pub fn model(
+    tracker: TrackerModel,
+    shapes: &BTreeMap<ParamId, Shape>,
+    fixed: &[ParamId],
+) -> Result<ErrorModel, Invalid> {
+    let mut m = ErrorModel::of(tracker);
     for (&p, &s) in shapes {
         m = m
             .with_shape(p, s)
             .map_err(|e| Invalid::new(format!("shapes.{}", p.id()), e))?;
     }
+    if let Some(p) = fixed.iter().find(|p| p.tracker() != tracker) {
+        return Err(Invalid::new(
+            "fixed",
+            format!(
+                "`{}` is a parameter of the {} model, but this fit uses the {tracker} model",
+                p.id(),
+                p.tracker()
+            ),
+        ));
+    }
     Ok(m)
+}
+
+/// [`model`] as a run-time error (the tracker model came from the campaign).
+pub fn run_model(
+    tracker: TrackerModel,
+    shapes: &BTreeMap<ParamId, Shape>,
+    fixed: &[ParamId],
+) -> Result<ErrorModel> {
+    model(tracker, shapes, fixed).map_err(|e| anyhow::anyhow!("`{}`: {}", e.field, e.message))
 }
 
 /// Start values: zero, or those of the optional `start` input where it has
 /// the same coefficient (zero throughout without inputs: a stage called
-/// from the library).
+/// from the library). A start table of another tracker model is an error.
 pub fn start(model: &ErrorModel, inputs: Option<&StageInputs>) -> Result<ErrorParams> {
     let mut start = ErrorParams::zero(model);
     if let Some(t) = inputs.and_then(|i| i.optional("start")) {
         let given = schema::params_from(&t)?;
+        if !given.coefs().is_empty() && given.tracker() != model.tracker() {
+            anyhow::bail!(
+                "the start values (`{}`) are parameters of the {} model, but this fit uses the {} model",
+                t.name,
+                given.tracker(),
+                model.tracker()
+            );
+        }
         let coefs = start.coefs().to_vec();
         for (c, v) in coefs.iter().zip(start.values_mut()) {
             if let Some(g) = given.get(c) {
@@ -75,8 +117,16 @@ pub fn free(start: &ErrorParams, fixed: &[ParamId]) -> Vec<bool> {
         .collect()
 }
 
-/// Checks the settings every fitting stage has.
-pub fn check(shapes: &BTreeMap<ParamId, Shape>, rank_tol: f64, max_iters: u64) -> Vec<Invalid> {
+/// Checks the settings every fitting stage has: the shapes and fixed
+/// parameters belong to the `model` when it is given (else to one model,
+/// checked against the campaign's when the stage runs).
+pub fn check(
+    tracker: Option<TrackerModel>,
+    shapes: &BTreeMap<ParamId, Shape>,
+    fixed: &[ParamId],
+    rank_tol: f64,
+    max_iters: u64,
+) -> Vec<Invalid> {
     let mut out = Vec::new();
     if !(rank_tol > 0.0 && rank_tol < 1.0) {
         out.push(Invalid::new(
@@ -87,7 +137,9 @@ pub fn check(shapes: &BTreeMap<ParamId, Shape>, rank_tol: f64, max_iters: u64) -
     if max_iters == 0 {
         out.push(Invalid::new("max_iters", "`max_iters` must be at least 1"));
     }
-    if let Err(e) = model(shapes) {
+    let named = shapes.keys().chain(fixed).map(|p| p.tracker());
+    let tracker = tracker.or_else(|| named.clone().next()).unwrap_or_default();
+    if let Err(e) = model(tracker, shapes, fixed) {
         out.push(e);
     }
     out

@@ -5,6 +5,7 @@
 //! [stages.identify_sphere]
 //! kind = "identify"
 //! inputs = { readings = "measure_sphere" }   # start = "…": optional start values
+//! model = "api-tracker3"          # the tracker model ("mirror-tracker": its misalignments)
 //! fixed = ["dz1", "dy2", "ez3"]    # held at their start value (0), as in Table 3
 //! shapes = { ez1 = "fourier:1" }   # the model to fit; constants by default
 //! rank_tol = 1e-9                  # relative singular-value threshold
@@ -31,6 +32,7 @@ use crate::identify::{self, KnownPoint, Settings, Weighting};
 use crate::noise::Noise;
 use crate::schema;
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -38,6 +40,8 @@ use std::collections::BTreeMap;
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IdentifyStage {
+    #[serde(default)]
+    pub model: TrackerModel,
     #[serde(default)]
     pub fixed: Vec<ParamId>,
     #[serde(default)]
@@ -85,7 +89,13 @@ impl StageKind for IdentifyStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
+        let mut out = fitting::check(
+            Some(self.model),
+            &self.shapes,
+            &self.fixed,
+            self.rank_tol,
+            self.max_iters,
+        );
         if let Some(Err((f, v))) = self.noise.map(|n| n.check()) {
             out.push(Invalid::new(
                 format!("noise.{f}"),
@@ -112,7 +122,7 @@ impl StageKind for IdentifyStage {
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let readings = schema::readings_from(&inputs.get("readings")?)?;
-        let model = fitting::model(&self.shapes).map_err(|e| anyhow::anyhow!(e.message))?;
+        let model = fitting::run_model(self.model, &self.shapes, &self.fixed)?;
         let start = fitting::start(&model, Some(inputs))?;
         let free = fitting::free(&start, &self.fixed);
         let obs: Vec<KnownPoint> = readings

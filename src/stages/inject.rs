@@ -3,6 +3,7 @@
 //! ```toml
 //! [stages.truth]
 //! kind = "inject"
+//! model = "api-tracker3"     # the tracker model ("mirror-tracker": its ten misalignments)
 //! preset = "table2"          # "table2" (every parameter 10 µm / 10 µrad) or "zero"
 //! scale = 1.0                # multiplies the preset (e.g. 0.2 for a compensated tracker)
 //! shapes = { ez1 = "fourier:2", dz3 = "poly:1" }   # Eq. (9) / Eq. (10) per parameter
@@ -16,6 +17,7 @@ use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting
 use crate::error_model::{Coef, ErrorParams, ParamId, Shape, Term};
 use crate::random;
 use crate::schema;
+use crate::tracker::TrackerModel;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -42,6 +44,8 @@ pub struct Random {
 #[serde(deny_unknown_fields)]
 pub struct InjectStage {
     #[serde(default)]
+    pub model: TrackerModel,
+    #[serde(default)]
     pub preset: Preset,
     #[serde(default = "one")]
     pub scale: f64,
@@ -60,7 +64,7 @@ fn one() -> f64 {
 impl InjectStage {
     /// The parameter set these settings describe.
     pub fn params(&self) -> Result<ErrorParams, Invalid> {
-        let model = fitting::model(&self.shapes)?;
+        let model = fitting::model(self.model, &self.shapes, &[])?;
         let mut p = ErrorParams::zero(&model);
         let coefs = p.coefs().to_vec();
         let preset = match self.preset {
@@ -88,9 +92,19 @@ impl InjectStage {
             let c = Coef::parse(name).ok_or_else(|| {
                 Invalid::new(
                     &field,
-                    format!("`{name}` is not a coefficient: use dx1 … ez3, with .sinK/.cosK (Fourier) or .dK (polynomial)"),
+                    format!("`{name}` is not a coefficient: use dx1 … ez3, with .sinK/.cosK (Fourier) or .dK (polynomial), or a mirror tracker's misalignment"),
                 )
             })?;
+            if c.param.tracker() != self.model {
+                return Err(Invalid::new(
+                    &field,
+                    format!(
+                        "`{name}` is a parameter of the {} model; this stage's `model` is {}",
+                        c.param.tracker(),
+                        self.model
+                    ),
+                ));
+            }
             let i = coefs.iter().position(|x| *x == c).ok_or_else(|| {
                 Invalid::new(
                     &field,

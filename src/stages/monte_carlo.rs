@@ -47,6 +47,7 @@ use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::plots::{self, CoverageRow, PlanPoint};
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
@@ -56,6 +57,8 @@ use std::collections::BTreeMap;
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MonteCarloStage {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<TrackerModel>,
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
     #[serde(default)]
@@ -102,7 +105,8 @@ impl MonteCarloStage {
         inputs: Option<&StageInputs>,
     ) -> Result<(Network, Calibration, Outcome)> {
         let net = Network::from_campaign(c)?;
-        let model = fitting::model(&self.shapes).map_err(|e| anyhow!(e.message))?;
+        let tracker = fitting::tracker(self.model, c);
+        let model = fitting::run_model(tracker, &self.shapes, &self.fixed)?;
         let start = fitting::start(&model, inputs)?;
         let free = fitting::free(&start, &self.fixed);
         let settings = calibrate::Settings {
@@ -182,7 +186,13 @@ impl StageKind for MonteCarloStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = fitting::check(&self.shapes, self.rank_tol, self.max_iters);
+        let mut out = fitting::check(
+            self.model,
+            &self.shapes,
+            &self.fixed,
+            self.rank_tol,
+            self.max_iters,
+        );
         if !(self.coverage > 0.5 && self.coverage < 1.0) {
             out.push(Invalid::new(
                 "coverage",

@@ -5,6 +5,7 @@
 //! ```toml
 //! [stages.sensitivity]
 //! kind = "sensitivity"
+//! model = "api-tracker3"                       # or "mirror-tracker": its ten misalignments
 //! h_deg = { from = 0, to = 363, step = 33 }    # optional: the paper's sphere by default
 //! v_deg = { from = 77, to = -63, step = -20 }  #   (NOTES item 7), as the `mesh` stage's
 //! r_mm = { from = 1000, to = 15000, step = 3500 }  # sphere settings
@@ -22,7 +23,9 @@
 //!   θ = az − 90°, φ = el).
 //! * `classification` — `parameter`, `symbol`, `min_um`, `max_um`,
 //!   `mean_um`, `varies_theta`, `varies_phi`, `varies_d`, `ours`, `paper`
-//!   (Section 6's statement), `agrees`, `note` (why ours differs, in words).
+//!   (Section 6's statement; empty for the mirror tracker, of which the
+//!   paper says nothing), `agrees` (null there), `note` (why ours differs,
+//!   in words).
 //! * `extremes` — for the parameters whose error varies with θ or φ: where
 //!   on a 1° grid of directions at the mesh's largest distance the error is
 //!   largest and smallest (`parameter`, `symbol`, `d_mm`, `max_um`,
@@ -37,6 +40,7 @@ use crate::mesh::{self, Range};
 use crate::plots::{self, DirectionCurves, ParamField};
 use crate::sensitivity::{self, Classification, MeshSpan};
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow};
 use nalgebra::Vector3;
 use polars::prelude::DataFrame;
@@ -45,6 +49,8 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SensitivityStage {
+    #[serde(default)]
+    pub model: TrackerModel,
     #[serde(default = "sphere_h_deg")]
     pub h_deg: Range,
     #[serde(default = "sphere_v_deg")]
@@ -161,7 +167,7 @@ impl StageKind for SensitivityStage {
         let mesh = mesh::sphere(h, v, r);
         let pts: Vec<Vector3<f64>> = mesh.iter().map(|m| m.p).collect();
         let mut fields = Vec::new();
-        for p in ParamId::all() {
+        for p in ParamId::of(self.model) {
             let f = sensitivity::error_field(p, VALUE, &pts)
                 .map_err(|e| anyhow!("parameter {}: {e}", p.id()))?;
             fields.push((p, f));
@@ -339,15 +345,15 @@ fn classification_table(
             "paper",
             &params
                 .iter()
-                .map(|&p| sensitivity::paper_statement(p))
+                .map(|&p| sensitivity::paper_statement(p).unwrap_or(""))
                 .collect::<Vec<_>>(),
         )
-        .bool(
+        .opt_bool(
             "agrees",
             params
                 .iter()
                 .zip(classes)
-                .map(|(&p, c)| *c == sensitivity::paper_classification(p))
+                .map(|(&p, c)| sensitivity::paper_classification(p).map(|paper| *c == paper))
                 .collect(),
         )
         .str("note", &notes)

@@ -186,7 +186,7 @@ const BAD: &[(&str, &str, &str)] = &[
     (
         "tracker-model-unknown",
         "campaign.toml:6:9",
-        "the readings come from tracker model \"leica-at960\", but ltcal models only \"api-tracker3\"",
+        "the readings come from tracker model \"leica-at960\", which ltcal does not know: it models \"api-tracker3\" or \"mirror-tracker\"",
     ),
     (
         "tracker-model-missing",
