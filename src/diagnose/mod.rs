@@ -33,7 +33,14 @@
 //!    final model has the lowest BIC is kept. With no member, the answer is `none` — if
 //!    the residual is consistent with the stated noise (χ² test); otherwise
 //!    `none` with "unexplained structure" and where it lies.
-//! 5. **How far** — the gap is the held-out residual (µm) minus the one
+//! 5. **Which model** — [`models`]: every other tracker model fitted to the
+//!    same readings and compared by BIC and held-out residual (a `model`
+//!    row). When another model fits decisively better
+//!    ([`models::MISMATCH_BIC`]), the campaign is not the base model's
+//!    tracker: the diagnosis says so (the `model` row first in the
+//!    explanation) and searches for effects on top of the model that fits,
+//!    rather than blaming an effect for the mismatch.
+//! 6. **How far** — the gap is the held-out residual (µm) minus the one
 //!    noise alone leaves in the same geometry (Monte Carlo draws of the
 //!    stated noise through the base model's linearised adjustment), before
 //!    and after each member, and for the set as a whole.
@@ -43,6 +50,7 @@ pub mod candidates;
 pub mod f_test;
 pub mod factors;
 pub mod linear;
+pub mod models;
 pub mod output;
 
 use crate::calibrate::snooping::{self, WTest};
@@ -153,6 +161,8 @@ pub struct Diagnosis {
     pub tried: usize,
     /// Reading coordinates w-tested at the last step.
     pub blunder_tests: usize,
+    /// Every tracker model fitted to the readings, best (lowest BIC) first.
+    pub models: Vec<models::ModelFit>,
 }
 
 impl Diagnosis {
@@ -207,8 +217,17 @@ fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
 
 /// Diagnoses a campaign: the base calibration, then where, which and how
 /// far (see the module doc), step by step, until the explanation set is
-/// complete.
+/// complete — on the model that fits, when the base model does not.
 pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
+    explain(c, s, true)
+}
+
+/// The effect id of the row that compares tracker models.
+pub const MODEL: &str = "model";
+
+/// [`diagnose`] with the base model as given; `compare` fits the other
+/// tracker models too and adds their row.
+fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     let net0 = Network::from_campaign(c)?;
     let (fold_of, n_folds) = folds(&net0, s);
     let enabled = |id: &str| s.effects.is_empty() || s.effects.iter().any(|e| e == id);
@@ -237,6 +256,32 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
     let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
     let base_cal = base.cal.clone();
+    let models = if compare {
+        compare_models(&net0, &base, &ctx)?
+    } else {
+        Vec::new()
+    };
+    let model = model_row(&models, s.model.tracker(), floor);
+    if let Some(row) = model.as_ref().filter(|r| r.significant) {
+        // Not this model's tracker: the search for effects runs on the
+        // model that fits, after the model row.
+        let settings = Settings {
+            model: ErrorModel::of(models[0].model),
+            fixed: Vec::new(),
+            ..s.clone()
+        };
+        let mut d = explain(c, &settings, false)?;
+        for r in d.rows.iter_mut() {
+            r.step = r.step.map(|k| k + 1);
+        }
+        d.rows.push(Row {
+            step: Some(1),
+            ..row.clone()
+        });
+        rank(&mut d.rows);
+        d.models = models;
+        return Ok(d);
+    }
 
     // Which, step by step: the explanation set, along the most promising
     // first steps.
@@ -286,6 +331,7 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         &factors::factors(&final_residuals),
         s.alpha,
     );
+    rows.extend(model);
     rows.push(none_row(
         final_state.lm.chi2() - final_state.members_chi2(),
         final_state.dof(),
@@ -312,6 +358,75 @@ pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
         sigma: net0.obs.iter().map(|o| o.sigma).collect(),
         tried: scored.tried,
         blunder_tests: scored.blunder_tests,
+        models,
+    })
+}
+
+/// Every tracker model on the campaign, best first: the base model's fit is
+/// the base state's, the others are fitted with all coefficients free.
+fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<models::ModelFit>> {
+    let s = ctx.settings;
+    let n_free = ErrorParams::zero(&s.model)
+        .coefs()
+        .iter()
+        .filter(|k| !s.fixed.contains(&k.param))
+        .count();
+    let mut fits = vec![models::summarise(
+        s.model.tracker(),
+        n_free,
+        &base.cal,
+        &base.lm,
+    )];
+    for t in crate::tracker::TrackerModel::ALL {
+        if t != s.model.tracker() {
+            let m = ErrorModel::of(t);
+            let free = vec![true; m.coefs().len()];
+            fits.push(models::fit(net, &m, &free, ctx.fold_of, ctx.n_folds)?);
+        }
+    }
+    Ok(models::ranked(fits))
+}
+
+/// The `model` row: the best other tracker model against the base model;
+/// significant (a model mismatch) when its BIC is lower by
+/// [`models::MISMATCH_BIC`] or more. `None` with one model only.
+fn model_row(
+    fits: &[models::ModelFit],
+    base: crate::tracker::TrackerModel,
+    floor: f64,
+) -> Option<Row> {
+    let b = fits.iter().find(|f| f.model == base)?;
+    let alt = fits.iter().find(|f| f.model != base)?;
+    let delta_bic = b.bic - alt.bic;
+    let gap_before = b.cv_rms_um - floor;
+    let gap_after = alt.cv_rms_um - floor;
+    Some(Row {
+        rank: 0,
+        step: None,
+        effect: MODEL.into(),
+        place: alt.model.id().into(),
+        magnitude: b.chi2 - alt.chi2,
+        magnitude_u: f64::NAN,
+        unit: "χ²".into(),
+        score: 100.0 * (1.0 - (alt.cv_rms_um / b.cv_rms_um).powi(2)),
+        significant: delta_bic >= models::MISMATCH_BIC,
+        rms_before_um: b.cv_rms_um,
+        rms_after_um: alt.cv_rms_um,
+        gap_before_um: gap_before,
+        gap_after_um: gap_after,
+        gap_shrink_pct: if gap_before > 0.0 {
+            100.0 * (1.0 - gap_after / gap_before)
+        } else {
+            0.0
+        },
+        k: alt.rank,
+        delta_chi2: b.chi2 - alt.chi2,
+        p_corrected: alt.chi2_p,
+        delta_bic,
+        detail: format!(
+            "{}: χ² = {:.1} on {} (rank {}); {}: χ² = {:.1} on {} (rank {})",
+            alt.model, alt.chi2, alt.dof, alt.rank, b.model, b.chi2, b.dof, b.rank
+        ),
     })
 }
 

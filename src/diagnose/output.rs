@@ -225,7 +225,24 @@ pub fn skipped_table(d: &Diagnosis) -> Result<DataFrame> {
 /// Rank 1 in one sentence.
 pub fn verdict(d: &Diagnosis) -> String {
     let b = d.best();
-    if b.effect == "none" {
+    if b.effect == super::MODEL && b.step.is_some() {
+        let rest: Vec<String> = d
+            .explanation()
+            .skip(1)
+            .map(|r| format!("{} at {}", r.effect, r.place))
+            .collect();
+        format!(
+            "model mismatch: the readings fit the {} model, not the base model (ΔBIC = {:.1}; {}){}",
+            b.place,
+            b.delta_bic,
+            b.detail,
+            if rest.is_empty() {
+                "; no effect on top of it".to_string()
+            } else {
+                format!("; on top of it: {}", rest.join(" + "))
+            }
+        )
+    } else if b.effect == "none" {
         if b.significant {
             "none: no candidate effect is significant and the residual is consistent with the stated noise".into()
         } else {
@@ -353,6 +370,26 @@ pub fn report(d: &Diagnosis) -> String {
                 s,
                 "| {} | {} | {:.3} | {:.2e} | {} | {:+.2} |",
                 t.factor, t.component, t.eta2, t.p, t.worst_group, t.worst_mean_sigma
+            );
+        }
+        s.push('\n');
+    }
+    if !d.models.is_empty() {
+        let _ = writeln!(s, "## Which tracker model\n");
+        let _ = writeln!(
+            s,
+            "Every tracker model fitted to the same readings (bundle adjustment); BIC = χ² + k·ln m with k the determined combinations, held-out RMS by the same folds. A model mismatch is called at ΔBIC ≥ {}.\n",
+            super::models::MISMATCH_BIC
+        );
+        let _ = writeln!(
+            s,
+            "| model | χ² | dof | p | determined | BIC | held-out RMS (µm) |\n|---|---|---|---|---|---|---|"
+        );
+        for m in &d.models {
+            let _ = writeln!(
+                s,
+                "| {} | {:.1} | {} | {:.3} | {} of {} | {:.1} | {:.2} |",
+                m.model, m.chi2, m.dof, m.chi2_p, m.rank, m.n_params, m.bic, m.cv_rms_um
             );
         }
         s.push('\n');

@@ -20,4 +20,5 @@ mod sensitivity;
 mod snapshots;
 mod sweep;
 mod synthetic;
+mod trackers;
 mod util;
