@@ -891,7 +891,7 @@ fn reading_infos(c: &Campaign, net: &Network, cal: &Calibration) -> Vec<ReadingI
 /// stratified by reflector: each reflector's
 /// readings go round the folds from a random start, so no fold holds out
 /// every reading of a reflector (which no model could predict).
-fn folds(net: &Network, s: &Settings) -> (Vec<usize>, usize) {
+pub(crate) fn folds(net: &Network, s: &Settings) -> (Vec<usize>, usize) {
     let folds = s.folds.clamp(2, net.obs.len().max(2));
     let mut rng = random::stream(s.seed, "diagnose-folds");
     let mut fold_of = vec![0; net.obs.len()];

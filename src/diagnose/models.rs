@@ -19,6 +19,7 @@
 
 use super::linear::LinearModel;
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
+use crate::campaign::Campaign;
 use crate::error_model::{ErrorModel, ErrorParams};
 use crate::kinematics::nominal_jacobian;
 use crate::tracker::TrackerModel;
@@ -104,4 +105,119 @@ pub fn summarise(
 pub fn ranked(mut fits: Vec<ModelFit>) -> Vec<ModelFit> {
     fits.sort_by(|a, b| a.bic.total_cmp(&b.bic));
     fits
+}
+
+/// Every model on a campaign, with the diagnosis's folds (`folds`, `seed`).
+pub fn compare_campaign(c: &Campaign, folds: usize, seed: u64) -> Result<Vec<ModelFit>> {
+    let net = Network::from_campaign(c)?;
+    let settings = super::Settings {
+        folds,
+        seed,
+        ..super::Settings::default()
+    };
+    let (fold_of, n_folds) = super::folds(&net, &settings);
+    let fits = TrackerModel::ALL
+        .iter()
+        .map(|&t| {
+            let m = ErrorModel::of(t);
+            let free = vec![true; m.coefs().len()];
+            fit(&net, &m, &free, &fold_of, n_folds)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(ranked(fits))
+}
+
+/// One case of the blind check of the model choice.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BlindCase {
+    pub case: usize,
+    /// The model that made the campaign, and the scale of its errors (µm, µrad).
+    pub truth: TrackerModel,
+    pub scale: f64,
+    /// The model ranked first, not knowing the truth.
+    pub chosen: TrackerModel,
+    /// χ² the other model leaves on the same campaign without noise: the
+    /// models differ detectably from 25 (the diagnosis's notion).
+    pub noise_free_chi2: f64,
+    pub detectable: bool,
+    /// BIC of the other model minus the chosen one's.
+    pub delta_bic: f64,
+}
+
+/// The χ² from which two models differ detectably on a campaign: the
+/// diagnosis's Δχ² ≥ 25 (a five-σ signal).
+pub const DETECTABLE_CHI2: f64 = 25.0;
+
+/// The blind check of the model choice: `cases` campaigns of `layout`, each
+/// made by a tracker model drawn at random with every parameter drawn from
+/// N(0, s²), the scale `s` log-uniform in 0.03 … 10 µm / µrad (from errors
+/// no campaign sees to Table 2's), read with `noise`; each compared without
+/// knowing its model. A case is detectable when the other model, fitted to
+/// the same campaign without noise, leaves χ² ≥ [`DETECTABLE_CHI2`].
+pub fn blind_check(
+    layout: &crate::layout::Layout,
+    noise: crate::noise::Noise,
+    cases: usize,
+    seed: u64,
+) -> Result<Vec<BlindCase>> {
+    use crate::effects::Effects;
+    use crate::kinematics::Face;
+    use crate::simulate::{CampaignSpec, simulate_campaign};
+    use rayon::prelude::*;
+    (0..cases)
+        .into_par_iter()
+        .map(|case| {
+            let mut rng = crate::random::stream(seed, &format!("model-blind-{case}"));
+            let truth = TrackerModel::ALL[(crate::random::uniform(&mut rng) * 2.0) as usize % 2];
+            let scale = 10f64.powf(-1.5 + 2.5 * crate::random::uniform(&mut rng));
+            let mut errors = ErrorParams::zero(&ErrorModel::of(truth));
+            for v in errors.values_mut() {
+                *v = scale * crate::random::normal(&mut rng);
+            }
+            let effects = Effects::default();
+            let campaign = |noise: crate::noise::Noise| {
+                simulate_campaign(&CampaignSpec {
+                    name: format!("model-blind-{case}"),
+                    layout,
+                    errors: Some(&errors),
+                    faces: &[Face::Front, Face::Back],
+                    aim: crate::campaign::Aim::StationsCentroid,
+                    max_angle_deg: crate::effects::DEFAULT_MAX_ANGLE_DEG,
+                    noise,
+                    effects: &effects,
+                    gauge_u_mm: 0.0005,
+                    reference_u_mm: 0.002,
+                    level_urad: 1000.0,
+                    interval_s: 20.0,
+                    record_time: false,
+                    record_temperature: false,
+                    seed: seed.wrapping_add(case as u64),
+                })
+                .map_err(|e| anyhow!(e))
+            };
+            let noisy = campaign(noise)?;
+            let fits = compare_campaign(&noisy.campaign, 5, seed)?;
+            // Without noise, with the stated σ still weighting the readings.
+            let mut clean = campaign(crate::noise::Noise::default())?.campaign;
+            clean.meta.tracker = noisy.campaign.meta.tracker.clone();
+            let other = TrackerModel::ALL
+                .into_iter()
+                .find(|&m| m != truth)
+                .expect("two models");
+            let net = Network::from_campaign(&clean)?;
+            let (fold_of, n_folds) = super::folds(&net, &super::Settings::default());
+            let m = ErrorModel::of(other);
+            let noise_free_chi2 =
+                fit(&net, &m, &vec![true; m.coefs().len()], &fold_of, n_folds)?.chi2;
+            Ok(BlindCase {
+                case,
+                truth,
+                scale,
+                chosen: fits[0].model,
+                noise_free_chi2,
+                detectable: noise_free_chi2 >= DETECTABLE_CHI2,
+                delta_bic: fits[1].bic - fits[0].bic,
+            })
+        })
+        .collect()
 }

@@ -10,6 +10,7 @@ pub mod b89_tests;
 pub mod blind_check;
 pub mod calibrate;
 mod campaign_tables;
+pub mod compare_models;
 pub mod correct;
 pub mod counts;
 pub mod diagnose;
@@ -25,6 +26,7 @@ pub mod layout_design;
 pub mod measure;
 pub mod measurement_uncertainty;
 pub mod mesh;
+pub mod model_blind_check;
 pub mod monte_carlo;
 pub mod paper_gap;
 pub mod plot;
@@ -331,4 +333,6 @@ stage_kinds! {
     Spread => spread::SpreadStage,
     MeasurementUncertainty => measurement_uncertainty::MeasurementUncertaintyStage,
     B89Tests => b89_tests::B89TestsStage,
+    CompareModels => compare_models::CompareModelsStage,
+    ModelBlindCheck => model_blind_check::ModelBlindCheckStage,
 }

@@ -1,4 +1,4 @@
-//! `sensitivity`: Section 6 — the error each of the 18 parameters produces
+//! `sensitivity`: Section 6 — the error each parameter of a tracker model produces
 //! alone (1 µm or 1 µrad) over the spherical mesh, which of θ, φ and d it
 //! varies with against the paper's statement, and Figures 11 and 12.
 //!

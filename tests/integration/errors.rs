@@ -228,3 +228,27 @@ fn a_pipeline_file_that_is_not_utf8_missing_or_a_folder_exits_2_naming_it() {
     }
     assert!(!d.join("results").exists());
 }
+
+#[test]
+fn an_unknown_tracker_model_is_refused_at_its_place() {
+    let (code, err) = run_bad("[stages.a]\nkind = \"inject\"\nmodel = \"leica-at960\"\n");
+    assert_eq!(code, 2);
+    assert_located(
+        &err,
+        "3:9",
+        "unknown tracker model `leica-at960`; expected \"api-tracker3\" or \"mirror-tracker\"",
+    );
+}
+
+#[test]
+fn a_parameter_of_another_tracker_model_is_refused_at_its_place() {
+    let (code, err) = run_bad(
+        "[stages.a]\nkind = \"identify\"\ninputs = { readings = \"b.readings\" }\nmodel = \"mirror-tracker\"\nfixed = [\"dz1\"]\n[stages.b]\nkind = \"mesh\"\nshape = \"sphere\"\n",
+    );
+    assert_eq!(code, 2);
+    assert_located(
+        &err,
+        "5:9",
+        "`dz1` is a parameter of the api-tracker3 model, but this fit uses the mirror-tracker model",
+    );
+}

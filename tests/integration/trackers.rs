@@ -178,3 +178,21 @@ fn a_campaign_diagnosed_with_the_other_trackers_model_is_called_a_model_mismatch
         }
     }
 }
+
+/// The blind check of the model choice: where the models differ detectably
+/// (the other model leaves χ² ≥ 25 on the noise-free campaign), the model
+/// ranked first is the one that made the campaign in ≥ 90 % of cases.
+#[test]
+fn blind_model_choice_is_right_on_90_percent_of_detectable_campaigns() {
+    let layout = layout::build(&Spec::new(Kind::Corner));
+    let cases = ltcal::diagnose::models::blind_check(&layout, REALISTIC, 60, 3).unwrap();
+    let detectable: Vec<_> = cases.iter().filter(|c| c.detectable).collect();
+    let right = detectable.iter().filter(|c| c.chosen == c.truth).count();
+    eprintln!("{right} of {} detectable cases right", detectable.len());
+    assert!(detectable.len() >= 20, "{cases:?}");
+    assert!(right as f64 >= 0.9 * detectable.len() as f64, "{cases:?}");
+    // Both models made detectable campaigns.
+    for m in TrackerModel::ALL {
+        assert!(detectable.iter().any(|c| c.truth == m));
+    }
+}
