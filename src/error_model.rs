@@ -649,6 +649,9 @@ pub struct Evaluator<'a> {
     kind: Kind,
 }
 
+// One evaluator per linearisation, on the stack: the DH frames' size costs
+// nothing, and boxing them would add a pointer chase per reading.
+#[allow(clippy::large_enum_variant)]
 enum Kind {
     /// The DH chain; its error frames when constant.
     Dh(Option<ErrorFrames>),
@@ -977,5 +980,93 @@ mod tests {
                 .with_shape(ParamId::parse("dz3").unwrap(), Shape::Fourier(1))
                 .is_err()
         );
+    }
+}
+
+#[cfg(test)]
+mod mirror_tests {
+    use super::*;
+
+    /// Every misalignment at a few µm / µrad, some of each sign.
+    fn mirror_params() -> ErrorParams {
+        let mut p = ErrorParams::zero(&ErrorModel::of(TrackerModel::MirrorTracker));
+        for (k, v) in p.values_mut().iter_mut().enumerate() {
+            *v = [7.0, -4.0, 12.0, -9.0, 5.0][k % 5] + k as f64;
+        }
+        p
+    }
+
+    fn readings() -> Vec<Joints> {
+        let mut out = Vec::new();
+        for az in [-170.0, -60.0, 10.0, 95.0] {
+            for el in [-40.0, 0.0, 35.0, 70.0, 120.0] {
+                for d in [900.0, 6000.0, 25000.0] {
+                    let r = Reading {
+                        az: f64::to_radians(az),
+                        el: f64::to_radians(el),
+                        d,
+                    };
+                    out.push(r.joints());
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn mirror_derivatives_match_a_finer_difference() {
+        let p = mirror_params();
+        let eval = p.evaluator();
+        let mut jac = Vec::new();
+        for q in readings() {
+            let at = eval.point_with_jacobian(q, &Links::new(q), &mut jac);
+            assert!((at - eval.point(q, &Links::new(q))).norm() < 1e-15);
+            for (k, col) in jac.iter().enumerate() {
+                // A tenth of the step, by the exact model directly.
+                let h = 0.1;
+                let e = |s: f64| {
+                    let mut v = p.values().to_vec();
+                    v[k] += s;
+                    MirrorTracker::new(&p.mirror_errors(&v)).point(q.reading())
+                };
+                let fine = (e(h) - e(-h)) / (2.0 * h);
+                assert!(
+                    (col - fine).norm() <= 1e-7 * col.norm().max(1e-3),
+                    "{}: {col} vs {fine}",
+                    p.coefs()[k].name()
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_mirror_inverse_round_trips_through_the_evaluator() {
+        let p = mirror_params();
+        let eval = p.evaluator();
+        for q in readings() {
+            let r = q.reading();
+            let face = r.face();
+            let x = eval.point(q, &Links::new(q));
+            let back = eval.reading_of(&x, face).unwrap();
+            let y = p.point(back.joints());
+            assert!((x - y).norm() < 1e-9, "{r:?}: {}", (x - y).norm());
+        }
+    }
+
+    #[test]
+    fn a_parameter_set_is_of_one_model() {
+        let dx1 = Coef::parse("dx1").unwrap();
+        let tilt = Coef::parse("transit_tilt").unwrap();
+        assert_eq!(tilt.param.tracker(), TrackerModel::MirrorTracker);
+        assert_eq!(Coef::parse("transit_tilt.sin1"), None);
+        assert!(ErrorParams::tracker_of(&[dx1, tilt]).is_err());
+        assert_eq!(
+            ErrorParams::tracker_of(&[tilt]),
+            Ok(TrackerModel::MirrorTracker)
+        );
+        let m = ErrorModel::of(TrackerModel::MirrorTracker);
+        assert_eq!(m.coefs().len(), mirror::IDS.len());
+        assert!(m.clone().with_shape(dx1.param, Shape::Poly(1)).is_err());
+        assert!(m.with_shape(tilt.param, Shape::Fourier(1)).is_err());
     }
 }

@@ -82,7 +82,7 @@ pub fn params_from(t: &TableRef) -> Result<ErrorParams> {
     for (i, n) in names.iter().enumerate() {
         let c = Coef::parse(n).ok_or_else(|| {
             anyhow!(
-                "table `{}`, row {i}: `{n}` is not a coefficient name (dx1 … ez3, optionally .sinK, .cosK or .dK)",
+                "table `{}`, row {i}: `{n}` is not a coefficient name (dx1 … ez3, optionally .sinK, .cosK or .dK, or a mirror tracker's misalignment)",
                 t.name
             )
         })?;
@@ -96,6 +96,17 @@ pub fn params_from(t: &TableRef) -> Result<ErrorParams> {
             bail!("table `{}`, row {i}: value of `{n}` is not finite", t.name);
         }
         coefs.push(c);
+    }
+    if let Err((a, b)) = ErrorParams::tracker_of(&coefs) {
+        bail!(
+            "table `{}`: `{}` is a parameter of the {} model and `{}` of the {} model; \
+             a parameter set describes one tracker",
+            t.name,
+            a.name(),
+            a.param.tracker(),
+            b.name(),
+            b.param.tracker()
+        );
     }
     Ok(ErrorParams::from_parts(coefs, values))
 }

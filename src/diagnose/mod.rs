@@ -261,31 +261,24 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     } else {
         Vec::new()
     };
-    let model = model_row(&models, s.model.tracker(), floor);
-    if let Some(row) = model.as_ref().filter(|r| r.significant) {
-        // Not this model's tracker: the search for effects runs on the
-        // model that fits, after the model row.
-        let settings = Settings {
-            model: ErrorModel::of(models[0].model),
-            fixed: Vec::new(),
-            ..s.clone()
-        };
-        let mut d = explain(c, &settings, false)?;
-        for r in d.rows.iter_mut() {
-            r.step = r.step.map(|k| k + 1);
-        }
-        d.rows.push(Row {
-            step: Some(1),
-            ..row.clone()
-        });
-        rank(&mut d.rows);
-        d.models = models;
-        return Ok(d);
+    // Which, step by step: the explanation set, along the most promising
+    // first steps — unless another tracker model explains more than any
+    // effect (an effect the base model lacks can make another model fit a
+    // little better; only a model that beats every candidate is the
+    // answer).
+    let first = ctx.score(&base, &members, 1, floor);
+    let best_effect_bic = first
+        .rows
+        .iter()
+        .chain(first.blunder.as_ref().map(|b| &b.row))
+        .filter(|r| r.significant)
+        .map(|r| r.delta_bic)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let model = model_row(&models, s.model.tracker(), floor, best_effect_bic);
+    if let Some(row) = model.clone().filter(|r| r.significant) {
+        return on_the_model_that_fits(c, s, row, models);
     }
 
-    // Which, step by step: the explanation set, along the most promising
-    // first steps.
-    let first = ctx.score(&base, &members, 1, floor);
     let open = s.max_steps >= 1;
     let starts = if open {
         first.picks(&base.cands, FIRST_STEPS)
@@ -316,6 +309,15 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         scored,
         open,
     } = path;
+    // With the explanation set's effects taken off the readings, another
+    // model may fit where the effects hid it.
+    if compare && final_state.members.ncols() + final_state.rejected > 0 {
+        let fits = compare_models(&final_state.net, &final_state, &ctx)?;
+        let row = model_row(&fits, s.model.tracker(), floor, f64::NEG_INFINITY);
+        if let Some(row) = row.filter(|r| r.significant) {
+            return on_the_model_that_fits(c, s, row, fits);
+        }
+    }
     let mut rows = set_rows;
     rows.extend(scored.rows.into_iter().map(|mut r| {
         r.significant &= open;
@@ -362,6 +364,32 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     })
 }
 
+/// Not the base model's tracker: the diagnosis on the model that fits
+/// (`fits[0]`), with the `model` row as its first member.
+fn on_the_model_that_fits(
+    c: &Campaign,
+    s: &Settings,
+    row: Row,
+    fits: Vec<models::ModelFit>,
+) -> Result<Diagnosis> {
+    let settings = Settings {
+        model: ErrorModel::of(fits[0].model),
+        fixed: Vec::new(),
+        ..s.clone()
+    };
+    let mut d = explain(c, &settings, false)?;
+    for r in d.rows.iter_mut() {
+        r.step = r.step.map(|k| k + 1);
+    }
+    d.rows.push(Row {
+        step: Some(1),
+        ..row
+    });
+    rank(&mut d.rows);
+    d.models = fits;
+    Ok(d)
+}
+
 /// Every tracker model on the campaign, best first: the base model's fit is
 /// the base state's, the others are fitted with all coefficients free.
 fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<models::ModelFit>> {
@@ -389,11 +417,14 @@ fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<
 
 /// The `model` row: the best other tracker model against the base model;
 /// significant (a model mismatch) when its BIC is lower by
-/// [`models::MISMATCH_BIC`] or more. `None` with one model only.
+/// [`models::MISMATCH_BIC`] or more and by more than the best significant
+/// candidate's at the first step (`best_effect_bic`). `None` with one model
+/// only.
 fn model_row(
     fits: &[models::ModelFit],
     base: crate::tracker::TrackerModel,
     floor: f64,
+    best_effect_bic: f64,
 ) -> Option<Row> {
     let b = fits.iter().find(|f| f.model == base)?;
     let alt = fits.iter().find(|f| f.model != base)?;
@@ -409,7 +440,7 @@ fn model_row(
         magnitude_u: f64::NAN,
         unit: "χ²".into(),
         score: 100.0 * (1.0 - (alt.cv_rms_um / b.cv_rms_um).powi(2)),
-        significant: delta_bic >= models::MISMATCH_BIC,
+        significant: delta_bic >= models::MISMATCH_BIC && delta_bic > best_effect_bic,
         rms_before_um: b.cv_rms_um,
         rms_after_um: alt.cv_rms_um,
         gap_before_um: gap_before,

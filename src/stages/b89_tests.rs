@@ -17,9 +17,9 @@
 //! azimuths_deg = [0, 90, 180, 270]
 //! misalignments = { beam_offset_el = 10, transit_tilt = 5 }   # optional, µm / µrad,
 //!                                   # by the model's ids
-//! inputs = { params = "truth.params" }  # optional, api-tracker3 only: a tracker's DH
-//!                                       # errors (`inject`, `identify`, `calibrate`),
-//!                                       # added to the above
+//! inputs = { params = "truth.params" }  # optional: a tracker's parameters of `model`
+//!                                       # (`inject`, `identify`, `calibrate`: DH coefficients
+//!                                       # or mirror misalignments), added to the above
 //! ```
 //!
 //! Outputs:
@@ -43,6 +43,7 @@ use crate::physical::{self, CORRESPONDENCE, Misalignment};
 use crate::plots;
 use crate::schema;
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow, bail};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
@@ -59,22 +60,11 @@ pub enum Parameters {
     Dh,
 }
 
-/// The tracker's construction, by the ids of `campaign-format.md`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "kebab-case")]
-pub enum Model {
-    /// The paper's tracker, the laser in the head ([`crate::physical`]).
-    #[default]
-    ApiTracker3,
-    /// The laser in the base, a mirror on the transit axis ([`crate::mirror`]).
-    MirrorTracker,
-}
-
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct B89TestsStage {
     #[serde(default)]
-    pub model: Model,
+    pub model: TrackerModel,
     #[serde(default)]
     pub parameters: Parameters,
     #[serde(default = "default_length")]
@@ -159,7 +149,7 @@ impl B89TestsStage {
     fn evaluate(&self, tests: &[Test], inputs: &StageInputs) -> Result<Evaluated> {
         let cannot = |e: String| anyhow!("with these errors {e}");
         match self.model {
-            Model::ApiTracker3 => {
+            TrackerModel::ApiTracker3 => {
                 let errors = self.errors(inputs)?;
                 let err_um = b89::simulate(tests, &errors).map_err(cannot)?;
                 let zero = ErrorParams::zero(&physical::dh_model());
@@ -168,16 +158,28 @@ impl B89TestsStage {
                 let sens = b89::sensitivity(tests, &zero, &dirs);
                 Ok(Evaluated { rows, err_um, sens })
             }
-            Model::MirrorTracker => {
-                if inputs.optional("params").is_some() {
-                    bail!(
-                        "a `params` table holds the head-laser model's DH coefficients: it cannot \
-                         describe a mirror tracker (give its `misalignments` instead)"
-                    );
+            TrackerModel::MirrorTracker => {
+                // The `params` table's values plus the settings' misalignments.
+                let mut values: BTreeMap<&str, f64> = BTreeMap::new();
+                if let Some(t) = inputs.optional("params") {
+                    let p = schema::params_from(&t)?;
+                    if p.tracker() != TrackerModel::MirrorTracker {
+                        bail!(
+                            "`{}` holds parameters of the {} model: it cannot describe a mirror tracker",
+                            t.name,
+                            p.tracker()
+                        );
+                    }
+                    for (c, v) in p.coefs().iter().zip(p.values()) {
+                        *values.entry(c.param.id()).or_default() += v;
+                    }
+                }
+                for (id, v) in &self.misalignments {
+                    *values.entry(id.as_str()).or_default() += v;
                 }
                 let mut e = MirrorErrors::default();
-                for (id, v) in &self.misalignments {
-                    if !e.set(id, *v) {
+                for (id, v) in values {
+                    if !e.set(id, v) {
                         bail!("`{id}` is not a misalignment of the mirror-tracker model");
                     }
                 }
@@ -198,6 +200,14 @@ impl B89TestsStage {
         let mut values: BTreeMap<Coef, f64> = BTreeMap::new();
         if let Some(t) = inputs.optional("params") {
             let p = schema::params_from(&t)?;
+            if p.tracker() != TrackerModel::ApiTracker3 {
+                bail!(
+                    "`{}` holds parameters of the {} model: set `model = \"{}\"`",
+                    t.name,
+                    p.tracker(),
+                    p.tracker()
+                );
+            }
             for (c, v) in p.coefs().iter().zip(p.values()) {
                 *values.entry(*c).or_default() += v;
             }
@@ -358,8 +368,8 @@ impl StageKind for B89TestsStage {
             ));
         }
         let known: Vec<&str> = match self.model {
-            Model::ApiTracker3 => CORRESPONDENCE.iter().map(|m| m.id).collect(),
-            Model::MirrorTracker => mirror::IDS.iter().map(|(id, _, _)| *id).collect(),
+            TrackerModel::ApiTracker3 => CORRESPONDENCE.iter().map(|m| m.id).collect(),
+            TrackerModel::MirrorTracker => mirror::IDS.iter().map(|(id, _, _)| *id).collect(),
         };
         for (id, v) in &self.misalignments {
             let field = format!("misalignments.{id}");
@@ -379,7 +389,7 @@ impl StageKind for B89TestsStage {
                 ));
             }
         }
-        if self.model == Model::MirrorTracker && self.parameters == Parameters::Dh {
+        if self.model == TrackerModel::MirrorTracker && self.parameters == Parameters::Dh {
             out.push(Invalid::new(
                 "parameters",
                 "the mirror tracker has no DH parameters: use `parameters = \"physical\"`",
@@ -413,15 +423,6 @@ impl StageKind for B89TestsStage {
             .table("sensitivity", sensitivity_table(&tests, &rows, &sens)?)
             .table("visibility", visibility_table(&tests, &rows, &sens)?)
             .file("b89-sensitivity.svg".into(), svg.into_bytes()))
-    }
-}
-
-impl Model {
-    fn id(self) -> &'static str {
-        match self {
-            Model::ApiTracker3 => "api-tracker3",
-            Model::MirrorTracker => "mirror-tracker",
-        }
     }
 }
 

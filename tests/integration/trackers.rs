@@ -29,6 +29,15 @@ fn ten(model: TrackerModel) -> ErrorParams {
 }
 
 fn simulate(noise: Noise, errors: &ErrorParams, seed: u64) -> SimulatedCampaign {
+    simulate_with(noise, errors, &Effects::default(), seed)
+}
+
+fn simulate_with(
+    noise: Noise,
+    errors: &ErrorParams,
+    effects: &Effects,
+    seed: u64,
+) -> SimulatedCampaign {
     let layout = layout::build(&Spec::new(Kind::Corner));
     simulate_campaign(&CampaignSpec {
         name: "corner".into(),
@@ -38,7 +47,7 @@ fn simulate(noise: Noise, errors: &ErrorParams, seed: u64) -> SimulatedCampaign 
         aim: Aim::StationsCentroid,
         max_angle_deg: 30.0,
         noise,
-        effects: &Effects::default(),
+        effects,
         gauge_u_mm: if noise.is_zero() { 0.0 } else { 0.0005 },
         reference_u_mm: 0.002,
         level_urad: 1000.0,
@@ -195,4 +204,42 @@ fn blind_model_choice_is_right_on_90_percent_of_detectable_campaigns() {
     for m in TrackerModel::ALL {
         assert!(detectable.iter().any(|c| c.truth == m));
     }
+}
+
+/// A mirror campaign with an unmodelled effect too, diagnosed with the
+/// head-laser model: the model mismatch first, then the effect on top of the
+/// model that fits.
+#[test]
+fn a_mirror_campaign_with_an_effect_is_a_model_mismatch_and_the_effect() {
+    use ltcal::diagnose::{self, Settings, output};
+    use ltcal::effects::RangeScale;
+    let effects = Effects {
+        range_scale: Some(RangeScale {
+            ppm: [("S2".to_string(), 8.0)].into(),
+            sigma_ppm: None,
+        }),
+        ..Effects::default()
+    };
+    let sim = simulate_with(REALISTIC, &ten(TrackerModel::MirrorTracker), &effects, 7);
+    let s = Settings {
+        model: ErrorModel::constant(),
+        mc_draws: 20,
+        ..Settings::default()
+    };
+    let d = diagnose::diagnose(&sim.campaign, &s).unwrap();
+    let verdict = output::verdict(&d);
+    let set: Vec<(&str, &str)> = d
+        .explanation()
+        .map(|r| (r.effect.as_str(), r.place.as_str()))
+        .collect();
+    assert_eq!(
+        set,
+        [("model", "mirror-tracker"), ("range-scale", "S2")],
+        "{verdict}"
+    );
+    assert!(
+        verdict.starts_with("model mismatch: the readings fit the mirror-tracker model")
+            && verdict.ends_with("on top of it: range-scale at S2"),
+        "{verdict}"
+    );
 }
