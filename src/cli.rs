@@ -124,6 +124,9 @@ enum Command {
         /// Seed of the folds and the Monte Carlo draws.
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// The tracker model to fit (default: the campaign's `[tracker] model`).
+        #[arg(long, value_name = "ID", value_parser = tracker_model)]
+        model: Option<crate::tracker::TrackerModel>,
     },
     /// List the stage kinds.
     Kinds,
@@ -133,6 +136,15 @@ enum Command {
 /// and few enough that creating them costs no noticeable time (a hundred
 /// thousand took minutes).
 const MAX_THREADS: u64 = 1024;
+
+fn tracker_model(s: &str) -> Result<crate::tracker::TrackerModel, String> {
+    crate::tracker::TrackerModel::parse(s).ok_or_else(|| {
+        format!(
+            "unknown tracker model; expected {}",
+            crate::tracker::TrackerModel::expected()
+        )
+    })
+}
 
 fn thread_count() -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::new().range(1..=MAX_THREADS)
@@ -291,9 +303,11 @@ fn diagnose_command(
     folds: usize,
     mc_draws: usize,
     seed: u64,
+    model: Option<crate::tracker::TrackerModel>,
 ) -> Result<ExitCode> {
     use crate::stages::StageKind;
     let stage = stages::diagnose::DiagnoseStage {
+        model,
         effects,
         folds,
         mc_draws,
@@ -465,7 +479,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             folds,
             mc_draws,
             seed,
-        } => diagnose_command(&campaign, &out, effects, folds, mc_draws, seed),
+            model,
+        } => diagnose_command(&campaign, &out, effects, folds, mc_draws, seed, model),
         Command::Kinds => {
             let kinds: String = stages::summaries()
                 .into_iter()

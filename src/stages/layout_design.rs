@@ -14,6 +14,7 @@
 //!   { name = "no gauge", layout = { kind = "corner" }, gauge = false },
 //! ]
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }   # the weights (default)
+//! model = "api-tracker3"             # the tracker model analysed ("mirror-tracker")
 //! fixed = []                         # parameters held fixed (none by default)
 //! seed = 0                           # station yaw and levelling of the simulated layouts
 //! ```
@@ -22,8 +23,9 @@
 //! with `faces`, `aim` and `max_angle_deg`, and `gauge = false` to leave the
 //! gauge out), simulated noise-free with a perfect tracker. The analysis is [`crate::calibrate::bundle::analyse`]:
 //! the Jacobian of the bundle adjustment's weighted residuals (readings in
-//! units of σ, gauge lengths) with respect to the 18 error parameters (in
-//! µm and µrad), with everything the free station poses and reflector
+//! units of σ, gauge lengths) with respect to the model's error parameters
+//! (the 18 DH parameters, or the mirror tracker's 10 misalignments; in µm
+//! and µrad), with everything the free station poses and reflector
 //! positions can absorb projected out. Its singular values σ₁ ≥ … say how
 //! many σ of residual a unit (1 µm or 1 µrad) change along each direction
 //! produces; 1/σ_min is the standard uncertainty of the worst-determined
@@ -58,6 +60,7 @@ use crate::noise::Noise;
 use crate::plots;
 use crate::simulate::{self, CampaignSpec};
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::{Context as _, Result, anyhow, bail};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
@@ -85,6 +88,8 @@ pub struct LayoutCase {
 pub struct LayoutDesignStage {
     #[serde(default)]
     pub layouts: Vec<LayoutCase>,
+    #[serde(default)]
+    pub model: TrackerModel,
     #[serde(default = "default_noise")]
     pub noise: Noise,
     #[serde(default)]
@@ -167,7 +172,7 @@ impl LayoutDesignStage {
         c.meta.tracker.sigma_range_um = Some(self.noise.sigma_range_um);
         c.meta.tracker.sigma_range_ppm = Some(self.noise.sigma_range_ppm);
         let net = Network::from_campaign(&c)?;
-        let start = ErrorParams::zero(&ErrorModel::constant());
+        let start = ErrorParams::zero(&ErrorModel::of(self.model));
         let free: Vec<bool> = start
             .coefs()
             .iter()
@@ -223,6 +228,9 @@ impl StageKind for LayoutDesignStage {
 
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
+        if let Err(e) = super::fitting::model(self.model, &Default::default(), &self.fixed) {
+            out.push(e);
+        }
         for (i, l) in self.layouts.iter().enumerate() {
             // Fields by their dotted path (how the pipeline file locates
             // them), messages as a reader writes it.
