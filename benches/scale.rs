@@ -8,19 +8,24 @@
 //! `calibrate_hall` is issue 10's own case: the `hall` layout with 200
 //! reflectors per level (600 in all) read from 8 stations, every reflector
 //! from every station (4 800 readings), as the issue timed it.
+//! `mirror_hall` is the same hall read by a mirror tracker (every
+//! misalignment 10 µm or 10 µrad): its bundle adjustment with its own model
+//! (derivatives by central differences) and `compare_models` on it (both
+//! models, each with its 5-fold held-out residual).
 //!
 //!     cargo bench --bench scale
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use ltcal::calibrate::{Network, Norm, Objective, Settings, calibrate};
 use ltcal::campaign::{Aim, Campaign};
-use ltcal::diagnose::{self, diagnose};
+use ltcal::diagnose::{self, diagnose, models};
 use ltcal::effects::Effects;
 use ltcal::error_model::{ErrorModel, ErrorParams};
 use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind, Spec};
 use ltcal::noise::Noise;
 use ltcal::simulate::{CampaignSpec, simulate_campaign};
+use ltcal::tracker::TrackerModel;
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -42,6 +47,16 @@ fn campaign(per_level: usize, stations: usize, faces: usize) -> Campaign {
 }
 
 fn campaign_of(kind: Kind, per_level: usize, stations: usize, faces: usize) -> Campaign {
+    campaign_with(kind, per_level, stations, faces, &ErrorParams::table2())
+}
+
+fn campaign_with(
+    kind: Kind,
+    per_level: usize,
+    stations: usize,
+    faces: usize,
+    errors: &ErrorParams,
+) -> Campaign {
     let mut spec = Spec::new(kind);
     spec.per_level = per_level;
     spec.stations = stations;
@@ -49,7 +64,7 @@ fn campaign_of(kind: Kind, per_level: usize, stations: usize, faces: usize) -> C
     simulate_campaign(&CampaignSpec {
         name: "network".into(),
         layout: &layout,
-        errors: Some(&ErrorParams::table2()),
+        errors: Some(errors),
         faces: &[Face::Front, Face::Back][..faces],
         aim: Aim::StationsCentroid,
         max_angle_deg: 30.0,
@@ -116,8 +131,30 @@ fn calibrate_hall(c: &mut Criterion) {
     g.finish();
 }
 
+fn mirror_hall(c: &mut Criterion) {
+    let mut g = c.benchmark_group("mirror_hall");
+    g.sample_size(10).measurement_time(Duration::from_secs(4));
+    let model = ErrorModel::of(TrackerModel::MirrorTracker);
+    let mut truth = ErrorParams::zero(&model);
+    truth.values_mut().iter_mut().for_each(|v| *v = 10.0);
+    let camp = campaign_with(Kind::Hall, 200, 8, 1, &truth);
+    let net = Network::from_campaign(&camp).unwrap();
+    let start = ErrorParams::zero(&model);
+    let free = vec![true; start.coefs().len()];
+    let settings = bundle();
+    g.bench_function(BenchmarkId::new("calibrate", camp.readings.len()), |b| {
+        b.iter(|| calibrate(black_box(&net), &start, &free, &settings).unwrap())
+    });
+    g.bench_function(
+        BenchmarkId::new("compare_models", camp.readings.len()),
+        |b| b.iter(|| models::compare_campaign(black_box(&camp), 5, 0).unwrap()),
+    );
+    g.finish();
+}
+
 /// The whole diagnosis as `ltcal diagnose` runs it: the bundle adjustment,
-/// every candidate, 5-fold cross-validation and 100 Monte Carlo draws.
+/// every candidate, 5-fold cross-validation, 100 Monte Carlo draws and the
+/// other tracker model fitted.
 fn diagnose_scale(c: &mut Criterion) {
     let mut g = c.benchmark_group("diagnose_scale");
     g.sample_size(10).measurement_time(Duration::from_secs(10));
@@ -130,5 +167,11 @@ fn diagnose_scale(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, calibrate_scale, calibrate_hall, diagnose_scale);
+criterion_group!(
+    benches,
+    calibrate_scale,
+    calibrate_hall,
+    mirror_hall,
+    diagnose_scale
+);
 criterion_main!(benches);

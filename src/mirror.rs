@@ -165,9 +165,11 @@ pub struct MirrorTracker {
     /// The incoming beam's direction (unit).
     u: Vector3<f64>,
     transit_offset: f64,
-    transit_tilt: f64,
+    /// The transit axis's tilt, as the rotation about `x̂_h` it is.
+    transit_tilt: Rotation3<f64>,
     mirror_offset: f64,
-    mirror_tilt: f64,
+    /// `(sin, cos)` of the mirror tilt.
+    mirror_tilt: (f64, f64),
     vertical_index: f64,
     range_offset: f64,
 }
@@ -179,9 +181,9 @@ impl MirrorTracker {
             s0: Vector3::new(e.beam_offset_x * um, e.beam_offset_y * um, 0.0),
             u: Vector3::new(e.beam_tilt_x * urad, e.beam_tilt_y * urad, 1.0).normalize(),
             transit_offset: e.transit_offset * um,
-            transit_tilt: e.transit_tilt * urad,
+            transit_tilt: Rotation3::from_axis_angle(&Vector3::x_axis(), e.transit_tilt * urad),
             mirror_offset: e.mirror_offset * um,
-            mirror_tilt: e.mirror_tilt * urad,
+            mirror_tilt: (e.mirror_tilt * urad).sin_cos(),
             vertical_index: e.vertical_index * urad,
             range_offset: e.range_offset * um,
         }
@@ -191,11 +193,10 @@ impl MirrorTracker {
     /// frame, at reading `r`.
     fn mirror(&self, r: Reading) -> (Vector3<f64>, Vector3<f64>) {
         let beta = 0.5 * (r.el + self.vertical_index) - std::f64::consts::FRAC_PI_4;
-        let (st, ct) = self.mirror_tilt.sin_cos();
+        let (st, ct) = self.mirror_tilt;
         let n_h = Vector3::new(ct * beta.cos(), st, ct * beta.sin());
         let head = Rotation3::from_axis_angle(&Vector3::z_axis(), r.az);
-        let tilt = Rotation3::from_axis_angle(&Vector3::x_axis(), self.transit_tilt);
-        let n = head * (tilt * n_h);
+        let n = head * (self.transit_tilt * n_h);
         let o = head * Vector3::new(self.transit_offset, 0.0, 0.0);
         (n, o)
     }

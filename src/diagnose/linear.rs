@@ -322,6 +322,25 @@ pub struct Fit {
 #[error("the base adjustment's normal matrix is singular{0}")]
 pub struct Singular(&'static str);
 
+/// Fold `f`'s fit: its test readings, the factor of its training rows'
+/// normal equations, and every row's residual after the training fit.
+fn fold_fit(
+    j: &BlockJacobian,
+    r: &DVector<f64>,
+    fold_of: &[usize],
+    f: usize,
+) -> Result<(Vec<usize>, Factor, DVector<f64>), Singular> {
+    let n_read = fold_of.len();
+    let train = |b: usize| b >= n_read || fold_of[b] != f;
+    let test: Vec<usize> = (0..n_read).filter(|&i| fold_of[i] == f).collect();
+    let factor = fold_factor(&Normal::assemble(j, None, train))
+        .ok_or(Singular(" on a cross-validation fold"))?;
+    let y = solve_ls(j, &factor, r, &train);
+    let mut res = r.clone();
+    j.sub_mul_rows(y.as_slice(), 1, res.as_mut_slice());
+    Ok((test, factor, res))
+}
+
 impl LinearModel {
     /// `j`, `r`: the base Jacobian and residuals (readings' three rows each
     /// first, one block per reading, then other observations). `fold_of[i]`:
@@ -347,13 +366,7 @@ impl LinearModel {
         }
         let folds = (0..n_folds)
             .map(|f| {
-                let train = |b: usize| b >= n_read || fold_of[b] != f;
-                let test: Vec<usize> = (0..n_read).filter(|&i| fold_of[i] == f).collect();
-                let factor = fold_factor(&Normal::assemble(&j, None, train))
-                    .ok_or(Singular(" on a cross-validation fold"))?;
-                let y = solve_ls(&j, &factor, &r, &train);
-                let mut res = r.clone();
-                j.sub_mul_rows(y.as_slice(), 1, res.as_mut_slice());
+                let (test, factor, res) = fold_fit(&j, &r, fold_of, f)?;
                 let n_a = j.n_a();
                 let mut g_k = DMatrix::zeros(n_a, n_a);
                 let mut h_k = DVector::zeros(n_a);
@@ -397,6 +410,27 @@ impl LinearModel {
             to_um,
             dof,
         })
+    }
+
+    /// [`LinearModel::cv_rms_um_base`] alone, without what scoring
+    /// candidates needs: the held-out RMS (µm) of the model whose Jacobian
+    /// and residuals these are (comparing tracker models needs no more).
+    pub fn held_out_rms_um(
+        j: &BlockJacobian,
+        r: &DVector<f64>,
+        fold_of: &[usize],
+        n_folds: usize,
+        to_mm: &[Matrix3<f64>],
+    ) -> Result<f64, Singular> {
+        let mut sum = 0.0;
+        for f in 0..n_folds {
+            let (test, _, res) = fold_fit(j, r, fold_of, f)?;
+            for i in test {
+                let a = to_mm[i] * 1e3 * Vector3::new(res[3 * i], res[3 * i + 1], res[3 * i + 2]);
+                sum += a.norm_squared();
+            }
+        }
+        Ok((sum / fold_of.len().max(1) as f64).sqrt())
     }
 
     pub fn rows(&self) -> usize {
@@ -718,8 +752,11 @@ mod tests {
         let p = projector(&jd);
         let r = &p * (c_new.dense(m) * 0.5).column(0);
         let fold_of: Vec<usize> = (0..n_read).map(|i| (i / 6 + i) % 3).collect();
-        let lm =
-            LinearModel::new(j, r.clone(), &fold_of, 3, vec![Matrix3::identity(); n_read]).unwrap();
+        let to_mm = vec![Matrix3::identity(); n_read];
+        let held_out = LinearModel::held_out_rms_um(&j, &r, &fold_of, 3, &to_mm).unwrap();
+        let lm = LinearModel::new(j, r.clone(), &fold_of, 3, to_mm).unwrap();
+        // The light path (comparing tracker models) is the same number.
+        assert_eq!(held_out, lm.cv_rms_um_base());
         let f = lm.fit(&c_new);
         assert!((f.beta[0] - 0.5).abs() < 1e-9, "{f:?}");
         assert!((f.delta_chi2 - lm.chi2()).abs() < 1e-9 * lm.chi2());

@@ -403,7 +403,9 @@ fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<
         s.model.tracker(),
         n_free,
         &base.cal,
-        &base.lm,
+        base.lm.chi2(),
+        (base.lm.rows(), base.lm.dof()),
+        base.lm.cv_rms_um_base(),
     )];
     for t in crate::tracker::TrackerModel::ALL {
         if t != s.model.tracker() {

@@ -75,29 +75,40 @@ pub fn fit(
         .iter()
         .map(|o| nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma))
         .collect();
-    let lm = LinearModel::new(lin.jacobian, lin.residuals, fold_of, n_folds, to_mm)?;
+    let cv_rms_um =
+        LinearModel::held_out_rms_um(&lin.jacobian, &lin.residuals, fold_of, n_folds, &to_mm)?;
     let n_free = free.iter().filter(|&&f| f).count();
-    Ok(summarise(model.tracker(), n_free, &cal, &lm))
+    let j = &lin.jacobian;
+    Ok(summarise(
+        model.tracker(),
+        n_free,
+        &cal,
+        lin.residuals.norm_squared(),
+        (j.nrows(), j.nrows().saturating_sub(j.ncols()).max(1)),
+        cv_rms_um,
+    ))
 }
 
-/// A fit's numbers from its calibration and linearised adjustment.
+/// A fit's numbers from its calibration, its χ², its rows `m` and degrees
+/// of freedom of the linearised adjustment, and its held-out RMS.
 pub fn summarise(
     model: TrackerModel,
     n_params: usize,
     cal: &Calibration,
-    lm: &LinearModel,
+    chi2: f64,
+    (m, dof): (usize, usize),
+    cv_rms_um: f64,
 ) -> ModelFit {
     let rank = cal.estimate.analysis.rank;
-    let chi2 = lm.chi2();
     ModelFit {
         model,
         n_params,
         rank,
         chi2,
-        dof: cal.fit.dof.unwrap_or(lm.dof()),
+        dof: cal.fit.dof.unwrap_or(dof),
         chi2_p: cal.fit.chi2_p.unwrap_or(f64::NAN),
-        bic: chi2 + rank as f64 * (lm.rows() as f64).ln(),
-        cv_rms_um: lm.cv_rms_um_base(),
+        bic: chi2 + rank as f64 * (m as f64).ln(),
+        cv_rms_um,
     }
 }
 
