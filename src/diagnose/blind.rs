@@ -35,6 +35,7 @@ use crate::layout::{self, Kind, Spec};
 use crate::noise::Noise;
 use crate::random;
 use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
+use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow};
 use nalgebra::{DVector, Vector3};
 use rand::rngs::ChaCha8Rng;
@@ -113,6 +114,9 @@ pub struct Plan {
     pub effects: Vec<String>,
     /// Kinds of case to draw from (besides `none`).
     pub kinds: Vec<CaseKind>,
+    /// The trackers' model, which the diagnosis fits (its default: the
+    /// campaign's `[tracker] model`).
+    pub tracker: TrackerModel,
     /// Kinematic error parameters of each tracker: Gaussian, this σ in µm
     /// and µrad (a factory-compensated tracker has a few).
     pub tracker_sigma: f64,
@@ -445,7 +449,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         sigma_range_um: between(&mut rng, plan.noise_range_um),
         sigma_range_ppm: 0.3,
     };
-    let mut errors = ErrorParams::zero(&ErrorModel::constant());
+    let mut errors = ErrorParams::zero(&ErrorModel::of(plan.tracker));
     for v in errors.values_mut() {
         *v = plan.tracker_sigma * random::normal(&mut rng);
     }
@@ -510,6 +514,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let d = diagnose(
         &noisy.campaign,
         &DiagnoseSettings {
+            model: ErrorModel::of(plan.tracker),
             mc_draws: plan.mc_draws,
             seed,
             ..DiagnoseSettings::default()

@@ -17,6 +17,7 @@
 //!            "encoder-harmonic", "station-drift", "target-shift"]
 //! kinds = ["single", "two-face", "no-time", "two-effects", "blunder",
 //!          "blunders", "blunder-and-effect"]   # besides `none`
+//! model = "api-tracker3"               # the trackers' model ("mirror-tracker"), diagnosed as theirs
 //! tracker_sigma = 5.0                  # µm / µrad of the kinematic errors
 //! detect_chi2 = 25.0
 //! mc_draws = 20
@@ -46,6 +47,7 @@ use crate::effects;
 use crate::layout::Kind;
 use crate::plots;
 use crate::table::TableBuilder;
+use crate::tracker::TrackerModel;
 use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
@@ -71,6 +73,8 @@ pub struct BlindCheckStage {
     pub effects: Vec<String>,
     #[serde(default = "default_kinds")]
     pub kinds: Vec<CaseKind>,
+    #[serde(default)]
+    pub model: TrackerModel,
     #[serde(default = "default_tracker")]
     pub tracker_sigma: f64,
     #[serde(default = "default_detect")]
@@ -125,6 +129,7 @@ impl BlindCheckStage {
             none_fraction: self.none_fraction,
             effects: self.effects.clone(),
             kinds: self.kinds.clone(),
+            tracker: self.model,
             tracker_sigma: self.tracker_sigma,
             detect_chi2: self.detect_chi2,
             mc_draws: self.mc_draws,
