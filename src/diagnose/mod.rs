@@ -36,7 +36,7 @@
 //! 5. **Which model** — [`models`]: every other tracker model fitted to the
 //!    same readings and compared by BIC and held-out residual (a `model`
 //!    row). When another model fits decisively better
-//!    ([`models::MISMATCH_BIC`]), the campaign is not the base model's
+//!    ([`models::mismatched`]), the campaign is not the base model's
 //!    tracker: the diagnosis says so (the `model` row first in the
 //!    explanation) and searches for effects on top of the model that fits,
 //!    rather than blaming an effect for the mismatch.
@@ -418,10 +418,9 @@ fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<
 }
 
 /// The `model` row: the best other tracker model against the base model;
-/// significant (a model mismatch) when its BIC is lower by
-/// [`models::MISMATCH_BIC`] or more and by more than the best significant
-/// candidate's at the first step (`best_effect_bic`). `None` with one model
-/// only.
+/// significant (a model mismatch) when [`models::mismatched`] and its BIC is
+/// lower by more than the best significant candidate's at the first step
+/// (`best_effect_bic`). `None` with one model only.
 fn model_row(
     fits: &[models::ModelFit],
     base: crate::tracker::TrackerModel,
@@ -442,7 +441,7 @@ fn model_row(
         magnitude_u: f64::NAN,
         unit: "χ²".into(),
         score: 100.0 * (1.0 - (alt.cv_rms_um / b.cv_rms_um).powi(2)),
-        significant: delta_bic >= models::MISMATCH_BIC && delta_bic > best_effect_bic,
+        significant: models::mismatched(b, alt) && delta_bic > best_effect_bic,
         rms_before_um: b.cv_rms_um,
         rms_after_um: alt.cv_rms_um,
         gap_before_um: gap_before,

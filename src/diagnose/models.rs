@@ -13,9 +13,13 @@
 //!
 //! The models are not nested (a mirror tracker's reflection has no DH
 //! joint, a DH beam error no mirror), so there is no F test between them;
-//! the BIC difference is the evidence. The diagnosis calls a model
-//! mismatch when another model's BIC is lower than the base model's by
-//! [`MISMATCH_BIC`] or more.
+//! the BIC difference is the evidence. A model is mismatched
+//! ([`mismatched`]) when another model explains at least
+//! [`DETECTABLE_CHI2`] more χ² — the diagnosis's notion of a detectable
+//! signal — and its BIC is lower by [`MISMATCH_BIC`] or more. Both are
+//! needed: where the models fit equally well, the BIC alone prefers the
+//! one with fewer determined combinations by `Δk·ln m` (≈ 20 between the
+//! DH chain's 7 and the mirror's 10), which is parsimony, not a misfit.
 
 use super::linear::LinearModel;
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
@@ -110,6 +114,13 @@ pub fn summarise(
         bic: chi2 + rank as f64 * (m as f64).ln(),
         cv_rms_um,
     }
+}
+
+/// Whether `alt` shows that `base` does not describe the tracker: `alt`
+/// explains at least [`DETECTABLE_CHI2`] more χ² and its BIC is lower by
+/// [`MISMATCH_BIC`] or more.
+pub fn mismatched(base: &ModelFit, alt: &ModelFit) -> bool {
+    base.chi2 - alt.chi2 >= DETECTABLE_CHI2 && base.bic - alt.bic >= MISMATCH_BIC
 }
 
 /// Fits, best (lowest BIC) first; a tie keeps the order given.

@@ -378,7 +378,8 @@ pub fn report(d: &Diagnosis) -> String {
         let _ = writeln!(s, "## Which tracker model\n");
         let _ = writeln!(
             s,
-            "Every tracker model fitted to the same readings (bundle adjustment); BIC = χ² + k·ln m with k the determined combinations, held-out RMS by the same folds. A model mismatch is called at ΔBIC ≥ {}.\n",
+            "Every tracker model fitted to the same readings (bundle adjustment); BIC = χ² + k·ln m with k the determined combinations, held-out RMS by the same folds. A model mismatch is called when another model explains ≥ {} more χ², its BIC is lower by ≥ {}, and by more than any effect's.\n",
+            super::models::DETECTABLE_CHI2,
             super::models::MISMATCH_BIC
         );
         let _ = writeln!(

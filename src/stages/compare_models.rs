@@ -14,8 +14,8 @@
 //! Output `models`, best first: `rank`, `model`, `n_params`, `determined`
 //! (combinations the campaign determines), `chi2`, `dof`, `chi2_p`, `bic`,
 //! `delta_bic` (above the best), `cv_rms_um` (held-out RMS), `mismatch`
-//! (the best model's BIC lower by [`models::MISMATCH_BIC`] or more: this model
-//! does not describe the tracker).
+//! (the best model explains ≥ 25 more χ² and its BIC is lower by ≥ 10:
+//! this model does not describe the tracker, [`models::mismatched`]).
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::campaign::Campaign;
@@ -58,7 +58,7 @@ pub fn models_table(fits: &[ModelFit]) -> Result<DataFrame> {
         .bool(
             "mismatch",
             fits.iter()
-                .map(|f| f.bic - best >= models::MISMATCH_BIC)
+                .map(|f| fits.first().is_some_and(|b| models::mismatched(f, b)))
                 .collect(),
         )
         .build()

@@ -243,3 +243,34 @@ fn a_mirror_campaign_with_an_effect_is_a_model_mismatch_and_the_effect() {
         "{verdict}"
     );
 }
+
+/// Regression: where the models fit equally well (a mirror tracker with
+/// errors no campaign sees), the BIC prefers the DH chain's fewer determined
+/// combinations by about 20 — parsimony, not a misfit — and the diagnosis
+/// of a mirror campaign with its own model called that a model mismatch.
+#[test]
+fn models_that_fit_equally_well_are_not_a_model_mismatch() {
+    use ltcal::diagnose::{self, Settings, output};
+    let mut tiny = ten(TrackerModel::MirrorTracker);
+    tiny.values_mut().iter_mut().for_each(|v| *v = 0.01);
+    let sim = simulate(REALISTIC, &tiny, 9);
+    let s = Settings {
+        model: ErrorModel::of(TrackerModel::MirrorTracker),
+        mc_draws: 20,
+        ..Settings::default()
+    };
+    let d = diagnose::diagnose(&sim.campaign, &s).unwrap();
+    let m = &d.models;
+    assert_eq!(m[0].model, TrackerModel::ApiTracker3, "{m:?}");
+    assert!(
+        m[1].bic - m[0].bic > 10.0 && (m[1].chi2 - m[0].chi2).abs() < 25.0,
+        "{m:?}"
+    );
+    let row = d.rows.iter().find(|r| r.effect == "model").unwrap();
+    assert!(!row.significant, "{row:?}");
+    assert!(
+        output::verdict(&d).starts_with("none:"),
+        "{}",
+        output::verdict(&d)
+    );
+}
