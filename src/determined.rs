@@ -1,8 +1,9 @@
 //! Fitting in the determined directions: what identification (Eq. 11) and
 //! every calibration objective (Eq. 13–15, the bundle adjustment) share.
 //!
-//! The data never determine all 18 error parameters (Table 3's null space,
-//! NOTES item 8). Each fit therefore analyses the Jacobian of its free
+//! The data never determine all 18 DH error parameters (Table 3's null
+//! space, NOTES item 8; a campaign can determine all ten of a mirror
+//! tracker's misalignments, but not every layout does). Each fit therefore analyses the Jacobian of its free
 //! coefficients ([`identifiability`]), estimates coordinates `z` along the
 //! determined directions only — `p(z) = p₀ + B·z`, `B` the row basis — and
 //! leaves the undetermined directions at their start value: the

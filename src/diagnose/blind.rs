@@ -5,8 +5,8 @@
 //! Cases come in kinds ([`CaseKind`]): one effect; none; one effect seen
 //! in two faces; one effect in a file without `time_s` and `temperature_c`;
 //! two effects at once; one blunder; several blunders; a blunder and an
-//! effect. Every tracker carries random kinematic errors (the paper's 18
-//! parameters, `tracker_sigma` each). Single-effect kinds are scored as
+//! effect. Every tracker carries random kinematic errors (every parameter
+//! of `Plan::tracker`'s model, `tracker_sigma` each). Single-effect kinds are scored as
 //! before (the effect and place named first); every kind is also scored as
 //! a set: each member put in found in the explanation set, and nothing
 //! named that was not put in.

@@ -3,7 +3,8 @@
 //! gap shrinks once that effect is modelled.
 //!
 //! 1. The campaign is calibrated with the base model (a bundle adjustment;
-//!    the paper's 18 constant parameters unless a pipeline says otherwise).
+//!    the constants of the campaign's `[tracker] model` unless a pipeline
+//!    says otherwise).
 //! 2. **Where** — [`factors`]: residuals by station, reflector, incidence,
 //!    range, azimuth, elevation, time, temperature; each reading
 //!    coordinate's w-test and redundancy.
@@ -256,11 +257,15 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
     let base_cal = base.cal.clone();
+    // Another model that cannot be fitted (its adjustment fails) is skipped
+    // with the reason, as an effect whose inputs are missing is.
+    let mut skipped_models = Vec::new();
     let models = if compare {
-        compare_models(&net0, &base, &ctx)?
+        compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
     } else {
         Vec::new()
     };
+    let open = s.max_steps >= 1;
     // Which, step by step: the explanation set, along the most promising
     // first steps — unless another tracker model explains more than any
     // effect (an effect the base model lacks can make another model fit a
@@ -274,12 +279,14 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         .filter(|r| r.significant)
         .map(|r| r.delta_bic)
         .fold(f64::NEG_INFINITY, f64::max);
-    let model = model_row(&models, s.model.tracker(), floor, best_effect_bic);
+    // The model row is a member like any other: none with `max_steps = 0`.
+    let model = model_row(&models, s.model.tracker(), floor, best_effect_bic).map(|mut r| {
+        r.significant &= open;
+        r
+    });
     if let Some(row) = model.clone().filter(|r| r.significant) {
         return on_the_model_that_fits(c, s, row, models);
     }
-
-    let open = s.max_steps >= 1;
     let starts = if open {
         first.picks(&base.cands, FIRST_STEPS)
     } else {
@@ -311,11 +318,14 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     } = path;
     // With the explanation set's effects taken off the readings, another
     // model may fit where the effects hid it.
-    if compare && final_state.members.ncols() + final_state.rejected > 0 {
-        let fits = compare_models(&final_state.net, &final_state, &ctx)?;
-        let row = model_row(&fits, s.model.tracker(), floor, f64::NEG_INFINITY);
-        if let Some(row) = row.filter(|r| r.significant) {
-            return on_the_model_that_fits(c, s, row, fits);
+    if compare && open && final_state.members.ncols() + final_state.rejected.len() > 0 {
+        if let Some(fits) =
+            compare_models(&final_state.net, &final_state, &ctx, &mut skipped_models)
+        {
+            let row = model_row(&fits, s.model.tracker(), floor, f64::NEG_INFINITY);
+            if let Some(row) = row.filter(|r| r.significant) {
+                return on_the_model_that_fits(c, s, row, fits);
+            }
         }
     }
     let mut rows = set_rows;
@@ -350,7 +360,11 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         factors: factor_tests,
         residuals,
         factor_defs,
-        skipped: final_state.skipped,
+        skipped: final_state
+            .skipped
+            .into_iter()
+            .chain(skipped_models)
+            .collect(),
         chi2,
         dof,
         chi2_p,
@@ -372,9 +386,11 @@ fn on_the_model_that_fits(
     row: Row,
     fits: Vec<models::ModelFit>,
 ) -> Result<Diagnosis> {
+    // The model row is the first of at most `max_steps` members.
     let settings = Settings {
         model: ErrorModel::of(fits[0].model),
         fixed: Vec::new(),
+        max_steps: s.max_steps - 1,
         ..s.clone()
     };
     let mut d = explain(c, &settings, false)?;
@@ -391,8 +407,16 @@ fn on_the_model_that_fits(
 }
 
 /// Every tracker model on the campaign, best first: the base model's fit is
-/// the base state's, the others are fitted with all coefficients free.
-fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<models::ModelFit>> {
+/// the state's, the others are fitted with all coefficients free to the
+/// state's network (its members' effects off the readings, its rejected
+/// coordinates down-weighted and out of the held-out residual). `None`, and
+/// the reason in `skipped`, when another model cannot be fitted.
+fn compare_models(
+    net: &Network,
+    base: &State,
+    ctx: &StepContext,
+    skipped: &mut Vec<Skipped>,
+) -> Option<Vec<models::ModelFit>> {
     let s = ctx.settings;
     let n_free = ErrorParams::zero(&s.model)
         .coefs()
@@ -411,10 +435,19 @@ fn compare_models(net: &Network, base: &State, ctx: &StepContext) -> Result<Vec<
         if t != s.model.tracker() {
             let m = ErrorModel::of(t);
             let free = vec![true; m.coefs().len()];
-            fits.push(models::fit(net, &m, &free, ctx.fold_of, ctx.n_folds)?);
+            match models::fit(net, &m, &free, ctx.fold_of, ctx.n_folds, &base.rejected) {
+                Ok(f) => fits.push(f),
+                Err(e) => {
+                    skipped.push(Skipped {
+                        effect: MODEL,
+                        reason: format!("the {t} model could not be fitted: {e}"),
+                    });
+                    return None;
+                }
+            }
         }
     }
-    Ok(models::ranked(fits))
+    Some(models::ranked(fits))
 }
 
 /// The `model` row: the best other tracker model against the base model;
@@ -646,7 +679,8 @@ struct State {
     /// The effect members' columns, side by side in member order.
     members: Signature,
     /// Coordinates rejected as blunders.
-    rejected: usize,
+    /// Coordinates rejected as blunders: `(reading, coordinate)`.
+    rejected: Vec<(usize, usize)>,
     lm: LinearModel,
 }
 
@@ -664,7 +698,7 @@ impl State {
     /// Degrees of freedom of the augmented model.
     fn dof(&self) -> usize {
         let base = self.cal.fit.dof.unwrap_or(self.lm.dof());
-        base.saturating_sub(self.members.ncols() + self.rejected)
+        base.saturating_sub(self.members.ncols() + self.rejected.len())
             .max(1)
     }
 
@@ -691,7 +725,7 @@ impl State {
     /// constant: `χ² + k·ln m`, with `k` the members' parameters (a
     /// rejected coordinate counts as one) and `m` the reading coordinates.
     fn bic(&self) -> f64 {
-        let k = self.members.ncols() + self.rejected;
+        let k = self.members.ncols() + self.rejected.len();
         self.lm.chi2() - self.members_chi2() + k as f64 * (self.lm.rows() as f64).ln()
     }
 
@@ -842,7 +876,7 @@ impl StepContext<'_> {
                 cands,
                 skipped,
                 members: sig,
-                rejected: rejected.len(),
+                rejected: rejected.clone(),
                 lm,
             });
         }

@@ -6,8 +6,8 @@
 //! The station poses and reflector positions are the same unknowns for
 //! every model, so they cancel in every comparison: a model's BIC here is
 //! `χ² + k·ln m` with `k` the combinations of its parameters the campaign
-//! determines (the rank of the identifiability analysis) and `m` the
-//! reading coordinates. The held-out residual is the diagnosis's
+//! determines (the rank of the identifiability analysis) and `m` the rows
+//! of the adjustment (reading coordinates, gauge lengths, references). The held-out residual is the diagnosis's
 //! ([`super::linear`]): each fold's readings predicted by the model's
 //! linearised adjustment fitted to the other folds.
 //!
@@ -50,13 +50,16 @@ pub struct ModelFit {
     pub cv_rms_um: f64,
 }
 
-/// Fits `model` (coefficients `free`) to the network by the bundle adjustment.
+/// Fits `model` (coefficients `free`) to the network by the bundle
+/// adjustment; the `rejected` reading coordinates (blunders the network
+/// down-weights) count in no held-out residual.
 pub fn fit(
     net: &Network,
     model: &ErrorModel,
     free: &[bool],
     fold_of: &[usize],
     n_folds: usize,
+    rejected: &[(usize, usize)],
 ) -> Result<ModelFit> {
     let start = ErrorParams::zero(model);
     let cal = calibrate::calibrate(
@@ -74,11 +77,14 @@ pub fn fit(
         .linearisation
         .clone()
         .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
-    let to_mm: Vec<Matrix3<f64>> = net
+    let mut to_mm: Vec<Matrix3<f64>> = net
         .obs
         .iter()
         .map(|o| nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma))
         .collect();
+    for &(i, c) in rejected {
+        to_mm[i].column_mut(c).fill(0.0);
+    }
     let cv_rms_um =
         LinearModel::held_out_rms_um(&lin.jacobian, &lin.residuals, fold_of, n_folds, &to_mm)?;
     let n_free = free.iter().filter(|&&f| f).count();
@@ -143,7 +149,7 @@ pub fn compare_campaign(c: &Campaign, folds: usize, seed: u64) -> Result<Vec<Mod
         .map(|&t| {
             let m = ErrorModel::of(t);
             let free = vec![true; m.coefs().len()];
-            fit(&net, &m, &free, &fold_of, n_folds)
+            fit(&net, &m, &free, &fold_of, n_folds, &[])
         })
         .collect::<Result<Vec<_>>>()?;
     Ok(ranked(fits))
@@ -229,8 +235,15 @@ pub fn blind_check(
             let net = Network::from_campaign(&clean)?;
             let (fold_of, n_folds) = super::folds(&net, &super::Settings::default());
             let m = ErrorModel::of(other);
-            let noise_free_chi2 =
-                fit(&net, &m, &vec![true; m.coefs().len()], &fold_of, n_folds)?.chi2;
+            let noise_free_chi2 = fit(
+                &net,
+                &m,
+                &vec![true; m.coefs().len()],
+                &fold_of,
+                n_folds,
+                &[],
+            )?
+            .chi2;
             Ok(BlindCase {
                 case,
                 truth,

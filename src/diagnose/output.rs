@@ -326,9 +326,23 @@ pub fn report(d: &Diagnosis) -> String {
     let _ = writeln!(s, "# Diagnosis of `{}`\n", d.campaign);
     let _ = writeln!(s, "**Verdict:** {}.\n", verdict(d));
     let _ = writeln!(s, "## Base calibration\n");
+    // After a model mismatch the diagnosis stands on the model that fits.
+    let b = d.best();
+    let mismatch = b.effect == super::MODEL && b.step.is_some();
+    let held_out = if mismatch {
+        b.rms_after_um
+    } else {
+        b.rms_before_um
+    };
+    let fitted = d.calibration.estimate.params.tracker();
     let _ = writeln!(
         s,
-        "Bundle adjustment with the base model: χ² = {:.1} on {} degrees of freedom (χ²/dof = {:.2}, p = {:.3}). The residual is {} with the {} noise.",
+        "Bundle adjustment with the {fitted} model{}: χ² = {:.1} on {} degrees of freedom (χ²/dof = {:.2}, p = {:.3}). The residual is {} with the {} noise.",
+        if mismatch {
+            " (the model that fits: see \"Which tracker model\")"
+        } else {
+            ""
+        },
         d.chi2,
         d.dof,
         d.chi2 / d.dof as f64,
@@ -347,9 +361,9 @@ pub fn report(d: &Diagnosis) -> String {
     let _ = writeln!(
         s,
         "Held-out residual (5-fold cross-validation): {:.2} µm RMS; noise alone would leave {:.2} µm in this geometry (Monte Carlo), so the gap is {:.2} µm.\n",
-        d.rows[0].rms_before_um,
+        held_out,
         d.noise_floor_um,
-        d.rows[0].rms_before_um - d.noise_floor_um
+        held_out - d.noise_floor_um
     );
     let _ = writeln!(s, "## Where\n");
     let sig: Vec<_> = d.factors.iter().filter(|t| t.significant).collect();
@@ -378,7 +392,7 @@ pub fn report(d: &Diagnosis) -> String {
         let _ = writeln!(s, "## Which tracker model\n");
         let _ = writeln!(
             s,
-            "Every tracker model fitted to the same readings (bundle adjustment); BIC = χ² + k·ln m with k the determined combinations, held-out RMS by the same folds. A model mismatch is called when another model explains ≥ {} more χ², its BIC is lower by ≥ {}, and by more than any effect's.\n",
+            "Every tracker model fitted to the readings (bundle adjustment; after the explanation set's effects are taken off them when the comparison is made at its end); BIC = χ² + k·ln m with k the determined combinations, held-out RMS by the same folds. A model mismatch is called when another model explains ≥ {} more χ², its BIC is lower by ≥ {}, and by more than any effect's.\n",
             super::models::DETECTABLE_CHI2,
             super::models::MISMATCH_BIC
         );

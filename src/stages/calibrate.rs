@@ -7,8 +7,8 @@
 //! inputs = { campaign = "corner" }    # a whole campaign (import or simulate); start = "…" optional
 //! objective = "eq15"                  # "eq13", "eq14", "eq15" or "bundle"
 //! norm = "l1"                         # "l1" (the paper's |…|) or "l2"; the bundle is "l2"
-//! model = "mirror-tracker"            # the tracker model to fit; the campaign's by default
-//! fixed = ["ez3"]                     # held at their start value
+//! model = "api-tracker3"              # the tracker model to fit; the campaign's by default
+//! fixed = ["ez3"]                     # held at their start value (parameters of `model`)
 //! shapes = { dz3 = "poly:1" }         # the model to fit; constants by default
 //! reject_blunders = false             # bundle only: iterated data snooping (Baarda's w-test)
 //! blunder_alpha = 0.01                # its family-wise level

@@ -7,7 +7,7 @@
 //! kind = "diagnose"
 //! inputs = { campaign = "corner" }   # a whole campaign (import or simulate)
 //! model = "api-tracker3"             # the tracker model to fit (the campaign's by default)
-//! shapes = {}                        # the base model (the paper's 18 constants by default)
+//! shapes = {}                        # the base model's shapes (its constants by default)
 //! fixed = []
 //! folds = 5                          # cross-validation
 //! mc_draws = 100                     # Monte Carlo draws of the noise floor

@@ -14,7 +14,8 @@
 //!   { name = "no gauge", layout = { kind = "corner" }, gauge = false },
 //! ]
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }   # the weights (default)
-//! model = "api-tracker3"             # the tracker model analysed ("mirror-tracker")
+//! model = "api-tracker3"             # the tracker model analysed: the input campaign's,
+//!                                    # else api-tracker3, by default
 //! fixed = []                         # parameters held fixed (none by default)
 //! seed = 0                           # station yaw and levelling of the simulated layouts
 //! ```
@@ -88,8 +89,8 @@ pub struct LayoutCase {
 pub struct LayoutDesignStage {
     #[serde(default)]
     pub layouts: Vec<LayoutCase>,
-    #[serde(default)]
-    pub model: TrackerModel,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<TrackerModel>,
     #[serde(default = "default_noise")]
     pub noise: Noise,
     #[serde(default)]
@@ -167,12 +168,12 @@ impl LayoutCase {
 impl LayoutDesignStage {
     /// The identifiability of one campaign's error parameters, its readings
     /// weighted by `noise`.
-    fn evaluate(&self, name: &str, mut c: Campaign) -> Result<Row> {
+    fn evaluate(&self, tracker: TrackerModel, name: &str, mut c: Campaign) -> Result<Row> {
         c.meta.tracker.sigma_angle_urad = Some(self.noise.sigma_angle_urad);
         c.meta.tracker.sigma_range_um = Some(self.noise.sigma_range_um);
         c.meta.tracker.sigma_range_ppm = Some(self.noise.sigma_range_ppm);
         let net = Network::from_campaign(&c)?;
-        let start = ErrorParams::zero(&ErrorModel::of(self.model));
+        let start = ErrorParams::zero(&ErrorModel::of(tracker));
         let free: Vec<bool> = start
             .coefs()
             .iter()
@@ -228,7 +229,9 @@ impl StageKind for LayoutDesignStage {
 
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
-        if let Err(e) = super::fitting::model(self.model, &Default::default(), &self.fixed) {
+        let named = self.fixed.first().map(|p| p.tracker());
+        let tracker = self.model.or(named).unwrap_or_default();
+        if let Err(e) = super::fitting::model(tracker, &Default::default(), &self.fixed) {
             out.push(e);
         }
         for (i, l) in self.layouts.iter().enumerate() {
@@ -289,17 +292,29 @@ impl StageKind for LayoutDesignStage {
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
         let mut rows = Vec::new();
-        if inputs.optional("campaign.readings").is_some() {
-            let c = Campaign::from_inputs(inputs, "campaign")?;
+        let campaign = match inputs.optional("campaign.readings") {
+            Some(_) => Some(Campaign::from_inputs(inputs, "campaign")?),
+            None => None,
+        };
+        let tracker = match (&campaign, self.model) {
+            (_, Some(t)) => t,
+            (Some(c), None) => c.tracker_model(),
+            (None, None) => TrackerModel::default(),
+        };
+        super::fitting::run_model(tracker, &Default::default(), &self.fixed)?;
+        if let Some(c) = campaign {
             let name = c.meta.name.clone();
-            rows.push(self.evaluate(&name, c).context("the input campaign")?);
+            rows.push(
+                self.evaluate(tracker, &name, c)
+                    .context("the input campaign")?,
+            );
         }
         for l in &self.layouts {
             let c = l
                 .campaign(self.seed)
                 .with_context(|| format!("layout \"{}\"", l.name))?;
             rows.push(
-                self.evaluate(&l.name, c)
+                self.evaluate(tracker, &l.name, c)
                     .with_context(|| format!("layout \"{}\"", l.name))?,
             );
         }

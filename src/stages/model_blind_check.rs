@@ -81,7 +81,12 @@ impl StageKind for ModelBlindCheckStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = Vec::new();
+        let mut out: Vec<Invalid> = self
+            .layout
+            .check()
+            .into_iter()
+            .map(|(f, m)| Invalid::new(format!("layout.{f}"), m))
+            .collect();
         if !(1..=100_000).contains(&self.cases) {
             out.push(Invalid::new(
                 "cases",

@@ -8,7 +8,8 @@
 //! [stages.uncertainty]
 //! kind = "monte_carlo"
 //! inputs = { campaign = "corner" }   # a whole campaign (import or simulate); start = "…" optional
-//! shapes = {}                        # the model (the paper's 18 constants by default)
+//! model = "api-tracker3"             # the tracker model (the campaign's by default)
+//! shapes = {}                        # its shapes (constants by default)
 //! fixed = []
 //! block_trials = 10000               # M, trials per block (≥ 100/(1 − coverage))
 //! digits = 1                         # significant digits the uncertainties must be stable to

@@ -252,3 +252,14 @@ fn a_parameter_of_another_tracker_model_is_refused_at_its_place() {
         "`dz1` is a parameter of the api-tracker3 model, but this fit uses the mirror-tracker model",
     );
 }
+
+/// Regression: `model_blind_check` did not check its layout, and a layout
+/// without reflectors reached the simulation (an index out of bounds).
+#[test]
+fn model_blind_check_checks_its_layout_at_load() {
+    let (code, err) = run_bad(
+        "[stages.a]\nkind = \"model_blind_check\"\nlayout = { kind = \"corner\", per_level = 0 }\n",
+    );
+    assert_eq!(code, 2);
+    assert_located(&err, "3:41", "`per_level` must be 1 … 200, got 0");
+}

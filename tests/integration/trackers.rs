@@ -274,3 +274,24 @@ fn models_that_fit_equally_well_are_not_a_model_mismatch() {
         output::verdict(&d)
     );
 }
+
+/// Regression: the model row is a member like any other — with
+/// `max_steps = 0` the explanation set stays empty; with `max_steps = 1` the
+/// model is its one member and no effect is searched on top.
+#[test]
+fn the_model_row_counts_against_max_steps() {
+    use ltcal::diagnose::{self, Settings};
+    let sim = simulate(REALISTIC, &ten(TrackerModel::MirrorTracker), 7);
+    for steps in [0, 1] {
+        let s = Settings {
+            model: ErrorModel::constant(),
+            mc_draws: 20,
+            max_steps: steps,
+            ..Settings::default()
+        };
+        let d = diagnose::diagnose(&sim.campaign, &s).unwrap();
+        assert_eq!(d.explanation().count(), steps, "max_steps {steps}");
+        let model = d.rows.iter().find(|r| r.effect == "model").unwrap();
+        assert_eq!(model.significant, steps == 1, "{model:?}");
+    }
+}
