@@ -407,8 +407,9 @@ struct StationAt {
 }
 
 /// Where [`Bundle::reading_block`] writes: the reading's rows on the
-/// error-parameter coordinates (3 × n_z, row-major, zeroed; empty without a
-/// Jacobian) and a buffer for the model's columns, one per parallel task.
+/// error-parameter coordinates (3 × n_z, row-major, zeroed; empty when no
+/// coefficient is free) and a buffer for the model's columns, one per
+/// parallel task.
 struct Scratch<'a> {
     jz: &'a mut [f64],
     cols: &'a mut Vec<Vector3<f64>>,

@@ -1,4 +1,4 @@
-//! Which tracker model fits a campaign (issue 15): every model ltcal knows
+//! Which tracker model fits a campaign: every model ltcal knows
 //! fitted to the same readings by the bundle adjustment, ranked by the
 //! Bayesian information criterion and judged by the residual each predicts
 //! on held-out readings.
@@ -7,9 +7,11 @@
 //! every model, so they cancel in every comparison: a model's BIC here is
 //! `χ² + k·ln m` with `k` the combinations of its parameters the campaign
 //! determines (the rank of the identifiability analysis) and `m` the rows
-//! of the adjustment (reading coordinates, gauge lengths, references). The held-out residual is the diagnosis's
-//! ([`super::linear`]): each fold's readings predicted by the model's
-//! linearised adjustment fitted to the other folds.
+//! of the adjustment (reading coordinates, gauge lengths, references). The
+//! held-out residual is the diagnosis's ([`super::linear`]): each fold's
+//! readings predicted by the model's linearised adjustment fitted to the
+//! other folds. The ranking is by BIC; the held-out residual says how much
+//! better the first predicts readings it did not see.
 //!
 //! The models are not nested (a mirror tracker's reflection has no DH
 //! joint, a DH beam error no mirror), so there is no F test between them;
