@@ -36,8 +36,7 @@
 //! reported point moves by `−Δ`, `Δ` the forward model's derivative.
 
 use crate::error_model::{ErrorParams, Links};
-use crate::kinematics::{Face, Reading, nominal_point, nominal_reading};
-use crate::mirror::{self, MirrorErrors, MirrorTracker};
+use crate::kinematics::{Face, nominal_point, nominal_reading};
 use nalgebra::Vector3;
 
 /// Where the tests are made (metres and degrees).
@@ -210,78 +209,23 @@ impl Test {
     }
 }
 
-/// What a test needs of a tracker: the reading it takes when its beam
-/// reaches a point (`None`: it cannot).
-pub trait Tracker {
-    fn read(&self, p: &Vector3<f64>, face: Face) -> Option<Reading>;
-}
-
-impl Tracker for ErrorParams {
-    fn read(&self, p: &Vector3<f64>, face: Face) -> Option<Reading> {
-        self.reading_of(p, face).ok()
-    }
-}
-
-impl Tracker for MirrorTracker {
-    fn read(&self, p: &Vector3<f64>, face: Face) -> Option<Reading> {
-        self.reading_of(p, face)
-    }
-}
-
-/// Each test's error, µm, shown by `tracker`; `Err` names the first test
-/// whose point it cannot read.
-pub fn simulate(tests: &[Test], tracker: &dyn Tracker) -> Result<Vec<f64>, String> {
+/// Each test's error, µm, shown by a tracker with `errors` (of either
+/// model); `Err` names the first test whose point it cannot read.
+pub fn simulate(tests: &[Test], errors: &ErrorParams) -> Result<Vec<f64>, String> {
+    let eval = errors.evaluator();
     tests
         .iter()
         .map(|t| {
             let [fa, fb] = t.faces();
             let read = |p, f| {
-                tracker
-                    .read(p, f)
+                eval.reading_of(p, f)
+                    .ok()
                     .map(nominal_point)
                     .ok_or_else(|| format!("the tracker cannot read the points of `{}`", t.id))
             };
             Ok(t.error_um(&read(&t.a, fa)?, &read(&t.b, fb)?))
         })
         .collect()
-}
-
-/// The misalignments' step of [`mirror_sensitivity`]'s central
-/// differences, display units: large enough that the inverse's 1e-9 mm
-/// tolerance stays below [`ROUND_OFF_UM`], small enough that the third
-/// order is far below it.
-const MIRROR_STEP: f64 = 10.0;
-
-/// `[test][misalignment]`: each test's error per µm or µrad of each of the
-/// mirror tracker's misalignments ([`mirror::IDS`]), by central
-/// differences of the exact model (signs and zeros as [`sensitivity`]).
-pub fn mirror_sensitivity(tests: &[Test]) -> Result<Vec<Vec<f64>>, String> {
-    let columns: Vec<Vec<f64>> = mirror::IDS
-        .iter()
-        .map(|(id, _, _)| {
-            let at = |v: f64| {
-                let mut e = MirrorErrors::default();
-                e.set(id, v);
-                simulate(tests, &MirrorTracker::new(&e))
-            };
-            let (plus, minus) = (at(MIRROR_STEP)?, at(-MIRROR_STEP)?);
-            Ok(tests
-                .iter()
-                .zip(plus.iter().zip(&minus))
-                .map(|(t, (p, m))| {
-                    // A two-face error is a length (≥ 0): its slope is the
-                    // mean of the two, the signed one's half their difference.
-                    snap(match t.orientation {
-                        None => 0.5 * (p + m) / MIRROR_STEP,
-                        Some(_) => 0.5 * (p - m) / MIRROR_STEP,
-                    })
-                })
-                .collect())
-        })
-        .collect::<Result<_, String>>()?;
-    Ok((0..tests.len())
-        .map(|i| columns.iter().map(|c| c[i]).collect())
-        .collect())
 }
 
 /// A parameter as a direction in the DH model's coefficients: one physical
@@ -336,7 +280,9 @@ pub fn sensitivity(tests: &[Test], zero: &ErrorParams, directions: &[Direction])
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error_model::ErrorModel;
     use crate::physical::{self, CORRESPONDENCE};
+    use crate::tracker::TrackerModel;
 
     fn physical_directions(zero: &ErrorParams) -> Vec<Direction> {
         CORRESPONDENCE
@@ -388,26 +334,26 @@ mod tests {
         // It moves a point by 2·mo along the mirror's normal, which the
         // back face reverses (`mirror::tests`).
         let t = tests(&Positions::default());
-        let s = mirror_sensitivity(&t).unwrap();
-        let k = mirror::IDS
-            .iter()
-            .position(|(id, _, _)| *id == "mirror_offset")
-            .unwrap();
+        let zero = ErrorParams::zero(&ErrorModel::of(TrackerModel::MirrorTracker));
+        let every: Vec<Direction> = (0..zero.coefs().len()).map(|k| (k, 1.0)).collect();
+        let s = sensitivity(&t, &zero, &every);
+        let at = |id: &str| {
+            zero.coefs()
+                .iter()
+                .position(|c| c.param.id() == id)
+                .unwrap()
+        };
+        let k = at("mirror_offset");
         for (x, row) in t.iter().zip(&s) {
             if x.kind() == "two-face" {
                 assert!((row[k] - 4.0).abs() < 1e-6, "{}: {}", x.id, row[k]);
             }
         }
-        // And the differences are the simulated errors' slopes.
-        let e = MirrorErrors {
-            mirror_tilt: 3.0,
-            ..MirrorErrors::default()
-        };
-        let sim = simulate(&t, &MirrorTracker::new(&e)).unwrap();
-        let k = mirror::IDS
-            .iter()
-            .position(|(id, _, _)| *id == "mirror_tilt")
-            .unwrap();
+        // And the slopes are the simulated errors'.
+        let k = at("mirror_tilt");
+        let mut e = zero.clone();
+        e.values_mut()[k] = 3.0;
+        let sim = simulate(&t, &e).unwrap();
         for (i, x) in t.iter().enumerate() {
             let lin = 3.0 * s[i][k];
             assert!((sim[i] - lin).abs() <= 1e-3 * lin.abs() + 1e-3, "{}", x.id);

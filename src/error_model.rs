@@ -1050,6 +1050,7 @@ mod mirror_tests {
             let back = eval.reading_of(&x, face).unwrap();
             let y = p.point(back.joints());
             assert!((x - y).norm() < 1e-9, "{r:?}: {}", (x - y).norm());
+            assert_eq!(back.face(), face);
         }
     }
 

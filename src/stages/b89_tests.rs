@@ -28,17 +28,17 @@
 //!   given errors, simulated exactly (the two-face separation; measured minus
 //!   true length), zero (to rounding) without errors.
 //! * `sensitivity` — `test`, `kind`, `parameter`, `unit`, `sens_um_per_unit`:
-//!   each test's error per µm or µrad of each parameter (linear, at zero:
-//!   the analytic Jacobian for the head-laser model, central differences of
-//!   the exact beam path for the mirror tracker).
+//!   each test's error per µm or µrad of each parameter (linear, at zero,
+//!   through the model's Jacobian: analytic for the head-laser chain,
+//!   central differences of the exact beam path for the mirror tracker).
 //! * `visibility` — per parameter: `two_face_max_um`, `length_max_um` (the
 //!   largest |sensitivity| over each kind of test) and `seen_by`.
 //! * `b89-sensitivity.svg` — the sensitivity matrix, parameters by tests.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::b89::{self, Direction, Positions, Test};
-use crate::error_model::{Coef, ErrorParams};
-use crate::mirror::{self, MirrorErrors, MirrorTracker};
+use crate::error_model::{Coef, ErrorModel, ErrorParams};
+use crate::mirror;
 use crate::physical::{self, CORRESPONDENCE, Misalignment};
 use crate::plots;
 use crate::schema;
@@ -119,24 +119,31 @@ impl B89TestsStage {
         }
     }
 
-    /// The head-laser parameters' rows and directions in the coefficients
-    /// of `zero`.
+    /// The parameters' rows and directions in the coefficients of `zero`.
     fn directions(&self, zero: &ErrorParams) -> Vec<(Row, Direction)> {
         let at = |c: Coef| {
             zero.coefs()
                 .iter()
                 .position(|x| *x == c)
-                .expect("the DH model holds every coefficient named")
+                .expect("the model holds every coefficient named")
         };
-        match self.parameters {
-            Parameters::Physical => CORRESPONDENCE
+        match (self.model, self.parameters) {
+            // `parameters = "dh"` is refused for the mirror at load.
+            (TrackerModel::MirrorTracker, _) => mirror::IDS
+                .iter()
+                .map(|&(id, unit, meaning)| {
+                    let c = Coef::parse(id).expect("a mirror misalignment is a coefficient");
+                    (Row::new(id, unit, meaning), (at(c), 1.0))
+                })
+                .collect(),
+            (_, Parameters::Physical) => CORRESPONDENCE
                 .iter()
                 .map(|m| {
                     let row = Row::new(m.id, m.unit, m.meaning);
                     (row, (at(m.coef()), m.sign))
                 })
                 .collect(),
-            Parameters::Dh => zero
+            (_, Parameters::Dh) => zero
                 .coefs()
                 .iter()
                 .enumerate()
@@ -147,60 +154,25 @@ impl B89TestsStage {
 
     /// Each test's error and sensitivities, with the parameters' rows.
     fn evaluate(&self, tests: &[Test], inputs: &StageInputs) -> Result<Evaluated> {
-        let cannot = |e: String| anyhow!("with these errors {e}");
-        match self.model {
-            TrackerModel::ApiTracker3 => {
-                let errors = self.errors(inputs)?;
-                let err_um = b89::simulate(tests, &errors).map_err(cannot)?;
-                let zero = ErrorParams::zero(&physical::dh_model());
-                let (rows, dirs): (Vec<Row>, Vec<Direction>) =
-                    self.directions(&zero).into_iter().unzip();
-                let sens = b89::sensitivity(tests, &zero, &dirs);
-                Ok(Evaluated { rows, err_um, sens })
-            }
-            TrackerModel::MirrorTracker => {
-                // The `params` table's values plus the settings' misalignments.
-                let mut values: BTreeMap<&str, f64> = BTreeMap::new();
-                if let Some(t) = inputs.optional("params") {
-                    let p = schema::params_from(&t)?;
-                    if p.tracker() != TrackerModel::MirrorTracker {
-                        bail!(
-                            "`{}` holds parameters of the {} model: it cannot describe a mirror tracker",
-                            t.name,
-                            p.tracker()
-                        );
-                    }
-                    for (c, v) in p.coefs().iter().zip(p.values()) {
-                        *values.entry(c.param.id()).or_default() += v;
-                    }
-                }
-                for (id, v) in &self.misalignments {
-                    *values.entry(id.as_str()).or_default() += v;
-                }
-                let mut e = MirrorErrors::default();
-                for (id, v) in values {
-                    if !e.set(id, v) {
-                        bail!("`{id}` is not a misalignment of the mirror-tracker model");
-                    }
-                }
-                let err_um = b89::simulate(tests, &MirrorTracker::new(&e)).map_err(cannot)?;
-                let sens = b89::mirror_sensitivity(tests).map_err(cannot)?;
-                let rows = mirror::IDS
-                    .iter()
-                    .map(|(id, unit, meaning)| Row::new(id, unit, meaning))
-                    .collect();
-                Ok(Evaluated { rows, err_um, sens })
-            }
-        }
+        let errors = self.errors(inputs)?;
+        let err_um = b89::simulate(tests, &errors).map_err(|e| anyhow!("with these errors {e}"))?;
+        let zero = ErrorParams::zero(&match self.model {
+            TrackerModel::ApiTracker3 => physical::dh_model(),
+            TrackerModel::MirrorTracker => ErrorModel::of(TrackerModel::MirrorTracker),
+        });
+        let (rows, dirs): (Vec<Row>, Vec<Direction>) = self.directions(&zero).into_iter().unzip();
+        let sens = b89::sensitivity(tests, &zero, &dirs);
+        Ok(Evaluated { rows, err_um, sens })
     }
 
     /// The tracker's errors: the `params` input's coefficients plus the
-    /// settings' misalignments.
+    /// settings' misalignments (the head-laser's physical ones mapped onto
+    /// its DH coefficients, the mirror tracker's its own parameters).
     fn errors(&self, inputs: &StageInputs) -> Result<ErrorParams> {
         let mut values: BTreeMap<Coef, f64> = BTreeMap::new();
         if let Some(t) = inputs.optional("params") {
             let p = schema::params_from(&t)?;
-            if p.tracker() != TrackerModel::ApiTracker3 {
+            if p.tracker() != self.model {
                 bail!(
                     "`{}` holds parameters of the {} model: set `model = \"{}\"`",
                     t.name,
@@ -212,20 +184,38 @@ impl B89TestsStage {
                 *values.entry(*c).or_default() += v;
             }
         }
-        let given = self
-            .misalignments
-            .iter()
-            .map(|(id, v)| {
-                Misalignment::parse(id).map(|m| (m, *v)).ok_or_else(|| {
-                    anyhow!("`{id}` is not a misalignment of the api-tracker3 model")
-                })
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let mapped = physical::to_dh(&given);
-        for (c, v) in mapped.coefs().iter().zip(mapped.values()) {
-            if *v != 0.0 {
-                *values.entry(*c).or_default() += v;
+        let unknown =
+            |id: &str| anyhow!("`{id}` is not a misalignment of the {} model", self.model);
+        match self.model {
+            TrackerModel::ApiTracker3 => {
+                let given = self
+                    .misalignments
+                    .iter()
+                    .map(|(id, v)| {
+                        Misalignment::parse(id)
+                            .map(|m| (m, *v))
+                            .ok_or_else(|| unknown(id))
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                let mapped = physical::to_dh(&given);
+                for (c, v) in mapped.coefs().iter().zip(mapped.values()) {
+                    if *v != 0.0 {
+                        *values.entry(*c).or_default() += v;
+                    }
+                }
             }
+            TrackerModel::MirrorTracker => {
+                for (id, v) in &self.misalignments {
+                    let c = Coef::parse(id)
+                        .filter(|c| c.param.tracker() == TrackerModel::MirrorTracker)
+                        .ok_or_else(|| unknown(id))?;
+                    *values.entry(c).or_default() += v;
+                }
+            }
+        }
+        if values.is_empty() {
+            // No error at all: a perfect tracker of this model.
+            return Ok(ErrorParams::zero(&ErrorModel::of(self.model)));
         }
         let (coefs, vals) = values.into_iter().unzip();
         Ok(ErrorParams::from_parts(coefs, vals))
