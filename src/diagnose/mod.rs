@@ -433,9 +433,7 @@ fn compare_models(
     )];
     for t in crate::tracker::TrackerModel::ALL {
         if t != s.model.tracker() {
-            let m = ErrorModel::of(t);
-            let free = vec![true; m.coefs().len()];
-            match models::fit(net, &m, &free, ctx.fold_of, ctx.n_folds, &base.rejected) {
+            match models::fit(net, t, ctx.fold_of, ctx.n_folds, &base.rejected) {
                 Ok(f) => fits.push(f),
                 Err(e) => {
                     skipped.push(Skipped {

@@ -24,6 +24,7 @@
 //! DH chain's 7 and the mirror's 10), which is parsimony, not a misfit.
 
 use super::linear::LinearModel;
+use crate::calibrate::bundle::Linearisation;
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
 use crate::campaign::Campaign;
 use crate::error_model::{ErrorModel, ErrorParams};
@@ -52,22 +53,15 @@ pub struct ModelFit {
     pub cv_rms_um: f64,
 }
 
-/// Fits `model` (coefficients `free`) to the network by the bundle
-/// adjustment; the `rejected` reading coordinates (blunders the network
-/// down-weights) count in no held-out residual.
-pub fn fit(
-    net: &Network,
-    model: &ErrorModel,
-    free: &[bool],
-    fold_of: &[usize],
-    n_folds: usize,
-    rejected: &[(usize, usize)],
-) -> Result<ModelFit> {
-    let start = ErrorParams::zero(model);
+/// The bundle adjustment of `tracker`'s model, every coefficient free, and
+/// its linearisation at the solution.
+fn adjust(net: &Network, tracker: TrackerModel) -> Result<(Calibration, Linearisation)> {
+    let start = ErrorParams::zero(&ErrorModel::of(tracker));
+    let free = vec![true; start.coefs().len()];
     let cal = calibrate::calibrate(
         net,
         &start,
-        free,
+        &free,
         &CalSettings {
             objective: Objective::Bundle,
             norm: Norm::L2,
@@ -79,6 +73,20 @@ pub fn fit(
         .linearisation
         .clone()
         .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
+    Ok((cal, lin))
+}
+
+/// Fits `tracker`'s model, every coefficient free, to the network by the
+/// bundle adjustment; the `rejected` reading coordinates (blunders the
+/// network down-weights) count in no held-out residual.
+pub fn fit(
+    net: &Network,
+    tracker: TrackerModel,
+    fold_of: &[usize],
+    n_folds: usize,
+    rejected: &[(usize, usize)],
+) -> Result<ModelFit> {
+    let (cal, lin) = adjust(net, tracker)?;
     let mut to_mm: Vec<Matrix3<f64>> = net
         .obs
         .iter()
@@ -89,11 +97,10 @@ pub fn fit(
     }
     let cv_rms_um =
         LinearModel::held_out_rms_um(&lin.jacobian, &lin.residuals, fold_of, n_folds, &to_mm)?;
-    let n_free = free.iter().filter(|&&f| f).count();
     let j = &lin.jacobian;
     Ok(summarise(
-        model.tracker(),
-        n_free,
+        tracker,
+        cal.estimate.params.coefs().len(),
         &cal,
         lin.residuals.norm_squared(),
         (j.nrows(), j.nrows().saturating_sub(j.ncols()).max(1)),
@@ -148,11 +155,7 @@ pub fn compare_campaign(c: &Campaign, folds: usize, seed: u64) -> Result<Vec<Mod
     let (fold_of, n_folds) = super::folds(&net, &settings);
     let fits = TrackerModel::ALL
         .iter()
-        .map(|&t| {
-            let m = ErrorModel::of(t);
-            let free = vec![true; m.coefs().len()];
-            fit(&net, &m, &free, &fold_of, n_folds, &[])
-        })
+        .map(|&t| fit(&net, t, &fold_of, n_folds, &[]))
         .collect::<Result<Vec<_>>>()?;
     Ok(ranked(fits))
 }
@@ -234,18 +237,9 @@ pub fn blind_check(
                 .into_iter()
                 .find(|&m| m != truth)
                 .expect("two models");
+            // Its χ² alone: no held-out residual is needed.
             let net = Network::from_campaign(&clean)?;
-            let (fold_of, n_folds) = super::folds(&net, &super::Settings::default());
-            let m = ErrorModel::of(other);
-            let noise_free_chi2 = fit(
-                &net,
-                &m,
-                &vec![true; m.coefs().len()],
-                &fold_of,
-                n_folds,
-                &[],
-            )?
-            .chi2;
+            let noise_free_chi2 = adjust(&net, other)?.1.residuals.norm_squared();
             Ok(BlindCase {
                 case,
                 truth,
