@@ -96,12 +96,7 @@ impl StageKind for IdentifyStage {
             self.rank_tol,
             self.max_iters,
         );
-        if let Some(Err((f, v))) = self.noise.map(|n| n.check()) {
-            out.push(Invalid::new(
-                format!("noise.{f}"),
-                format!("`noise.{f}` must be a number ≥ 0, got {v}"),
-            ));
-        }
+        out.extend(self.noise.as_ref().and_then(Invalid::noise));
         if self.weighting == Weighting::Noise {
             match self.noise {
                 None => out.push(Invalid::new(

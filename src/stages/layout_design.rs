@@ -269,12 +269,7 @@ impl StageKind for LayoutDesignStage {
                 ));
             }
         }
-        if let Err((f, v)) = self.noise.check() {
-            out.push(Invalid::new(
-                format!("noise.{f}"),
-                format!("`noise.{f}` must be ≥ 0, got {v}"),
-            ));
-        }
+        out.extend(Invalid::noise(&self.noise));
         if self.noise.sigma_angle_urad <= 0.0 || self.noise.sigma_range_um <= 0.0 {
             out.push(Invalid::new(
                 "noise",

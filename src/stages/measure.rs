@@ -77,13 +77,7 @@ impl StageKind for MeasureStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        match self.noise.check() {
-            Ok(()) => Vec::new(),
-            Err((f, v)) => vec![Invalid::new(
-                format!("noise.{f}"),
-                format!("`noise.{f}` must be a number ≥ 0, got {v}"),
-            )],
-        }
+        Invalid::noise(&self.noise).into_iter().collect()
     }
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {

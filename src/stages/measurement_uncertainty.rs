@@ -192,12 +192,7 @@ impl StageKind for MeasurementUncertaintyStage {
                 "run data snooping in a `calibrate` stage and measure with its campaign: the rejected readings are not carried over here",
             ));
         }
-        if let Some(Err((f, v))) = self.noise.map(|n| n.check()) {
-            out.push(Invalid::new(
-                format!("noise.{f}"),
-                format!("`{f}` must be finite and ≥ 0, got {v}"),
-            ));
-        }
+        out.extend(self.noise.as_ref().and_then(Invalid::noise));
         if !(self.step_mm.is_finite() && self.step_mm > 0.0) {
             out.push(Invalid::new(
                 "step_mm",

@@ -94,6 +94,24 @@ impl Invalid {
             message: message.into(),
         }
     }
+
+    /// The problem of a stage's `noise` table, if it has one.
+    pub fn noise(n: &crate::noise::Noise) -> Option<Invalid> {
+        n.check().err().map(|(f, v)| {
+            Invalid::new(
+                format!("noise.{f}"),
+                format!("`noise.{f}` must be a number ≥ 0, got {v}"),
+            )
+        })
+    }
+
+    /// The problems of a stage's `layout` table (a layout spec).
+    pub fn layout(spec: &crate::layout::Spec) -> Vec<Invalid> {
+        spec.check()
+            .into_iter()
+            .map(|(f, m)| Invalid::new(format!("layout.{f}"), m))
+            .collect()
+    }
 }
 
 /// The tables wired to a stage's slots.

@@ -81,24 +81,14 @@ impl StageKind for ModelBlindCheckStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out: Vec<Invalid> = self
-            .layout
-            .check()
-            .into_iter()
-            .map(|(f, m)| Invalid::new(format!("layout.{f}"), m))
-            .collect();
+        let mut out = Invalid::layout(&self.layout);
         if !(1..=100_000).contains(&self.cases) {
             out.push(Invalid::new(
                 "cases",
                 format!("`cases` must be 1 … 100000, got {}", self.cases),
             ));
         }
-        if let Err((f, v)) = self.noise.check() {
-            out.push(Invalid::new(
-                format!("noise.{f}"),
-                format!("`noise.{f}` must be a number ≥ 0, got {v}"),
-            ));
-        }
+        out.extend(Invalid::noise(&self.noise));
         out
     }
 

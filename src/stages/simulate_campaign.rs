@@ -172,24 +172,14 @@ impl StageKind for SimulateCampaignStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out: Vec<Invalid> = self
-            .layout
-            .check()
-            .into_iter()
-            .map(|(f, m)| Invalid::new(format!("layout.{f}"), m))
-            .collect();
+        let mut out = Invalid::layout(&self.layout);
         out.extend(
             self.effects
                 .check()
                 .into_iter()
                 .map(|(f, m)| Invalid::new(format!("effects.{f}"), m)),
         );
-        if let Err((f, v)) = self.noise.check() {
-            out.push(Invalid::new(
-                format!("noise.{f}"),
-                format!("`noise.{f}` must be ≥ 0, got {v}"),
-            ));
-        }
+        out.extend(Invalid::noise(&self.noise));
         for (f, v, lo, hi) in [
             ("max_angle_deg", self.max_angle_deg, 0.0, 90.0),
             ("gauge_u_mm", self.gauge_u_mm, 0.0, 1.0),
