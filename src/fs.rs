@@ -5,8 +5,10 @@
 //!   torn figure, table or record behind.
 //! - [`temp_name`]: a name no other writer in any process uses, for the
 //!   temporary file or folder that is renamed into place. Its form
-//!   (`<pid>-<n>`) lets a later run tell which temporaries belong to a
-//!   process that has ended and may be removed.
+//!   (`<pid>-<n>-<host>`) lets a later run tell which temporaries belong to
+//!   a process that has ended and may be removed ([`temp_owner_gone`]) —
+//!   and, on a cluster's shared folder, leave alone those of processes on
+//!   other machines, whose liveness it cannot see.
 //! - [`write_staged`]: a file inside a folder that is itself published by one
 //!   rename (a cache entry, a campaign folder), where the folder's rename is
 //!   what makes the whole appear at once.
@@ -23,14 +25,57 @@ use std::io::{Read as _, Write as _};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// `<pid>-<n>`: unique among every writer of every process.
+/// `<pid>-<n>-<host>`: unique among every writer of every process on
+/// every machine sharing the folder.
 pub fn temp_name() -> String {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     format!(
-        "{}-{}",
+        "{}-{}-{}",
         std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
+        COUNTER.fetch_add(1, Ordering::Relaxed),
+        host()
     )
+}
+
+/// This machine's name, letters and digits only (it sits inside names
+/// split at `-` and `.`), at most 24 of them.
+pub fn host() -> &'static str {
+    static HOST: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    HOST.get_or_init(|| {
+        let raw = std::fs::read_to_string("/proc/sys/kernel/hostname")
+            .or_else(|_| std::env::var("HOSTNAME"))
+            .unwrap_or_default();
+        let h: String = raw
+            .chars()
+            .filter(char::is_ascii_alphanumeric)
+            .take(24)
+            .collect();
+        if h.is_empty() { "host".into() } else { h }
+    })
+}
+
+/// Whether the process that made `name` — a [`temp_name`], possibly
+/// followed by more text — has ended: only ever for a process of this
+/// machine (another machine's processes cannot be seen from here, and a
+/// temporary of a live one must not be taken away from it). Names of
+/// another form are not ours and are left.
+pub fn temp_owner_gone(name: &str) -> bool {
+    let mut parts = name.splitn(3, '-');
+    let (Some(pid), Some(n), Some(rest)) = (parts.next(), parts.next(), parts.next()) else {
+        return false;
+    };
+    let (Ok(pid), Ok(_)) = (pid.parse::<u32>(), n.parse::<u64>()) else {
+        return false;
+    };
+    let machine: String = rest
+        .chars()
+        .take_while(char::is_ascii_alphanumeric)
+        .collect();
+    if machine != host() || pid == std::process::id() {
+        return false;
+    }
+    // Without a cheap liveness check, leave it: nothing serves a temporary.
+    cfg!(target_os = "linux") && !Path::new(&format!("/proc/{pid}")).exists()
 }
 
 /// Writes `bytes` to `path` atomically: a temporary file beside it

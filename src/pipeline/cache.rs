@@ -30,13 +30,14 @@
 //! directory without `manifest.json` cannot come from [`Store::put`]; if one
 //! appears it is treated as incomplete, ignored and removed.
 
+use super::pack::{self, Key, Span};
 use crate::fs::{temp_name, write_atomic};
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs;
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::sync::{Mutex, RwLock};
 
 /// Everything a stage's output depends on. Its hash is the cache key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -252,8 +253,73 @@ pub fn hash_bytes(b: &[u8]) -> String {
 /// The cache of one pipeline.
 pub struct Store {
     root: PathBuf,
-    /// The sweep points' last runs, read on first use.
-    points: OnceLock<PointRecords>,
+    /// Every pack's index, read on first use and refreshed on demand.
+    packs: RwLock<Option<Packs>>,
+    /// Entries of sweep points computed by this process and not yet
+    /// written as a pack ([`Store::flush`]).
+    pending: Mutex<Pending>,
+}
+
+/// What the packs of the folder hold, by key: 40-odd bytes an entry, so
+/// that a coordinator of 100 000 points holds their keys, not their data.
+#[derive(Default)]
+struct Packs {
+    files: Vec<PathBuf>,
+    seen: HashSet<PathBuf>,
+    by_key: HashMap<Key, Vec<(u32, Span)>>,
+    /// Stage names, each once.
+    stages: Vec<String>,
+    /// (point, stage) → the key of the stage's last run there.
+    last: HashMap<(u32, u32), Key>,
+    /// (pack, failure) of every pack.
+    failures: Vec<(u32, pack::Failure)>,
+    /// Packs that could not be read, and why.
+    unreadable: Vec<(PathBuf, String)>,
+}
+
+impl Packs {
+    fn stage_id(&mut self, stage: &str) -> u32 {
+        match self.stages.iter().position(|s| s == stage) {
+            Some(i) => i as u32,
+            None => {
+                self.stages.push(stage.to_string());
+                (self.stages.len() - 1) as u32
+            }
+        }
+    }
+
+    fn add(&mut self, path: PathBuf, ix: pack::Index) {
+        let id = self.files.len() as u32;
+        self.seen.insert(path.clone());
+        self.files.push(path);
+        for (k, span) in ix.entries {
+            self.by_key.entry(k).or_default().push((id, span));
+        }
+        for r in ix.records {
+            let stage = self.stage_id(&r.stage);
+            self.last.insert((r.point, stage), r.key);
+        }
+        for f in ix.failures {
+            self.failures.push((id, f));
+        }
+    }
+}
+
+#[derive(Default)]
+struct Pending {
+    entries: Vec<Entry>,
+    by_key: HashMap<String, usize>,
+    records: Vec<pack::PointRecord>,
+    failures: Vec<pack::Failure>,
+}
+
+/// A failure a pack records: the sweep point, the stage, why, and the pack.
+#[derive(Clone, Debug)]
+pub struct PointFailure {
+    pub point: usize,
+    pub stage: String,
+    pub reason: String,
+    pub pack: PathBuf,
 }
 
 impl Store {
@@ -261,8 +327,13 @@ impl Store {
     pub fn new(pipeline_results: &Path) -> Store {
         Store {
             root: pipeline_results.join(".ltcal"),
-            points: OnceLock::new(),
+            packs: RwLock::new(None),
+            pending: Mutex::new(Pending::default()),
         }
+    }
+
+    fn packs_dir(&self) -> PathBuf {
+        self.root.join("packs")
     }
 
     fn entries(&self) -> PathBuf {
@@ -273,18 +344,28 @@ impl Store {
         self.entries().join(key)
     }
 
-    /// Finds and verifies the entry for `key`.
+    /// Finds and verifies the entry for `key`: a loose entry, one this
+    /// process has not yet packed, or a packed one. A bad loose entry is
+    /// removed; a bad packed one is passed over (a pack is never edited)
+    /// for another copy, and reported when there is none.
     pub fn lookup(&self, key: &str) -> Lookup {
         let dir = self.entry_dir(key);
-        if !dir.exists() {
-            return Lookup::Miss;
+        if dir.exists() {
+            return match self.read_entry(&dir, key) {
+                Ok(e) => Lookup::Hit(Box::new(e)),
+                Err(why) => {
+                    self.discard(&dir);
+                    Lookup::Corrupt(why.to_string())
+                }
+            };
         }
-        match self.read_entry(&dir, key) {
-            Ok(e) => Lookup::Hit(Box::new(e)),
-            Err(why) => {
-                self.discard(&dir);
-                Lookup::Corrupt(why.to_string())
-            }
+        if let Some(e) = self.pending_entry(key) {
+            return Lookup::Hit(Box::new(e));
+        }
+        match self.packed(key, |path, span| read_packed(path, span, key)) {
+            None => Lookup::Miss,
+            Some(Ok(e)) => Lookup::Hit(Box::new(e)),
+            Some(Err(why)) => Lookup::Corrupt(why.to_string()),
         }
     }
 
@@ -292,7 +373,13 @@ impl Store {
     /// `None` when there is none, `Some(Err(why))` when it is bad.
     pub fn read(&self, key: &str) -> Option<Result<Entry>> {
         let dir = self.entry_dir(key);
-        dir.exists().then(|| self.read_entry(&dir, key))
+        if dir.exists() {
+            return Some(self.read_entry(&dir, key));
+        }
+        if let Some(e) = self.pending_entry(key) {
+            return Some(Ok(e));
+        }
+        self.packed(key, |path, span| read_packed(path, span, key))
     }
 
     /// [`Store::read`], keeping only the manifest.
@@ -300,14 +387,234 @@ impl Store {
         self.read(key).map(|e| e.map(|e| e.manifest))
     }
 
+    /// The manifest of the entry for `key`, checked to belong to it, its
+    /// tables not read: what a cached sweep point needs of the stages whose
+    /// tables nothing reads — their tables' hashes, for the keys of the
+    /// stages after them. A table is verified when it is read
+    /// ([`Store::table`]).
+    pub fn manifest(&self, key: &str) -> Option<Result<Manifest>> {
+        let dir = self.entry_dir(key);
+        if dir.exists() {
+            return Some(
+                fs::read(dir.join("manifest.json"))
+                    .map_err(|_| anyhow!("manifest.json is missing (an incomplete entry)"))
+                    .and_then(|b| parse_manifest(&b, key)),
+            );
+        }
+        if let Some(e) = self.pending_entry(key) {
+            return Some(Ok(e.manifest));
+        }
+        self.packed(key, |path, span| {
+            parse_manifest(&pack::read_manifest(path, span)?, key)
+        })
+    }
+
+    /// One table of the entry for `key`, verified against `hash` (its
+    /// manifest's).
+    pub fn table(&self, key: &str, name: &str, hash: &str) -> Result<Vec<u8>> {
+        let bytes = match self.read(key) {
+            None => bail!("its cache entry {} is gone", short(key)),
+            Some(e) => e?
+                .tables
+                .remove(name)
+                .ok_or_else(|| anyhow!("its cache entry has no table `{name}`"))?,
+        };
+        if hash_bytes(&bytes) != hash {
+            bail!("table {name} of entry {} does not match its manifest", short(key));
+        }
+        Ok(bytes)
+    }
+
+    fn pending_entry(&self, key: &str) -> Option<Entry> {
+        let p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        p.by_key.get(key).map(|&i| p.entries[i].clone())
+    }
+
+    /// Reads `key` from the first of its packed copies that `read` accepts;
+    /// the first copy's problem when none does.
+    fn packed<T>(&self, key: &str, read: impl Fn(&Path, Span) -> Result<T>) -> Option<Result<T>> {
+        let k = pack::key_bytes(key)?;
+        self.load_packs();
+        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+        let packs = guard.as_ref()?;
+        let copies = packs.by_key.get(&k)?;
+        let mut first_problem = None;
+        for &(file, span) in copies {
+            let path = &packs.files[file as usize];
+            match read(path, span) {
+                Ok(v) => return Some(Ok(v)),
+                Err(e) => {
+                    first_problem.get_or_insert_with(|| {
+                        anyhow!("in pack {}: {e:#}", path.display())
+                    });
+                }
+            }
+        }
+        first_problem.map(Err)
+    }
+
+    fn load_packs(&self) {
+        if self
+            .packs
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .is_none()
+        {
+            self.refresh_packs();
+        }
+    }
+
+    /// Reads the indexes of packs written since the last look (by other
+    /// processes: the tasks of a cluster). Packs sort by name, which starts
+    /// with the time they were written, so a later record of a point
+    /// replaces an earlier one.
+    pub fn refresh_packs(&self) {
+        let mut guard = self.packs.write().unwrap_or_else(|e| e.into_inner());
+        let packs = guard.get_or_insert_with(Packs::default);
+        let Ok(rd) = fs::read_dir(self.packs_dir()) else {
+            return;
+        };
+        let mut new: Vec<PathBuf> = rd
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|x| x == "pack") && !packs.seen.contains(p))
+            .collect();
+        new.sort();
+        for path in new {
+            match pack::read_index(&path) {
+                Ok(ix) => packs.add(path, ix),
+                Err(e) => {
+                    packs.seen.insert(path.clone());
+                    packs.unreadable.push((path, e.to_string()));
+                }
+            }
+        }
+    }
+
+    /// Packs that could not be read, and why (reported by the runner, and
+    /// by the cache verifier).
+    pub fn unreadable_packs(&self) -> Vec<(PathBuf, String)> {
+        self.load_packs();
+        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+        guard.as_ref().map(|p| p.unreadable.clone()).unwrap_or_default()
+    }
+
+    /// The failures packs whose names start with `prefix` record.
+    pub fn failures(&self, prefix: &str) -> Vec<PointFailure> {
+        self.load_packs();
+        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+        let Some(p) = guard.as_ref() else {
+            return Vec::new();
+        };
+        p.failures
+            .iter()
+            .filter(|(file, _)| {
+                p.files[*file as usize]
+                    .file_name()
+                    .is_some_and(|n| n.to_string_lossy().starts_with(prefix))
+            })
+            .map(|(file, f)| PointFailure {
+                point: f.point as usize,
+                stage: f.stage.clone(),
+                reason: f.reason.clone(),
+                pack: p.files[*file as usize].clone(),
+            })
+            .collect()
+    }
+
+    /// Every pack file of the folder.
+    pub fn pack_files(&self) -> Vec<PathBuf> {
+        self.load_packs();
+        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+        guard.as_ref().map(|p| p.files.clone()).unwrap_or_default()
+    }
+
+    /// Keeps an entry of a sweep point to be written with the next pack,
+    /// and records that its stage ran at `point`.
+    pub fn put_packed(&self, entry: Entry, point: usize) {
+        let mut p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(key) = pack::key_bytes(&entry.manifest.key) {
+            p.records.push(pack::PointRecord {
+                point: point as u32,
+                stage: entry.manifest.stage.clone(),
+                key,
+            });
+        }
+        if !p.by_key.contains_key(&entry.manifest.key) {
+            let i = p.entries.len();
+            p.by_key.insert(entry.manifest.key.clone(), i);
+            p.entries.push(entry);
+        }
+    }
+
+    /// Records that a stage failed at a sweep point, and why.
+    pub fn fail_packed(&self, point: usize, stage: &str, reason: &str) {
+        let mut p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        p.failures.push(pack::Failure {
+            point: point as u32,
+            stage: stage.to_string(),
+            reason: reason.to_string(),
+        });
+    }
+
+    /// Writes what [`Store::put_packed`] and [`Store::fail_packed`] kept as
+    /// one pack, `packs/<prefix>-<time>-<hash>.pack`, by one rename; returns
+    /// its path (none when nothing was kept). The entries stay readable
+    /// throughout: from memory until the pack is in place, from it after.
+    pub fn flush(&self, prefix: &str) -> Result<Option<PathBuf>> {
+        let mut pending = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        let mut b = pack::Builder::default();
+        for e in &pending.entries {
+            let Some(key) = pack::key_bytes(&e.manifest.key) else {
+                continue;
+            };
+            let manifest = serde_json::to_vec(&e.manifest)?;
+            let parts: Vec<&[u8]> = e
+                .manifest
+                .tables
+                .iter()
+                .map(|t| e.tables[&t.name].as_slice())
+                .chain(e.manifest.files.iter().map(|f| e.files[&f.name].as_slice()))
+                .collect();
+            b.add(
+                key,
+                &pack::Blob {
+                    manifest: &manifest,
+                    parts,
+                },
+            );
+        }
+        for r in &pending.records {
+            b.record(r.clone());
+        }
+        for f in &pending.failures {
+            b.fail(f.clone());
+        }
+        if b.is_empty() {
+            return Ok(None);
+        }
+        let (bytes, index) = b.finish();
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        let path = self.packs_dir().join(format!(
+            "{prefix}-{nanos:020}-{}.pack",
+            short(&hash_bytes(&bytes))
+        ));
+        write_atomic(&path, &bytes).context("writing a pack of sweep points' entries")?;
+        {
+            let mut guard = self.packs.write().unwrap_or_else(|e| e.into_inner());
+            guard.get_or_insert_with(Packs::default).add(path.clone(), index);
+        }
+        *pending = Pending::default();
+        Ok(Some(path))
+    }
+
     fn read_entry(&self, dir: &Path, key: &str) -> Result<Entry> {
         let bytes = fs::read(dir.join("manifest.json"))
             .map_err(|_| anyhow!("manifest.json is missing (an incomplete entry)"))?;
-        let manifest: Manifest = serde_json::from_slice(&bytes)
-            .map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
-        if manifest.key != key || manifest.key_fields.hash() != key {
-            bail!("manifest.json does not belong to key {}", short(key));
-        }
+        let manifest = parse_manifest(&bytes, key)?;
         let mut tables = BTreeMap::new();
         for t in &manifest.tables {
             let b = fs::read(dir.join(format!("{}.parquet", t.name)))
@@ -392,16 +699,18 @@ impl Store {
     /// Removes what killed runs left behind: temporary entry directories and
     /// files of processes that no longer exist. Returns how many were removed.
     pub fn clean_incomplete(&self) -> usize {
-        let mut n = clean_temp_files_in(&self.root.join("last"));
+        let mut n = clean_temp_files_in(&self.root.join("last"))
+            + clean_temp_files_in(&self.packs_dir());
         let Ok(rd) = fs::read_dir(self.entries()) else {
             return n;
         };
         for e in rd.flatten() {
             let name = e.file_name().to_string_lossy().into_owned();
             let stale = if let Some(rest) = name.strip_prefix(".tmp-") {
-                owner_gone(rest.split('-').nth(1))
+                rest.split_once('-')
+                    .is_some_and(|(_, t)| crate::fs::temp_owner_gone(t))
             } else if let Some(rest) = name.strip_prefix(".trash-") {
-                owner_gone(rest.split('-').next())
+                crate::fs::temp_owner_gone(rest)
             } else {
                 // A key directory without a manifest cannot be published by
                 // `put`; if one appears (copied by hand, half-deleted), drop it.
@@ -418,31 +727,29 @@ impl Store {
         self.root.join("last").join(format!("{stage}.json"))
     }
 
-    /// One file for every sweep point's last runs: thousands of points'
-    /// records written as thousands of files would cost a sweep seconds of
-    /// file creation for records that only inform.
-    fn points_path(&self) -> PathBuf {
-        self.root.join("last").join("sweep-points.json")
-    }
-
-    fn read_points(&self) -> PointRecords {
-        fs::read(self.points_path())
-            .ok()
-            .and_then(|b| serde_json::from_slice(&b).ok())
-            .unwrap_or_default()
-    }
-
     /// The key fields of the last successful run of a stage of this name
-    /// (at this sweep point). Sweep points' records are read once per
-    /// `Store`: what the runs before this process left.
+    /// (at this sweep point: what the packs record).
     pub fn last(&self, stage: &str, point: Option<usize>) -> Option<KeyFields> {
         match point {
-            Some(i) => self
-                .points
-                .get_or_init(|| self.read_points())
-                .get(&i)?
-                .get(stage)
-                .cloned(),
+            Some(i) => {
+                let key = {
+                    let pending = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+                    pending
+                        .records
+                        .iter()
+                        .rev()
+                        .find(|r| r.point as usize == i && r.stage == stage)
+                        .map(|r| r.key)
+                };
+                let key = key.or_else(|| {
+                    self.load_packs();
+                    let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+                    let p = guard.as_ref()?;
+                    let s = p.stages.iter().position(|s| s == stage)? as u32;
+                    p.last.get(&(u32::try_from(i).ok()?, s)).copied()
+                })?;
+                Some(self.manifest(&pack::key_hex(&key))?.ok()?.key_fields)
+            }
             None => {
                 let b = fs::read(self.last_path(stage)).ok()?;
                 serde_json::from_slice(&b).ok()
@@ -453,24 +760,55 @@ impl Store {
     pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
         write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
     }
-
-    /// Records the stages that ran at sweep points, keeping the other
-    /// points' records and forgetting those of points `points` and beyond
-    /// (a sweep that shrank). Written once, when the sweep ends: a sweep
-    /// killed before records nothing of its run, and `explain` compares
-    /// with the run before it.
-    pub fn record_points(&self, points: usize, ran: PointRecords) -> Result<()> {
-        let mut all = self.read_points();
-        all.retain(|&i, _| i < points);
-        for (i, stages) in ran {
-            all.entry(i).or_default().extend(stages);
-        }
-        write_atomic(&self.points_path(), &serde_json::to_vec(&all)?)
-    }
 }
 
-/// Sweep point → stage → the key fields of its last run there.
-pub type PointRecords = BTreeMap<usize, BTreeMap<String, KeyFields>>;
+/// A manifest, checked to be the one of `key`.
+fn parse_manifest(bytes: &[u8], key: &str) -> Result<Manifest> {
+    let manifest: Manifest = serde_json::from_slice(bytes)
+        .map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
+    if manifest.key != key || manifest.key_fields.hash() != key {
+        bail!("manifest.json does not belong to key {}", short(key));
+    }
+    Ok(manifest)
+}
+
+/// An entry read from a pack and verified as a loose one is.
+fn read_packed(path: &Path, span: Span, key: &str) -> Result<Entry> {
+    let bytes = pack::read_span(path, span)?;
+    let mut manifest = None;
+    let blob = pack::split(&bytes, |m| {
+        let parsed = parse_manifest(m, key)?;
+        let n = parsed.tables.len() + parsed.files.len();
+        manifest = Some(parsed);
+        Ok(n)
+    })?;
+    let manifest = manifest.expect("split parsed the manifest");
+    let mut parts = blob.parts.into_iter();
+    let mut tables = BTreeMap::new();
+    for t in &manifest.tables {
+        let b = parts.next().expect("one part per table");
+        if hash_bytes(b) != t.hash {
+            bail!(
+                "table {}.parquet does not match its manifest (truncated, corrupted or edited)",
+                t.name
+            );
+        }
+        tables.insert(t.name.clone(), b.to_vec());
+    }
+    let mut files = BTreeMap::new();
+    for f in &manifest.files {
+        let b = parts.next().expect("one part per file");
+        if hash_bytes(b) != f.hash {
+            bail!("file {} does not match its manifest", f.name);
+        }
+        files.insert(f.name.clone(), b.to_vec());
+    }
+    Ok(Entry {
+        manifest,
+        tables,
+        files,
+    })
+}
 
 /// Removes the temporary files [`write_atomic`] leaves when its process is
 /// killed between creating and renaming them, in `dir` and its immediate
@@ -505,37 +843,14 @@ fn clean_temp_files_in(dir: &Path) -> usize {
         .count()
 }
 
-/// `.<name>.<pid>-<n>.tmp` of a process that has ended.
+/// `.<name>.<temp_name>.tmp` of a process that has ended.
 fn is_dead_temp_file(name: &str) -> bool {
     let Some(stem) = name.strip_prefix('.').and_then(|n| n.strip_suffix(".tmp")) else {
         return false;
     };
     // Only names `write_atomic` makes: a user's own dot-files stay.
-    let ours = |suffix: &str| {
-        suffix
-            .split_once('-')
-            .is_some_and(|(p, n)| p.parse::<u32>().is_ok() && n.parse::<u64>().is_ok())
-    };
-    match stem.rsplit_once('.') {
-        Some((_, suffix)) if ours(suffix) => owner_gone(suffix.split('-').next()),
-        _ => false,
-    }
-}
-
-/// Whether the process that owns a temporary name has ended.
-fn owner_gone(pid: Option<&str>) -> bool {
-    let Some(pid) = pid.and_then(|p| p.parse::<u32>().ok()) else {
-        return true;
-    };
-    if pid == std::process::id() {
-        return false;
-    }
-    if cfg!(target_os = "linux") {
-        !Path::new(&format!("/proc/{pid}")).exists()
-    } else {
-        // Without a cheap liveness check, leave it: `put` never serves it.
-        false
-    }
+    stem.rsplit_once('.')
+        .is_some_and(|(_, suffix)| crate::fs::temp_owner_gone(suffix))
 }
 
 /// Entry files are not synced to disk one by one: a killed process cannot

@@ -14,7 +14,7 @@
 use super::InputError;
 use super::cache::{KeyFields, Store, short};
 use super::plan::{self, Assessment};
-use super::resolve::{Pipeline, SweepPoint};
+use super::resolve::Pipeline;
 use super::status::Status;
 use anyhow::Result;
 use serde::Serialize;
@@ -71,11 +71,10 @@ pub fn explain(
     point: Option<usize>,
 ) -> Result<Explanation> {
     p.stage(stage)?;
-    let per_point = p.sweep.as_ref().filter(|sw| {
-        sw.points
-            .first()
-            .is_some_and(|pt| pt.stages.iter().any(|s| s.name == stage))
-    });
+    let per_point = p
+        .sweep
+        .as_ref()
+        .filter(|sw| sw.point_stages().any(|s| s == stage));
     let find = |assessed: Vec<Assessment>| {
         assessed
             .into_iter()
@@ -90,33 +89,34 @@ pub fn explain(
             )));
         }
         (Some(sw), point) => {
-            let assessed: Vec<(&SweepPoint, Assessment)> = sw
-                .points
-                .iter()
-                .zip(plan::assess_points(sw, store))
-                .map(|(pt, a)| (pt, find(a)))
-                .collect();
-            let would_run = assessed
-                .iter()
-                .filter(|(_, a)| a.item.status != Status::Cached)
-                .count();
-            let chosen = match point {
-                Some(i) => assessed.get(i).ok_or_else(|| {
-                    InputError::arg(format!(
-                        "--point {i}: the sweep has {} points, 0 to {}",
-                        sw.points.len(),
-                        sw.points.len() - 1
-                    ))
-                })?,
-                None => assessed
-                    .iter()
-                    .find(|(_, a)| a.item.status != Status::Cached)
-                    .unwrap_or(&assessed[0]),
-            };
-            let (pt, a) = chosen.clone();
+            if let Some(i) = point.filter(|&i| i >= sw.len()) {
+                return Err(InputError::arg(format!(
+                    "--point {i}: the sweep has {} points, 0 to {}",
+                    sw.len(),
+                    sw.len() - 1
+                )));
+            }
+            // The point asked for, else the first that would run it, else
+            // the first; and how many would.
+            let mut would_run = 0;
+            let mut chosen: Option<(usize, Assessment)> = None;
+            plan::assess_points(sw, store, |i, assessed| {
+                let a = find(assessed);
+                let stale = a.item.status != Status::Cached;
+                would_run += usize::from(stale);
+                let take = match point {
+                    Some(p) => p == i,
+                    None => chosen.is_none() || (stale && chosen.as_ref().is_some_and(|(_, c)| c.item.status == Status::Cached)),
+                };
+                if take {
+                    chosen = Some((i, a));
+                }
+            });
+            let (index, a) = chosen.expect("a sweep has at least one point");
+            let pt = sw.point(index);
             let info = PointInfo {
                 index: pt.index,
-                points: sw.points.len(),
+                points: sw.len(),
                 values: sw
                     .axes
                     .iter()

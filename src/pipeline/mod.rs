@@ -19,6 +19,7 @@
 pub mod cache;
 pub mod explain;
 pub mod graph;
+pub mod pack;
 pub mod panics;
 pub mod plan;
 pub mod published;

@@ -6,7 +6,7 @@
 use super::cache::{self, KeyFields, Store};
 use super::resolve::{Pipeline, Stage, Sweep};
 use super::status::Status;
-use super::sweep::{self, PSEUDO_STAGE};
+use super::sweep::{Gatherer, PSEUDO_STAGE};
 use crate::table;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -138,38 +138,47 @@ pub fn assess(p: &Pipeline, store: &Store) -> Vec<Assessment> {
 type Known = BTreeMap<String, BTreeMap<String, String>>;
 
 fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
-    let points = assess_points(sw, store);
-    let mut out = Vec::new();
-    if let Some(first) = points.first() {
-        for a0 in first {
-            // By name: an axis over a stage's inputs can order the stages
-            // of one point differently from another's.
-            let stale: Vec<&Assessment> = points
-                .iter()
-                .filter_map(|pt| {
-                    pt.iter()
-                        .find(|a| a.item.stage == a0.item.stage)
-                        .filter(|a| a.item.status != Status::Cached)
-                })
-                .collect();
-            let mut a = a0.clone();
+    // Per per-point stage, by name (an axis over a stage's inputs can order
+    // the stages of one point differently from another's): its assessment
+    // at the first point, and how many points would run it, with the first.
+    let mut out: Vec<(Assessment, usize, Option<String>)> = Vec::new();
+    let mut gathering = Some(sw.gather.iter().map(|_| Gatherer::new(sw)).collect::<Vec<_>>());
+    assess_points(sw, store, |index, assessed| {
+        for a in &assessed {
+            let stale = a.item.status != Status::Cached;
+            match out.iter_mut().find(|(x, _, _)| x.item.stage == a.item.stage) {
+                Some((_, n, first)) => {
+                    *n += usize::from(stale);
+                    if stale && first.is_none() {
+                        *first = Some(a.item.reason.clone());
+                    }
+                }
+                None => out.push((a.clone(), usize::from(stale), stale.then(|| a.item.reason.clone()))),
+            }
+        }
+        if let Some(gs) = gathering.as_mut() {
+            if gather_point(sw, store, index, &assessed, gs).is_none() {
+                gathering = None;
+            }
+        }
+    });
+    let out: Vec<Assessment> = out
+        .into_iter()
+        .map(|(mut a, n, first)| {
             a.item.key = None;
-            if let Some(s) = stale.first() {
+            if let Some(first) = first {
                 a.item.status = Status::Run;
                 a.item.reason = format!(
-                    "{} of {} sweep points would run it (first: {})",
-                    stale.len(),
-                    points.len(),
-                    s.item.reason
+                    "{n} of {} sweep points would run it (first: {first})",
+                    sw.len()
                 );
             }
-            out.push(a);
-        }
-    }
-    let all_cached = out.iter().all(|a| a.item.status == Status::Cached);
+            a
+        })
+        .collect();
     let mut known = Known::new();
-    if all_cached {
-        if let Some(h) = gathered_hashes(sw, store, &points) {
+    if let Some(gs) = gathering {
+        if let Some(h) = gathered_hashes(sw, gs) {
             known.insert(PSEUDO_STAGE.to_string(), h);
         }
     }
@@ -179,63 +188,77 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
         .filter(|s| sw.after.contains(&s.name))
         .cloned()
         .collect();
-    out.extend(assess_stages(&after, store, known, None));
-    out
+    let mut all = out;
+    all.extend(assess_stages(&after, store, known, None));
+    all
 }
 
-/// The content hashes of the sweep's gathered tables as a run would gather
-/// them now, when every point is cached; `None` when some point would run
-/// (or an entry cannot be read).
+/// The content hashes the gathered tables would have now: `None` unless
+/// every point is cached.
 pub fn gathered_now(sw: &Sweep, store: &Store) -> Option<BTreeMap<String, String>> {
-    let points = assess_points(sw, store);
-    let cached = points
-        .iter()
-        .flatten()
-        .all(|a| a.item.status == Status::Cached);
-    cached
-        .then(|| gathered_hashes(sw, store, &points))
-        .flatten()
+    let mut gathering = Some(sw.gather.iter().map(|_| Gatherer::new(sw)).collect::<Vec<_>>());
+    assess_points(sw, store, |index, assessed| {
+        if let Some(gs) = gathering.as_mut() {
+            if gather_point(sw, store, index, &assessed, gs).is_none() {
+                gathering = None;
+            }
+        }
+    });
+    gathered_hashes(sw, gathering?)
 }
 
-/// The content hashes of a fully cached sweep's gathered tables, gathered
-/// from the cache exactly as a run gathers them; `None` when an entry
-/// cannot be read (the run will say why).
-fn gathered_hashes(
+/// Adds a wholly cached point's gathered tables; `None` when the point is
+/// not wholly cached or a table cannot be read.
+fn gather_point(
     sw: &Sweep,
     store: &Store,
-    points: &[Vec<Assessment>],
-) -> Option<BTreeMap<String, String>> {
+    index: usize,
+    assessed: &[Assessment],
+    gs: &mut [Gatherer],
+) -> Option<()> {
+    if assessed.iter().any(|a| a.item.status != Status::Cached) {
+        return None;
+    }
+    for (g, gatherer) in sw.gather.iter().zip(gs) {
+        let a = assessed.iter().find(|a| a.item.stage == g.stage)?;
+        let key = a.item.key.as_ref()?;
+        let m = store.manifest(key)?.ok()?;
+        let t = m.tables.iter().find(|t| t.name == g.table)?;
+        let bytes = store.table(key, &g.table, &t.hash).ok()?;
+        let df = table::from_parquet_bytes(&bytes).ok()?;
+        gatherer.push(index, &df).ok()?;
+    }
+    Some(())
+}
+
+fn gathered_hashes(sw: &Sweep, gs: Vec<Gatherer>) -> Option<BTreeMap<String, String>> {
     let mut out = BTreeMap::new();
-    for g in &sw.gather {
-        let mut frames = Vec::new();
-        for (pt, assessed) in sw.points.iter().zip(points) {
-            let key = assessed
-                .iter()
-                .find(|a| a.item.stage == g.stage)?
-                .item
-                .key
-                .as_ref()?;
-            let entry = store.read(key)?.ok()?;
-            let df = table::from_parquet_bytes(entry.tables.get(&g.table)?).ok()?;
-            frames.push((pt, df));
-        }
-        let (_, bytes) = sweep::gather(sw, frames.iter().map(|(pt, df)| (*pt, df))).ok()?;
+    for (g, gatherer) in sw.gather.iter().zip(gs) {
+        let (_, bytes) = gatherer.finish().ok()?;
         out.insert(g.to_string(), cache::hash_bytes(&bytes));
     }
     Some(out)
 }
 
-/// The stages of every sweep point assessed against the store, points in
-/// parallel.
-pub fn assess_points(sw: &Sweep, store: &Store) -> Vec<Vec<Assessment>> {
-    sw.points
-        .par_iter()
-        .map(|pt| assess_stages(&pt.stages, store, BTreeMap::new(), Some(pt.index)))
-        .collect()
+/// Points assessed at once.
+const CHUNK: usize = 256;
+
+/// Assesses every point of the sweep, a chunk of points in parallel,
+/// handing each point's assessments to `f` in point order (nothing is held
+/// for all points at once).
+pub fn assess_points(sw: &Sweep, store: &Store, mut f: impl FnMut(usize, Vec<Assessment>)) {
+    let all: Vec<usize> = (0..sw.len()).collect();
+    for part in all.chunks(CHUNK) {
+        let assessed: Vec<Vec<Assessment>> = part
+            .par_iter()
+            .map(|&i| assess_stages(&sw.point(i).stages, store, BTreeMap::new(), Some(i)))
+            .collect();
+        for (&i, a) in part.iter().zip(assessed) {
+            f(i, a);
+        }
+    }
 }
 
-/// `stages` (at sweep point `point`) assessed in execution order; `known`
-/// holds the tables of producers outside the list.
 fn assess_stages(
     stages: &[Stage],
     store: &Store,
@@ -273,7 +296,13 @@ fn assess_stages(
             (Status::Run, reason, None)
         } else {
             let key = fields.hash();
-            let (status, reason) = match store.check(&key) {
+            // A sweep point's entries on their manifests (as the run takes
+            // them); another stage's read whole.
+            let found = match point {
+                Some(_) => store.manifest(&key),
+                None => store.check(&key),
+            };
+            let (status, reason) = match found {
                 Some(Ok(m)) => {
                     known.insert(
                         s.name.clone(),

@@ -13,6 +13,7 @@ use crate::stages::{Invalid, StageConfig};
 use anyhow::{Result, anyhow, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::ops::Range;
 use std::path::PathBuf;
 
@@ -192,16 +193,65 @@ pub struct Pipeline {
     pub sweep: Option<Sweep>,
 }
 
-/// A sweep, expanded into its points.
+/// A sweep, expanded into its points. A point's stages are resolved when
+/// they are needed ([`Sweep::point`]), not held: 100 000 points of
+/// resolved stages would take gigabytes, their values a few megabytes.
+/// Every point was resolved once at load, so a mistake any point's values
+/// make is reported then, and `point` cannot fail.
 #[derive(Clone, Debug)]
 pub struct Sweep {
     pub axes: Vec<sweep::Axis>,
-    pub points: Vec<SweepPoint>,
+    /// Each point's value of each axis.
+    pub values: Vec<Vec<serde_json::Value>>,
     /// The tables gathered over the points.
     pub gather: Vec<InputRef>,
     /// The stages that run once, after the points, on the gathered tables
     /// (those that read `sweep.…`, and their descendants).
     pub after: Vec<String>,
+    resolver: Arc<PointResolver>,
+}
+
+/// What resolving a point's stages needs: the file as written, the
+/// command line's overrides and the files the stages read (hashed at load).
+#[derive(Debug)]
+struct PointResolver {
+    source: Source,
+    stages: Vec<RawStage>,
+    overrides: Vec<Override>,
+    files: FileChecks,
+    primary: BTreeMap<String, &'static str>,
+}
+
+impl PointResolver {
+    fn resolve(
+        &self,
+        axes: &[sweep::Axis],
+        index: usize,
+        values: &[serde_json::Value],
+        files: &mut FileChecks,
+    ) -> Result<Vec<Stage>, Vec<Problem>> {
+        let mut all = self.overrides.clone();
+        all.extend(
+            sweep::PointValues {
+                index,
+                values: values.to_vec(),
+            }
+            .overrides(axes),
+        );
+        let mut problems = Vec::new();
+        let mut stages = Vec::new();
+        for rs in &self.stages {
+            match resolve_stage(&self.source, rs, &all, files) {
+                Ok(s) => stages.push(s),
+                Err(mut e) => problems.append(&mut e),
+            }
+        }
+        if !problems.is_empty() {
+            return Err(problems);
+        }
+        fill_tables(&mut stages, &self.primary);
+        Ok(stages)
+    }
 }
 
 /// One point of a sweep: its values and its stages resolved with them.
@@ -217,6 +267,35 @@ impl Sweep {
     /// The table names the pseudo-stage `sweep` offers: `stage.table`.
     pub fn table_names(&self) -> Vec<String> {
         self.gather.iter().map(|g| g.to_string()).collect()
+    }
+
+    /// How many points the sweep has.
+    pub fn len(&self) -> usize {
+        self.values.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.values.is_empty()
+    }
+
+    /// Point `index` with its stages resolved.
+    pub fn point(&self, index: usize) -> SweepPoint {
+        let values = &self.values[index];
+        let mut files = self.resolver.files.clone();
+        let stages = self
+            .resolver
+            .resolve(&self.axes, index, values, &mut files)
+            .expect("every point resolved once at load");
+        SweepPoint {
+            index,
+            values: values.clone(),
+            stages,
+        }
+    }
+
+    /// The names of the stages that run per point, in file order.
+    pub fn point_stages(&self) -> impl Iterator<Item = &str> {
+        self.resolver.stages.iter().map(|s| s.name.as_str())
     }
 }
 
@@ -784,32 +863,36 @@ fn resolve_sweep(
         .iter()
         .map(|s| (s.name.clone(), s.config.outputs()[0]))
         .collect();
-    let mut points = Vec::with_capacity(values.len());
-    for v in values {
-        let mut all = overrides.to_vec();
-        all.extend(v.overrides(&axes));
-        let mut stages = Vec::new();
-        for rs in raw.stages.iter().filter(|rs| per_point(&rs.name)) {
-            match resolve_stage(src, rs, &all, files) {
-                Ok(s) => stages.push(s),
-                Err(mut e) => problems.append(&mut e),
-            }
-        }
-        if !problems.is_empty() {
+    let resolver = PointResolver {
+        source: src.clone(),
+        stages: raw
+            .stages
+            .iter()
+            .filter(|rs| per_point(&rs.name))
+            .cloned()
+            .collect(),
+        overrides: overrides.to_vec(),
+        files: FileChecks::new(),
+        primary,
+    };
+    // Every point resolved once, to report any point's mistakes now; the
+    // stages are dropped, the files they read kept (hashed once).
+    for v in &values {
+        if let Err(mut e) = resolver.resolve(&axes, v.index, &v.values, files) {
+            problems.append(&mut e);
             return Err(problems);
         }
-        fill_tables(&mut stages, &primary);
-        points.push(SweepPoint {
-            index: v.index,
-            values: v.values,
-            stages,
-        });
     }
+    let resolver = PointResolver {
+        files: files.clone(),
+        ..resolver
+    };
     Ok(Sweep {
         axes,
-        points,
+        values: values.into_iter().map(|v| v.values).collect(),
         gather,
         after,
+        resolver: Arc::new(resolver),
     })
 }
 

@@ -12,11 +12,11 @@
 //! report says so (`cache_problem`), so that a damaged cache is visible
 //! rather than silently repaired.
 
-use super::cache::{self, Entry, FileRecord, Lookup, Manifest, PointRecords, Store, TableRecord};
+use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
 use super::report;
-use super::resolve::{Pipeline, Stage, Sweep, SweepPoint};
+use super::resolve::{Pipeline, Stage, Sweep};
 use super::status::Status;
 use super::sweep;
 use crate::stages::{Context, StageInputs};
@@ -27,7 +27,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Instant, SystemTime};
 
 /// How to run.
@@ -97,8 +97,39 @@ impl RunReport {
 
 /// A stage's outputs as the next stages see them.
 struct Produced {
-    /// Table → (frame, content hash).
-    tables: BTreeMap<String, (Arc<DataFrame>, String)>,
+    tables: BTreeMap<String, Output>,
+}
+
+/// One table a stage produced: in memory, or — a cached stage of a sweep
+/// point — in the cache, read and verified only if a later stage or the
+/// gather reads it. A cached point whose tables nothing reads costs its
+/// manifests, not its tables.
+struct Output {
+    frame: OnceLock<Arc<DataFrame>>,
+    /// The entry holding the table, when it is read on demand.
+    key: Option<String>,
+    /// The content hash of its Parquet bytes.
+    hash: String,
+}
+
+impl Output {
+    fn loaded(df: Arc<DataFrame>, hash: String) -> Output {
+        Output {
+            frame: OnceLock::from(df),
+            key: None,
+            hash,
+        }
+    }
+
+    fn frame(&self, store: &Store, name: &str) -> Result<Arc<DataFrame>> {
+        if let Some(df) = self.frame.get() {
+            return Ok(df.clone());
+        }
+        let key = self.key.as_deref().expect("a table not in memory is in the cache");
+        let bytes = store.table(key, name, &self.hash)?;
+        let df = Arc::new(table::from_parquet_bytes(&bytes)?);
+        Ok(self.frame.get_or_init(|| df).clone())
+    }
 }
 
 pub fn timestamp(t: SystemTime) -> String {
@@ -130,9 +161,12 @@ struct Runner<'a> {
     keep_going: bool,
     /// Copy tables and figures to `results/<pipeline>/<stage>/`.
     publish: bool,
-    /// The sweep point whose stages this runs, and where the runs at sweep
-    /// points are recorded for `explain`.
-    point: Option<(usize, &'a Mutex<PointRecords>)>,
+    /// The sweep point whose stages this runs: its entries go into packs.
+    point: Option<usize>,
+    /// Take a cached stage of a sweep point on its manifest, reading its
+    /// tables only when needed; off for the second try of a point whose
+    /// cached tables could not be read.
+    lazy: bool,
     /// Print a line per stage.
     progress: bool,
     /// Run a level's stages in parallel. Off inside sweep points, which
@@ -154,6 +188,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         keep_going: opts.keep_going,
         publish: true,
         point: None,
+        lazy: false,
         progress: opts.progress,
         parallel: true,
     };
@@ -193,7 +228,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
             let t = prod
                 .tables
                 .iter()
-                .map(|(name, (df, _))| (name.clone(), df.clone()))
+                .filter_map(|(name, out)| Some((name.clone(), out.frame.get()?.clone())))
                 .collect();
             (stage, t)
         })
@@ -300,115 +335,36 @@ fn execute_stages(
     (reports, produced)
 }
 
+/// Sweep points run at once and written as one pack in a local run: large
+/// enough that a pack holds many points (few files), small enough that a
+/// killed run loses little and the coordinator holds little.
+const LOCAL_CHUNK: usize = 256;
+
 /// Runs every point of a sweep (points in parallel, each point's stages
 /// cached like any), gathers the chosen tables with the swept values as
 /// columns, and publishes them under `results/<pipeline>/sweep/`. Returns
 /// one report per per-point stage (`ran` if any point ran it), the
 /// gathered tables as the producer `sweep`, and the sweep's counts.
 fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced, SweepReport)> {
-    let ran_at = Mutex::new(PointRecords::new());
-    let point_runner = Runner {
-        publish: false,
-        progress: false,
-        parallel: false,
-        ..*runner
-    };
-    let bar = if runner.progress {
-        let b = indicatif::ProgressBar::new(sw.points.len() as u64);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{prefix} [{bar:40}] {pos}/{len} points  {elapsed_precise} elapsed, ETA {eta_precise}",
-            )
-            .expect("a valid template")
-            .progress_chars("=> "),
-        );
-        b.set_prefix("sweep");
-        b
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
-    let outcomes: Vec<Executed> = sw
-        .points
-        .par_iter()
-        .map(|pt| {
-            let runner = Runner {
-                point: Some((pt.index, &ran_at)),
-                ..point_runner
-            };
-            let (reports, produced) = execute_stages(&runner, &pt.stages, BTreeMap::new());
-            bar.inc(1);
-            (reports, gathered_only(sw, produced))
-        })
-        .collect();
+    let bar = progress_bar(runner.progress, sw.len());
+    let all: Vec<usize> = (0..sw.len()).collect();
+    let done = run_point_set(runner, sw, &all, LOCAL_CHUNK, "local", true, &bar)?;
     bar.finish_and_clear();
-    let ran_at = ran_at.into_inner().unwrap_or_else(|e| e.into_inner());
-    runner.store.record_points(sw.points.len(), ran_at)?;
-    let mut counts = SweepReport {
-        points: sw.points.len(),
-        ..SweepReport::default()
-    };
-    let mut reports: Vec<StageReport> = Vec::new();
-    for (pt, (rs, _)) in sw.points.iter().zip(&outcomes) {
-        let failed: Vec<&StageReport> = rs.iter().filter(|r| r.status == Status::Failed).collect();
-        if !failed.is_empty() {
-            counts.failed += 1;
-            for f in failed {
-                let mut f = f.clone();
-                f.reason = format!(
-                    "sweep point {} ({}): {}",
-                    pt.index,
-                    point_label(sw, pt),
-                    f.reason
-                );
-                reports.push(f);
-            }
-        } else if rs.iter().any(|r| r.status == Status::Ran) {
-            counts.ran += 1;
-        } else {
-            counts.cached += 1;
-        }
-    }
-    // One line per per-point stage: ran if any point ran it.
-    if let Some((first, _)) = outcomes.first() {
-        for (k, r0) in first.iter().enumerate() {
-            let ran = outcomes
-                .iter()
-                .filter(|(rs, _)| rs.get(k).is_some_and(|r| r.status == Status::Ran))
-                .count();
-            let mut r = r0.clone();
-            r.status = if ran > 0 { Status::Ran } else { Status::Cached };
-            r.reason = format!("{ran} of {} sweep points ran it", sw.points.len());
-            r.key = None;
-            r.seconds = outcomes
-                .iter()
-                .filter_map(|(rs, _)| rs.get(k).map(|r| r.seconds))
-                .sum();
-            if reports.iter().all(|x| x.stage != r.stage) {
-                reports.push(r);
-            }
-        }
-    }
+    let PointsDone {
+        reports,
+        mut counts,
+        gathered,
+    } = done;
     if counts.failed > 0 && !runner.keep_going {
         // The gathered tables would be incomplete: stop here.
-        return Ok((
-            reports,
-            Produced {
-                tables: BTreeMap::new(),
-            },
-            counts,
-        ));
+        let empty = Produced {
+            tables: BTreeMap::new(),
+        };
+        return Ok((reports, empty, counts));
     }
     let mut tables = BTreeMap::new();
-    for g in &sw.gather {
-        let frames = sw
-            .points
-            .iter()
-            .zip(&outcomes)
-            .filter_map(|(pt, (_, produced))| {
-                let (df, _) = produced.get(&g.stage)?.tables.get(&g.table)?;
-                Some((pt, df.as_ref()))
-            });
-        let (df, bytes) = sweep::gather(sw, frames)?;
+    for (g, gatherer) in sw.gather.iter().zip(gathered) {
+        let (df, bytes) = gatherer.finish()?;
         let name = g.to_string();
         counts.gathered.insert(name.clone(), df.height());
         if runner.publish {
@@ -420,37 +376,276 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
                 crate::fs::write_atomic(&path, &bytes)?;
             }
         }
-        tables.insert(name, (Arc::new(df), cache::hash_bytes(&bytes)));
+        tables.insert(
+            name,
+            Output::loaded(Arc::new(df), cache::hash_bytes(&bytes)),
+        );
     }
     Ok((reports, Produced { tables }, counts))
 }
 
-/// What of a point's tables the gather reads, and nothing else: every
-/// point's outputs are held until the gather, and the rest of them (the
-/// campaign, the residuals, …) cost 0.7 MB a point.
-fn gathered_only(
-    sw: &Sweep,
-    produced: BTreeMap<String, Arc<Produced>>,
-) -> BTreeMap<String, Arc<Produced>> {
-    produced
-        .into_iter()
-        .filter_map(|(stage, p)| {
-            let tables: BTreeMap<_, _> = p
-                .tables
+fn progress_bar(show: bool, points: usize) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new(points as u64);
+    b.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{prefix} [{bar:40}] {pos}/{len} points  {msg} {elapsed_precise} elapsed, ETA {eta_precise}",
+        )
+        .expect("a valid template")
+        .progress_chars("=> "),
+    );
+    b.set_prefix("sweep");
+    b
+}
+
+/// What a set of sweep points came to: a report per per-point stage
+/// (and one per failure), the counts, and the gathered tables so far.
+struct PointsDone<'a> {
+    reports: Vec<StageReport>,
+    counts: SweepReport,
+    gathered: Vec<sweep::Gatherer<'a>>,
+}
+
+/// One point's stages' reports and the tables the gather reads.
+struct PointOutcome {
+    reports: Vec<StageReport>,
+    gathered: Vec<Option<Arc<DataFrame>>>,
+}
+
+/// Runs the sweep points `indices` (increasing) a chunk at a time: a
+/// chunk's points in parallel, then the chunk's new entries written as one
+/// pack named `<prefix>-…`, its gathered tables folded in and the rest of
+/// its outcomes dropped — what the coordinator holds does not grow with the
+/// points but by their gathered rows.
+fn run_point_set<'a>(
+    runner: &Runner,
+    sw: &'a Sweep,
+    indices: &[usize],
+    chunk: usize,
+    prefix: &str,
+    gather: bool,
+    bar: &indicatif::ProgressBar,
+) -> Result<PointsDone<'a>> {
+    let point_runner = Runner {
+        publish: false,
+        progress: false,
+        parallel: false,
+        ..*runner
+    };
+    let mut gathered: Vec<sweep::Gatherer> = if gather {
+        sw.gather.iter().map(|_| sweep::Gatherer::new(sw)).collect()
+    } else {
+        Vec::new()
+    };
+    let mut counts = SweepReport {
+        points: indices.len(),
+        ..SweepReport::default()
+    };
+    // Per per-point stage: its first report, how many points ran it, seconds.
+    let mut per_stage: Vec<(StageReport, usize, f64)> = Vec::new();
+    let mut failures: Vec<StageReport> = Vec::new();
+    for part in indices.chunks(chunk.max(1)) {
+        let outcomes: Vec<PointOutcome> = part
+            .par_iter()
+            .map(|&i| {
+                let out = run_point(&point_runner, sw, i);
+                bar.inc(1);
+                out
+            })
+            .collect();
+        runner.store.flush(prefix)?;
+        for (&i, out) in part.iter().zip(outcomes) {
+            let failed: Vec<&StageReport> = out
+                .reports
                 .iter()
-                .filter(|(t, _)| sw.gather.iter().any(|g| g.stage == stage && &g.table == *t))
-                .map(|(t, v)| (t.clone(), v.clone()))
+                .filter(|r| r.status == Status::Failed)
                 .collect();
-            (!tables.is_empty()).then(|| (stage, Arc::new(Produced { tables })))
-        })
-        .collect()
+            if !failed.is_empty() {
+                counts.failed += 1;
+                for f in failed {
+                    let mut f = f.clone();
+                    f.reason = format!(
+                        "sweep point {i} ({}): {}",
+                        point_label(sw, &sw.values[i]),
+                        f.reason
+                    );
+                    failures.push(f);
+                }
+            } else if out.reports.iter().any(|r| r.status == Status::Ran) {
+                counts.ran += 1;
+            } else {
+                counts.cached += 1;
+            }
+            for r in &out.reports {
+                match per_stage.iter_mut().find(|(x, _, _)| x.stage == r.stage) {
+                    Some((_, ran, secs)) => {
+                        *ran += usize::from(r.status == Status::Ran);
+                        *secs += r.seconds;
+                    }
+                    None => per_stage.push((
+                        r.clone(),
+                        usize::from(r.status == Status::Ran),
+                        r.seconds,
+                    )),
+                }
+            }
+            if failed_none(&out.reports) {
+                for (g, df) in gathered.iter_mut().zip(&out.gathered) {
+                    if let Some(df) = df {
+                        g.push(i, df)?;
+                    }
+                }
+            }
+        }
+        bar.set_message(format!(
+            "({} ran, {} cached, {} failed)",
+            counts.ran, counts.cached, counts.failed
+        ));
+    }
+    let mut reports = failures;
+    // One line per per-point stage: ran if any point ran it.
+    for (mut r, ran, seconds) in per_stage {
+        if reports.iter().any(|x| x.stage == r.stage) {
+            continue;
+        }
+        r.status = if ran > 0 { Status::Ran } else { Status::Cached };
+        r.reason = format!("{ran} of {} sweep points ran it", indices.len());
+        r.key = None;
+        r.cache_problem = None;
+        r.seconds = seconds;
+        reports.push(r);
+    }
+    Ok(PointsDone {
+        reports,
+        counts,
+        gathered,
+    })
+}
+
+fn failed_none(reports: &[StageReport]) -> bool {
+    reports.iter().all(|r| r.status != Status::Failed)
+}
+
+/// Runs one sweep point. Its cached stages are taken on their manifests
+/// first; if a cached table it then needs cannot be read (damaged since),
+/// the point runs again reading every cached entry whole, which recomputes
+/// the damaged ones.
+fn run_point(runner: &Runner, sw: &Sweep, index: usize) -> PointOutcome {
+    let pt = sw.point(index);
+    let mut outcome = None;
+    for lazy in [true, false] {
+        let r = Runner {
+            point: Some(index),
+            lazy,
+            ..*runner
+        };
+        let (reports, produced) = execute_stages(&r, &pt.stages, BTreeMap::new());
+        let damaged = reports
+            .iter()
+            .any(|r| r.status == Status::Failed && r.cache_problem.is_some());
+        let mut gathered = Vec::new();
+        let mut unreadable = false;
+        for g in &sw.gather {
+            let out = produced.get(&g.stage).and_then(|p| p.tables.get(&g.table));
+            match out.map(|o| o.frame(runner.store, &g.table)) {
+                None => gathered.push(None),
+                Some(Ok(df)) => gathered.push(Some(df)),
+                Some(Err(_)) => unreadable = true,
+            }
+        }
+        let done = PointOutcome { reports, gathered };
+        if lazy && (damaged || unreadable) {
+            continue;
+        }
+        outcome = Some(done);
+        break;
+    }
+    outcome.expect("the second try is taken as it comes")
+}
+
+/// What a task of a cluster did: its points, and those that failed.
+#[derive(Clone, Debug, Default)]
+pub struct TaskReport {
+    pub ran: usize,
+    pub cached: usize,
+    /// (point, stage, reason) of every failure.
+    pub failed: Vec<(usize, String, String)>,
+    pub packs: Vec<PathBuf>,
+}
+
+/// Runs the sweep points `indices` of `p` as one task of a cluster: the
+/// points `chunk` at a time (one per CPU of the task), every chunk's entries
+/// — and its failures, with their reasons — written as one pack named
+/// `<prefix>-…`, nothing published, nothing gathered. The coordinator
+/// reads the packs.
+pub fn run_task(
+    p: &Pipeline,
+    opts: &RunOptions,
+    indices: &[usize],
+    chunk: usize,
+    prefix: &str,
+) -> Result<TaskReport> {
+    let sw = p
+        .sweep
+        .as_ref()
+        .ok_or_else(|| anyhow!("`{}` has no [sweep]: a task runs sweep points", p.name))?;
+    if let Some(&bad) = indices.iter().find(|&&i| i >= sw.len()) {
+        return Err(anyhow!(
+            "point {bad} is not a point of the sweep (it has {})",
+            sw.len()
+        ));
+    }
+    let dir = pipeline_dir(&opts.results_root, p);
+    let store = Store::new(&dir);
+    let runner = Runner {
+        pipeline: &p.name,
+        store: &store,
+        dir: &dir,
+        keep_going: true,
+        publish: false,
+        point: None,
+        lazy: true,
+        progress: false,
+        parallel: false,
+    };
+    let mut report = TaskReport::default();
+    for part in indices.chunks(chunk.max(1)) {
+        let outcomes: Vec<(usize, PointOutcome)> = part
+            .par_iter()
+            .map(|&i| (i, run_point(&runner, sw, i)))
+            .collect();
+        for (i, out) in &outcomes {
+            let mut ran = false;
+            for r in &out.reports {
+                match r.status {
+                    Status::Failed => {
+                        store.fail_packed(*i, &r.stage, &r.reason);
+                        report.failed.push((*i, r.stage.clone(), r.reason.clone()));
+                    }
+                    Status::Ran => ran = true,
+                    _ => {}
+                }
+            }
+            if failed_none(&out.reports) {
+                if ran {
+                    report.ran += 1;
+                } else {
+                    report.cached += 1;
+                }
+            }
+        }
+        report.packs.extend(store.flush(prefix)?);
+    }
+    Ok(report)
 }
 
 /// `name=value, …` of a point, for messages.
-fn point_label(sw: &Sweep, pt: &SweepPoint) -> String {
+pub fn point_label(sw: &Sweep, values: &[serde_json::Value]) -> String {
     sw.axes
         .iter()
-        .zip(&pt.values)
+        .zip(values)
         .map(|(a, v)| format!("{}={v}", a.name))
         .collect::<Vec<_>>()
         .join(", ")
@@ -481,17 +676,35 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         tables: BTreeMap::new(),
         files: Vec::new(),
     };
-    let mut hashes = BTreeMap::new();
-    let mut stage_inputs = StageInputs::default();
-    for (slot, r, prod) in &inputs {
-        let (df, h) = &prod.tables[&r.table];
-        hashes.insert(slot.clone(), h.clone());
-        stage_inputs.insert(slot, r.to_string(), df.clone());
-    }
+    let hashes = inputs
+        .iter()
+        .map(|(slot, r, prod)| (slot.clone(), prod.tables[&r.table].hash.clone()))
+        .collect();
     let kf = key_fields(s, hashes);
     let key = kf.hash();
     report.key = Some(key.clone());
     let t0 = Instant::now();
+    // A cached stage of a sweep point is taken on its manifest: its tables
+    // are read only if something reads them.
+    if runner.lazy {
+        if let Some(Ok(m)) = store.manifest(&key) {
+            report.status = Status::Cached;
+            fill(&mut report, &m);
+            let tables = m
+                .tables
+                .iter()
+                .map(|t| {
+                    let out = Output {
+                        frame: OnceLock::new(),
+                        key: Some(key.clone()),
+                        hash: t.hash.clone(),
+                    };
+                    (t.name.clone(), out)
+                })
+                .collect();
+            return (report, Some(Produced { tables }));
+        }
+    }
     let why = match store.lookup(&key) {
         Lookup::Hit(entry) => match decode(&entry) {
             Ok(prod) => {
@@ -525,9 +738,23 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             report.cache_problem = Some(why);
             reason
         }
-        Lookup::Miss => reason(store, &s.name, runner.point.map(|(i, _)| i), &kf),
+        Lookup::Miss => reason(store, &s.name, runner.point, &kf),
     };
     report.reason = why;
+    let mut stage_inputs = StageInputs::default();
+    for (slot, r, prod) in &inputs {
+        match prod.tables[&r.table].frame(store, &r.table) {
+            Ok(df) => stage_inputs.insert(slot, r.to_string(), df),
+            Err(e) => {
+                // A cached input damaged since it was taken on its
+                // manifest: the point runs again, reading entries whole.
+                let why = format!("its input `{r}` could not be read from the cache: {e:#}");
+                report.reason = why.clone();
+                report.cache_problem = Some(why);
+                return (report, None);
+            }
+        }
+    }
     let started = SystemTime::now();
     let ctx = Context {
         pipeline: runner.pipeline,
@@ -588,20 +815,17 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             tables,
             files,
         };
-        store.put(&entry)?;
-        // What `explain` compares with: the last run of a stage of this
-        // name (at this sweep point).
+        // A sweep point's entry goes into the next pack, which also records
+        // that it ran there; another stage's is an entry of its own, and its
+        // record is what `explain` compares with.
         match runner.point {
-            None => store.set_last(&s.name, &kf)?,
-            Some((i, ran_at)) => {
-                let mut ran_at = ran_at.lock().unwrap_or_else(|e| e.into_inner());
-                ran_at
-                    .entry(i)
-                    .or_default()
-                    .insert(s.name.clone(), kf.clone());
+            None => {
+                store.put(&entry)?;
+                store.set_last(&s.name, &kf)?;
+                publish(runner, &s.name, &entry)?;
             }
+            Some(i) => store.put_packed(entry.clone(), i),
         }
-        publish(runner, &s.name, &entry)?;
         Ok(entry)
     })();
     match stored {
@@ -619,7 +843,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
                             .iter()
                             .find(|t| t.name == n)
                             .map(|t| t.hash.clone());
-                        (n, (Arc::new(df), h.unwrap_or_default()))
+                        (n, Output::loaded(Arc::new(df), h.unwrap_or_default()))
                     })
                     .collect(),
             };
@@ -641,7 +865,7 @@ fn decode(entry: &Entry) -> Result<Produced> {
     let mut tables = BTreeMap::new();
     for t in &entry.manifest.tables {
         let df = table::from_parquet_bytes(&entry.tables[&t.name])?;
-        tables.insert(t.name.clone(), (Arc::new(df), t.hash.clone()));
+        tables.insert(t.name.clone(), Output::loaded(Arc::new(df), t.hash.clone()));
     }
     Ok(Produced { tables })
 }

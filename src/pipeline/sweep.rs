@@ -31,7 +31,7 @@
 //! tables.
 
 use super::Problem;
-use super::resolve::{Override, Sweep, SweepPoint, split_path};
+use super::resolve::{Override, Sweep, split_path};
 use crate::diagnostics::Source;
 use crate::{random, table};
 use anyhow::{Result, anyhow};
@@ -277,26 +277,77 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
     Ok((axes, points))
 }
 
-/// One gathered table: each point's table with `point` and one column per
-/// axis in front, stacked in point order; and its Parquet bytes. The same
-/// function serves the run and the plan, so both hash the same bytes.
-pub fn gather<'a>(
-    sw: &Sweep,
-    frames: impl Iterator<Item = (&'a SweepPoint, &'a DataFrame)>,
-) -> Result<(DataFrame, Vec<u8>)> {
-    let frames = frames
-        .map(|(pt, df)| with_point_columns(sw, pt, df))
-        .collect::<Result<Vec<_>>>()?;
-    let df = table::concat_diagonal(&frames)?;
-    let bytes = table::to_parquet_bytes(&df)?;
-    Ok((df, bytes))
+/// One gathered table, built as the points come: each point's table with
+/// `point` and one column per axis in front, stacked in point order,
+/// concatenated a chunk of points at a time so that what is held is one
+/// table, not a frame per point. The same builder serves the run and the
+/// plan, and the bytes do not depend on the chunking (the table is made
+/// one chunk before it is written), so both hash the same bytes.
+pub struct Gatherer<'a> {
+    sw: &'a Sweep,
+    done: Option<DataFrame>,
+    chunk: Vec<DataFrame>,
+}
+
+/// Points whose tables are concatenated at once.
+const GATHER_CHUNK: usize = 256;
+
+impl<'a> Gatherer<'a> {
+    pub fn new(sw: &'a Sweep) -> Gatherer<'a> {
+        Gatherer {
+            sw,
+            done: None,
+            chunk: Vec::new(),
+        }
+    }
+
+    /// Adds point `index`'s table (points in increasing order).
+    pub fn push(&mut self, index: usize, df: &DataFrame) -> Result<()> {
+        self.chunk
+            .push(with_point_columns(self.sw, index, &self.sw.values[index], df)?);
+        if self.chunk.len() >= GATHER_CHUNK {
+            self.fold()?;
+        }
+        Ok(())
+    }
+
+    fn fold(&mut self) -> Result<()> {
+        if self.chunk.is_empty() {
+            return Ok(());
+        }
+        let mut parts: Vec<DataFrame> = self.done.take().into_iter().collect();
+        parts.push(table::concat_diagonal(&std::mem::take(&mut self.chunk))?);
+        self.done = Some(if parts.len() == 1 {
+            parts.pop().expect("one part")
+        } else {
+            table::concat_diagonal(&parts)?
+        });
+        Ok(())
+    }
+
+    /// The gathered table and its Parquet bytes.
+    pub fn finish(mut self) -> Result<(DataFrame, Vec<u8>)> {
+        self.fold()?;
+        let mut df = match self.done {
+            Some(df) => df,
+            None => table::concat_diagonal(&[])?,
+        };
+        df.rechunk_mut();
+        let bytes = table::to_parquet_bytes(&df)?;
+        Ok((df, bytes))
+    }
 }
 
 /// A point's table with `point` and one column per axis in front.
-fn with_point_columns(sw: &Sweep, pt: &SweepPoint, df: &DataFrame) -> Result<DataFrame> {
+fn with_point_columns(
+    sw: &Sweep,
+    index: usize,
+    values: &[serde_json::Value],
+    df: &DataFrame,
+) -> Result<DataFrame> {
     let n = df.height();
-    let mut cols = vec![Column::new("point".into(), vec![pt.index as i64; n])];
-    for (a, v) in sw.axes.iter().zip(&pt.values) {
+    let mut cols = vec![Column::new("point".into(), vec![index as i64; n])];
+    for (a, v) in sw.axes.iter().zip(values) {
         cols.push(table::constant_column(&a.name, v, n)?);
     }
     for c in df.columns() {
