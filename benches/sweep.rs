@@ -51,6 +51,7 @@ fn run_once(file: &Path, results: PathBuf) {
             results_root: results,
             keep_going: false,
             progress: false,
+            not_computed: None,
         },
     )
     .unwrap();

@@ -2,8 +2,8 @@
 //! `show`, `kinds`.
 
 use crate::pipeline::{
-    self, InputError, cache::Store, explain, graph, plan, published, resolve::Override, run,
-    snapshot, status::Status,
+    self, InputError, cache::Store, cluster, explain, graph, plan, published, resolve::Override,
+    run, snapshot, status::Status,
 };
 use crate::stages;
 use crate::table;
@@ -11,6 +11,8 @@ use anyhow::{Context as _, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -50,6 +52,42 @@ enum Command {
         /// No per-stage lines.
         #[arg(short, long)]
         quiet: bool,
+        /// Where the sweep points run: here, or as array jobs on a Slurm
+        /// cluster (settings: the pipeline's `[executor.slurm]`).
+        #[arg(long, value_enum, default_value_t = Executor::Local)]
+        executor: Executor,
+        /// With `--executor slurm`: submit and return; a later `ltcal run`
+        /// or `ltcal status` picks up where the jobs stand.
+        #[arg(long)]
+        detach: bool,
+    },
+    /// Where a sweep stands: points done and missing, and the state of the
+    /// cluster jobs submitted for it.
+    Status {
+        #[command(flatten)]
+        p: PipelineArgs,
+    },
+    /// Run a batch of sweep points as one task of a cluster job (the job
+    /// scripts `--executor slurm` writes call this).
+    #[command(hide = true)]
+    Task {
+        #[command(flatten)]
+        p: PipelineArgs,
+        /// The points: `a-b,c,…`.
+        #[arg(long)]
+        points: String,
+        /// The coordinator's code fingerprint: a different binary refuses.
+        #[arg(long)]
+        code: String,
+        /// The blake3 of the pipeline file the coordinator read.
+        #[arg(long)]
+        pipeline_hash: String,
+        /// Name prefix of the packs this task writes.
+        #[arg(long)]
+        prefix: String,
+        /// Points run at once (the task's CPUs).
+        #[arg(long, default_value_t = 1)]
+        cpus: usize,
     },
     /// Print what `run` would do and why, without running anything.
     Plan {
@@ -150,6 +188,12 @@ fn thread_count() -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::new().range(1..=MAX_THREADS)
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, ValueEnum)]
+enum Executor {
+    Local,
+    Slurm,
+}
+
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum GraphFormat {
     Dot,
@@ -245,6 +289,75 @@ fn summarize(report: &run::RunReport) -> ExitCode {
     }
 }
 
+/// `ltcal task`: one array task of a cluster run. Refuses, writing nothing,
+/// when its binary or the pipeline file is not the coordinator's — its
+/// entries would be keyed by another code, or computed from another file.
+fn task_command(
+    p: &PipelineArgs,
+    points: &str,
+    code: &str,
+    pipeline_hash: &str,
+    prefix: &str,
+    cpus: usize,
+) -> Result<ExitCode> {
+    if code != crate::CODE_FINGERPRINT {
+        bail!(
+            "this ltcal binary ({}) is not the coordinator's (code {}): it was rebuilt since the \
+             job was submitted; nothing is written — rerun `ltcal run --executor slurm`, which submits \
+             the missing points with the binary now in place",
+            pipeline::cache::short(crate::CODE_FINGERPRINT),
+            pipeline::cache::short(code)
+        );
+    }
+    let text =
+        std::fs::read(&p.pipeline).with_context(|| format!("reading {}", p.pipeline.display()))?;
+    if pipeline::cache::hash_bytes(&text) != pipeline_hash {
+        bail!(
+            "{} changed since the job was submitted; nothing is written — rerun `ltcal run --executor slurm`",
+            p.pipeline.display()
+        );
+    }
+    let pipeline = load(p)?;
+    let n = pipeline.sweep.as_ref().map_or(0, |sw| sw.len());
+    let indices =
+        cluster::parse_ranges(points, n).map_err(|e| InputError::arg(format!("--points: {e}")))?;
+    let started = std::time::Instant::now();
+    eprintln!(
+        "ltcal task {prefix}: {} points ({points}) of {} on {}",
+        indices.len(),
+        pipeline.name,
+        crate::fs::host()
+    );
+    let opts = run::RunOptions {
+        results_root: p.results.clone(),
+        keep_going: true,
+        progress: false,
+        not_computed: None,
+    };
+    let report = run::run_task(&pipeline, &opts, &indices, cpus, prefix)?;
+    for (i, stage, why) in &report.failed {
+        eprintln!("point {i}: stage `{stage}` failed: {why}");
+    }
+    eprintln!(
+        "ltcal task {prefix}: {} ran, {} cached, {} failed in {:.1} s; packs: {}",
+        report.ran,
+        report.cached,
+        report.failed.len(),
+        started.elapsed().as_secs_f64(),
+        report
+            .packs
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    Ok(if report.failed.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
 /// `ltcal snapshot`: runs the pipeline (cached stages cost nothing), then
 /// records or checks the `[snapshot]` tables.
 fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCode> {
@@ -256,6 +369,7 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
             results_root: p.results.clone(),
             keep_going: false,
             progress: false,
+            not_computed: None,
         },
     )?;
     if !report.failed().is_empty() {
@@ -397,6 +511,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             keep_going,
             threads,
             quiet,
+            executor,
+            detach,
         } => {
             let pipeline = load(&p)?;
             if let Some(n) = threads {
@@ -405,16 +521,65 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                     .build_global()
                     .context("setting the number of threads")?;
             }
-            let report = run::run(
-                &pipeline,
-                &run::RunOptions {
-                    results_root: p.results.clone(),
-                    keep_going,
-                    progress: !quiet,
-                },
-            )?;
-            Ok(summarize(&report))
+            let opts = run::RunOptions {
+                results_root: p.results.clone(),
+                keep_going,
+                progress: !quiet,
+                not_computed: None,
+            };
+            if executor == Executor::Local {
+                if detach {
+                    return Err(InputError::arg(
+                        "--detach submits to a cluster: use it with --executor slurm",
+                    ));
+                }
+                return Ok(summarize(&run::run(&pipeline, &opts)?));
+            }
+            let interrupted = Arc::new(AtomicBool::new(false));
+            for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+                signal_hook::flag::register(sig, interrupted.clone())
+                    .context("watching for Ctrl-C")?;
+            }
+            let cluster = cluster::ClusterOptions {
+                pipeline_file: p.pipeline.clone(),
+                set_args: p.set.clone(),
+                detach,
+                interrupted,
+            };
+            match cluster::run(&pipeline, &opts, &cluster, &cluster::slurm::Slurm)? {
+                cluster::Outcome::Finished(report) => Ok(summarize(&report)),
+                cluster::Outcome::Detached { jobs, points } => {
+                    eprintln!(
+                        "{}: {points} points submitted or running as Slurm job {}; \
+                         `ltcal status {}` shows where they stand, `ltcal run {} --executor slurm` picks up",
+                        pipeline.name,
+                        jobs.join(", "),
+                        p.pipeline.display(),
+                        p.pipeline.display()
+                    );
+                    Ok(ExitCode::SUCCESS)
+                }
+            }
         }
+        Command::Status { p } => {
+            let pipeline = load(&p)?;
+            let opts = run::RunOptions {
+                results_root: p.results.clone(),
+                keep_going: false,
+                progress: false,
+                not_computed: None,
+            };
+            print_out(&cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Task {
+            p,
+            points,
+            code,
+            pipeline_hash,
+            prefix,
+            cpus,
+        } => task_command(&p, &points, &code, &pipeline_hash, &prefix, cpus),
         Command::Plan { p, json, check } => {
             let pipeline = load(&p)?;
             let items = plan::plan(&pipeline, &store(&p, &pipeline));

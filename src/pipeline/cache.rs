@@ -420,7 +420,10 @@ impl Store {
                 .ok_or_else(|| anyhow!("its cache entry has no table `{name}`"))?,
         };
         if hash_bytes(&bytes) != hash {
-            bail!("table {name} of entry {} does not match its manifest", short(key));
+            bail!(
+                "table {name} of entry {} does not match its manifest",
+                short(key)
+            );
         }
         Ok(bytes)
     }
@@ -444,9 +447,8 @@ impl Store {
             match read(path, span) {
                 Ok(v) => return Some(Ok(v)),
                 Err(e) => {
-                    first_problem.get_or_insert_with(|| {
-                        anyhow!("in pack {}: {e:#}", path.display())
-                    });
+                    first_problem
+                        .get_or_insert_with(|| anyhow!("in pack {}: {e:#}", path.display()));
                 }
             }
         }
@@ -496,7 +498,10 @@ impl Store {
     pub fn unreadable_packs(&self) -> Vec<(PathBuf, String)> {
         self.load_packs();
         let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
-        guard.as_ref().map(|p| p.unreadable.clone()).unwrap_or_default()
+        guard
+            .as_ref()
+            .map(|p| p.unreadable.clone())
+            .unwrap_or_default()
     }
 
     /// The failures packs whose names start with `prefix` record.
@@ -605,7 +610,9 @@ impl Store {
         write_atomic(&path, &bytes).context("writing a pack of sweep points' entries")?;
         {
             let mut guard = self.packs.write().unwrap_or_else(|e| e.into_inner());
-            guard.get_or_insert_with(Packs::default).add(path.clone(), index);
+            guard
+                .get_or_insert_with(Packs::default)
+                .add(path.clone(), index);
         }
         *pending = Pending::default();
         Ok(Some(path))
@@ -699,8 +706,8 @@ impl Store {
     /// Removes what killed runs left behind: temporary entry directories and
     /// files of processes that no longer exist. Returns how many were removed.
     pub fn clean_incomplete(&self) -> usize {
-        let mut n = clean_temp_files_in(&self.root.join("last"))
-            + clean_temp_files_in(&self.packs_dir());
+        let mut n =
+            clean_temp_files_in(&self.root.join("last")) + clean_temp_files_in(&self.packs_dir());
         let Ok(rd) = fs::read_dir(self.entries()) else {
             return n;
         };
@@ -764,8 +771,8 @@ impl Store {
 
 /// A manifest, checked to be the one of `key`.
 fn parse_manifest(bytes: &[u8], key: &str) -> Result<Manifest> {
-    let manifest: Manifest = serde_json::from_slice(bytes)
-        .map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
+    let manifest: Manifest =
+        serde_json::from_slice(bytes).map_err(|e| anyhow!("manifest.json is unreadable: {e}"))?;
     if manifest.key != key || manifest.key_fields.hash() != key {
         bail!("manifest.json does not belong to key {}", short(key));
     }

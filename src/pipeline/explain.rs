@@ -106,7 +106,13 @@ pub fn explain(
                 would_run += usize::from(stale);
                 let take = match point {
                     Some(p) => p == i,
-                    None => chosen.is_none() || (stale && chosen.as_ref().is_some_and(|(_, c)| c.item.status == Status::Cached)),
+                    None => {
+                        chosen.is_none()
+                            || (stale
+                                && chosen
+                                    .as_ref()
+                                    .is_some_and(|(_, c)| c.item.status == Status::Cached))
+                    }
                 };
                 if take {
                     chosen = Some((i, a));

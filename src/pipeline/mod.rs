@@ -17,6 +17,7 @@
 //! says whether it is current.
 
 pub mod cache;
+pub mod cluster;
 pub mod explain;
 pub mod graph;
 pub mod pack;

@@ -126,7 +126,8 @@ impl Builder {
             .extend_from_slice(&(blob.manifest.len() as u32).to_le_bytes());
         self.bytes.extend_from_slice(blob.manifest);
         for p in &blob.parts {
-            self.bytes.extend_from_slice(&(p.len() as u64).to_le_bytes());
+            self.bytes
+                .extend_from_slice(&(p.len() as u64).to_le_bytes());
             self.bytes.extend_from_slice(p);
         }
         let len = self.bytes.len() as u64 - offset;
@@ -149,7 +150,8 @@ impl Builder {
         self.bytes.extend_from_slice(&offset.to_le_bytes());
         self.bytes
             .extend_from_slice(&(index.len() as u64).to_le_bytes());
-        self.bytes.extend_from_slice(blake3::hash(&index).as_bytes());
+        self.bytes
+            .extend_from_slice(blake3::hash(&index).as_bytes());
         self.bytes.extend_from_slice(END);
         (self.bytes, self.index)
     }
@@ -228,7 +230,11 @@ fn decode_index(bytes: &[u8], file_len: u64) -> Result<Index> {
             offset: c.u64()?,
             len: c.u64()?,
         };
-        if span.offset.checked_add(span.len).is_none_or(|e| e > file_len) {
+        if span
+            .offset
+            .checked_add(span.len)
+            .is_none_or(|e| e > file_len)
+        {
             bail!("an entry lies outside the pack");
         }
         ix.entries.push((key, span));

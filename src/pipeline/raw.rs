@@ -75,9 +75,18 @@ pub struct RawPipeline {
     /// With the span of its header, for errors about the table as a whole.
     pub snapshot: Option<(RawSnapshot, Range<usize>)>,
     pub sweep: Option<(super::sweep::RawSweep, Range<usize>)>,
+    /// With the span of its header.
+    pub executor: Option<(RawExecutor, Range<usize>)>,
 }
 
-const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot", "sweep"];
+const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot", "sweep", "executor"];
+
+/// `[executor]`: where the stages run besides this machine.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawExecutor {
+    pub slurm: Option<super::cluster::SlurmSettings>,
+}
 
 fn key_str<'a>(k: &'a Spanned<std::borrow::Cow<'_, str>>) -> &'a str {
     k.get_ref().as_ref()
@@ -129,6 +138,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
     let mut stages = Vec::new();
     let mut snapshot = None;
     let mut sweep = None;
+    let mut executor = None;
     for (key, value) in root.into_inner() {
         let k = key_str(&key).to_string();
         match k.as_str() {
@@ -152,6 +162,16 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
                     Ok(s) => sweep = Some((s, span)),
                     Err(mut e) => {
                         e.message = format!("[sweep]: {}", e.message);
+                        errors.push(e)
+                    }
+                }
+            }
+            "executor" => {
+                let span = key.span();
+                match typed::<RawExecutor>(src, value) {
+                    Ok(x) => executor = Some((x, span)),
+                    Err(mut e) => {
+                        e.message = format!("[executor]: {}", e.message);
                         errors.push(e)
                     }
                 }
@@ -201,6 +221,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
         stages,
         snapshot,
         sweep,
+        executor,
     })
 }
 

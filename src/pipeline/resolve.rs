@@ -5,6 +5,7 @@
 //! is connected, and there is no cycle. Other top-level tables are resolved
 //! by their own modules against the resolved stages ([`snapshot`]).
 
+use super::cluster::SlurmSettings;
 use super::raw::{RawPipeline, RawStage};
 use super::snapshot::{self, Snapshot};
 use super::{Problem, sweep};
@@ -13,9 +14,9 @@ use crate::stages::{Invalid, StageConfig};
 use anyhow::{Result, anyhow, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
-use std::sync::Arc;
 use std::ops::Range;
 use std::path::PathBuf;
+use std::sync::Arc;
 
 /// One `--set path=value`: `path` is dotted (`stages.measure.seed`), with
 /// double quotes around a segment that contains dots; `value` is a TOML
@@ -191,6 +192,9 @@ pub struct Pipeline {
     pub snapshot: Option<Snapshot>,
     /// `[sweep]`, expanded, when the file has one.
     pub sweep: Option<Sweep>,
+    /// `[executor.slurm]` with `--set executor.slurm.…` applied (the
+    /// defaults when the file has none): used when run on Slurm.
+    pub slurm: SlurmSettings,
 }
 
 /// A sweep, expanded into its points. A point's stages are resolved when
@@ -327,12 +331,20 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
                     problems.push(o.problem(src, format!("the pipeline has no stage `{name}`")));
                 }
             }
+            [e, s, _] if e == "executor" && s == "slurm" => {}
             _ => problems.push(o.problem(
                 src,
-                "a path starts with `stages.<stage>.`, e.g. stages.measure.seed=3",
+                "a path starts with `stages.<stage>.` (e.g. stages.measure.seed=3) or is `executor.slurm.<setting>`",
             )),
         }
     }
+    let slurm = match resolve_slurm(raw, overrides) {
+        Ok(s) => s,
+        Err(mut p) => {
+            problems.append(&mut p);
+            SlurmSettings::default()
+        }
+    };
     let mut files = FileChecks::new();
     let mut stages = Vec::new();
     for rs in &raw.stages {
@@ -373,6 +385,7 @@ pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Ve
         stages,
         snapshot: None,
         sweep: None,
+        slurm,
     };
     check_graph(
         raw,
@@ -782,6 +795,46 @@ fn check_columns(raw: &RawPipeline, p: &Pipeline) -> Result<(), Vec<Problem>> {
     }
     if problems.is_empty() {
         Ok(())
+    } else {
+        Err(problems)
+    }
+}
+
+/// `[executor.slurm]` with the command line's `executor.slurm.<setting>`
+/// overrides applied, checked.
+fn resolve_slurm(raw: &RawPipeline, overrides: &[Override]) -> Result<SlurmSettings, Vec<Problem>> {
+    let src = &raw.source;
+    let written = raw
+        .executor
+        .as_ref()
+        .and_then(|(x, span)| Some((x.slurm.clone()?, span.clone())));
+    let mut json =
+        serde_json::to_value(written.as_ref().map(|(s, _)| s.clone()).unwrap_or_default())
+            .expect("settings serialize");
+    let mut problems = Vec::new();
+    for o in overrides
+        .iter()
+        .filter(|o| o.path.first().is_some_and(|p| p == "executor"))
+    {
+        if let [_, _, field] = o.path.as_slice() {
+            json[field.as_str()] = o.value.clone();
+            if let Err(e) = serde_json::from_value::<SlurmSettings>(json.clone()) {
+                problems.push(o.problem(src, format!("not a valid Slurm setting: {e}")));
+                return Err(problems);
+            }
+        }
+    }
+    let settings: SlurmSettings = serde_json::from_value(json).expect("checked above");
+    for why in settings.problems() {
+        problems.push(match &written {
+            Some((_, span)) => {
+                Problem::At(src.error(span.clone(), format!("[executor.slurm]: {why}")))
+            }
+            None => Problem::arg(format!("--set executor.slurm: {why}")),
+        });
+    }
+    if problems.is_empty() {
+        Ok(settings)
     } else {
         Err(problems)
     }

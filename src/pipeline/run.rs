@@ -38,6 +38,9 @@ pub struct RunOptions {
     pub keep_going: bool,
     /// Print a line per stage on stderr.
     pub progress: bool,
+    /// Sweep points another executor did not finish, and why: reported as
+    /// failed with that reason, never computed here.
+    pub not_computed: Option<Arc<BTreeMap<usize, String>>>,
 }
 
 /// What happened to one stage.
@@ -125,7 +128,10 @@ impl Output {
         if let Some(df) = self.frame.get() {
             return Ok(df.clone());
         }
-        let key = self.key.as_deref().expect("a table not in memory is in the cache");
+        let key = self
+            .key
+            .as_deref()
+            .expect("a table not in memory is in the cache");
         let bytes = store.table(key, name, &self.hash)?;
         let df = Arc::new(table::from_parquet_bytes(&bytes)?);
         Ok(self.frame.get_or_init(|| df).clone())
@@ -173,6 +179,8 @@ struct Runner<'a> {
     /// are the parallel units: a point blocked on nested parallel work
     /// would steal other points onto its stack.
     parallel: bool,
+    /// [`RunOptions::not_computed`].
+    not_computed: Option<&'a BTreeMap<usize, String>>,
 }
 
 /// Runs the pipeline (and, with a `[sweep]`, every point of it).
@@ -191,6 +199,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         lazy: false,
         progress: opts.progress,
         parallel: true,
+        not_computed: opts.not_computed.as_deref(),
     };
     let (stages, produced, sweep) = match &p.sweep {
         None => {
@@ -484,11 +493,9 @@ fn run_point_set<'a>(
                         *ran += usize::from(r.status == Status::Ran);
                         *secs += r.seconds;
                     }
-                    None => per_stage.push((
-                        r.clone(),
-                        usize::from(r.status == Status::Ran),
-                        r.seconds,
-                    )),
+                    None => {
+                        per_stage.push((r.clone(), usize::from(r.status == Status::Ran), r.seconds))
+                    }
                 }
             }
             if failed_none(&out.reports) {
@@ -534,6 +541,24 @@ fn failed_none(reports: &[StageReport]) -> bool {
 /// the damaged ones.
 fn run_point(runner: &Runner, sw: &Sweep, index: usize) -> PointOutcome {
     let pt = sw.point(index);
+    if let Some(why) = runner.not_computed.and_then(|m| m.get(&index)) {
+        let first = &pt.stages[0];
+        let report = StageReport {
+            stage: first.name.clone(),
+            kind: first.config.kind().to_string(),
+            status: Status::Failed,
+            reason: why.clone(),
+            cache_problem: None,
+            key: None,
+            seconds: 0.0,
+            tables: BTreeMap::new(),
+            files: Vec::new(),
+        };
+        return PointOutcome {
+            reports: vec![report],
+            gathered: Vec::new(),
+        };
+    }
     let mut outcome = None;
     for lazy in [true, false] {
         let r = Runner {
@@ -565,6 +590,11 @@ fn run_point(runner: &Runner, sw: &Sweep, index: usize) -> PointOutcome {
     outcome.expect("the second try is taken as it comes")
 }
 
+/// How much of a task's work a pack holds at most: a task killed (node
+/// failure, time limit) loses no more than this, and a task of cheap points
+/// writes one pack.
+const TASK_FLUSH: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// What a task of a cluster did: its points, and those that failed.
 #[derive(Clone, Debug, Default)]
 pub struct TaskReport {
@@ -576,10 +606,10 @@ pub struct TaskReport {
 }
 
 /// Runs the sweep points `indices` of `p` as one task of a cluster: the
-/// points `chunk` at a time (one per CPU of the task), every chunk's entries
-/// — and its failures, with their reasons — written as one pack named
-/// `<prefix>-…`, nothing published, nothing gathered. The coordinator
-/// reads the packs.
+/// points `chunk` at a time (one per CPU of the task), their entries — and
+/// their failures, with the reasons — written as packs named `<prefix>-…`
+/// (one, or one per [`TASK_FLUSH`] of work), nothing published, nothing
+/// gathered. The coordinator reads the packs.
 pub fn run_task(
     p: &Pipeline,
     opts: &RunOptions,
@@ -609,9 +639,12 @@ pub fn run_task(
         lazy: true,
         progress: false,
         parallel: false,
+        not_computed: None,
     };
     let mut report = TaskReport::default();
-    for part in indices.chunks(chunk.max(1)) {
+    let mut flushed = Instant::now();
+    let parts: Vec<&[usize]> = indices.chunks(chunk.max(1)).collect();
+    for (n, part) in parts.iter().enumerate() {
         let outcomes: Vec<(usize, PointOutcome)> = part
             .par_iter()
             .map(|&i| (i, run_point(&runner, sw, i)))
@@ -636,7 +669,12 @@ pub fn run_task(
                 }
             }
         }
-        report.packs.extend(store.flush(prefix)?);
+        // One pack for the task, unless its points are slow: then one every
+        // `TASK_FLUSH` of work, so that a task killed late loses little.
+        if n + 1 == parts.len() || flushed.elapsed() >= TASK_FLUSH {
+            report.packs.extend(store.flush(prefix)?);
+            flushed = Instant::now();
+        }
     }
     Ok(report)
 }

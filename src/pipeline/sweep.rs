@@ -303,8 +303,12 @@ impl<'a> Gatherer<'a> {
 
     /// Adds point `index`'s table (points in increasing order).
     pub fn push(&mut self, index: usize, df: &DataFrame) -> Result<()> {
-        self.chunk
-            .push(with_point_columns(self.sw, index, &self.sw.values[index], df)?);
+        self.chunk.push(with_point_columns(
+            self.sw,
+            index,
+            &self.sw.values[index],
+            df,
+        )?);
         if self.chunk.len() >= GATHER_CHUNK {
             self.fold()?;
         }

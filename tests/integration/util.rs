@@ -23,6 +23,7 @@ pub fn run_pipeline(file: &Path, results: &Path, sets: &[&str]) -> run::RunRepor
             results_root: results.to_path_buf(),
             keep_going: false,
             progress: false,
+            not_computed: None,
         },
     )
     .unwrap();
