@@ -285,18 +285,21 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
 /// one chunk before it is written), so both hash the same bytes.
 pub struct Gatherer<'a> {
     sw: &'a Sweep,
-    done: Option<DataFrame>,
+    /// Each chunk's points stacked and made one contiguous chunk: a point's
+    /// table appended as it is stays a chunk of its own in every column,
+    /// and 100 000 points' chunks cost more to carry than their rows.
+    parts: Vec<DataFrame>,
     chunk: Vec<DataFrame>,
 }
 
-/// Points whose tables are concatenated at once.
+/// Points whose tables are stacked at once.
 const GATHER_CHUNK: usize = 256;
 
 impl<'a> Gatherer<'a> {
     pub fn new(sw: &'a Sweep) -> Gatherer<'a> {
         Gatherer {
             sw,
-            done: None,
+            parts: Vec::new(),
             chunk: Vec::new(),
         }
     }
@@ -316,26 +319,18 @@ impl<'a> Gatherer<'a> {
     }
 
     fn fold(&mut self) -> Result<()> {
-        if self.chunk.is_empty() {
-            return Ok(());
+        if !self.chunk.is_empty() {
+            let mut part = table::concat_diagonal(&std::mem::take(&mut self.chunk))?;
+            part.rechunk_mut();
+            self.parts.push(part);
         }
-        let mut parts: Vec<DataFrame> = self.done.take().into_iter().collect();
-        parts.push(table::concat_diagonal(&std::mem::take(&mut self.chunk))?);
-        self.done = Some(if parts.len() == 1 {
-            parts.pop().expect("one part")
-        } else {
-            table::concat_diagonal(&parts)?
-        });
         Ok(())
     }
 
     /// The gathered table and its Parquet bytes.
     pub fn finish(mut self) -> Result<(DataFrame, Vec<u8>)> {
         self.fold()?;
-        let mut df = match self.done {
-            Some(df) => df,
-            None => table::concat_diagonal(&[])?,
-        };
+        let mut df = table::concat_diagonal(&self.parts)?;
         df.rechunk_mut();
         let bytes = table::to_parquet_bytes(&df)?;
         Ok((df, bytes))
