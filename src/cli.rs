@@ -67,6 +67,12 @@ enum Command {
         #[command(flatten)]
         p: PipelineArgs,
     },
+    /// Read and verify every cached entry of a pipeline, loose and packed:
+    /// exit 1 if any is damaged (nothing is removed).
+    Verify {
+        #[command(flatten)]
+        p: PipelineArgs,
+    },
     /// Run a batch of sweep points as one task of a cluster job (the job
     /// scripts `--executor slurm` writes call this).
     #[command(hide = true)]
@@ -317,10 +323,15 @@ fn task_command(
             p.pipeline.display()
         );
     }
-    let pipeline = load(p)?;
-    let n = pipeline.sweep.as_ref().map_or(0, |sw| sw.len());
-    let indices =
-        cluster::parse_ranges(points, n).map_err(|e| InputError::arg(format!("--points: {e}")))?;
+    let indices = cluster::parse_ranges(points, pipeline::sweep::MAX_POINTS)
+        .map_err(|e| InputError::arg(format!("--points: {e}")))?;
+    let overrides = p
+        .set
+        .iter()
+        .map(|s| Override::parse(s))
+        .collect::<Result<Vec<_>>>()
+        .map_err(|e| InputError::arg(e.to_string()))?;
+    let pipeline = pipeline::load_for_points(&p.pipeline, &overrides, &indices)?;
     let started = std::time::Instant::now();
     eprintln!(
         "ltcal task {prefix}: {} points ({points}) of {} on {}",
@@ -571,6 +582,26 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             };
             print_out(&cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
             Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify { p } => {
+            let pipeline = load(&p)?;
+            let v = store(&p, &pipeline).verify();
+            for why in &v.problems {
+                eprintln!("  {why}");
+            }
+            println!(
+                "{}: {} loose entries, {} packed entries in {} packs, {} damaged",
+                pipeline.name,
+                v.loose,
+                v.packed,
+                v.packs,
+                v.problems.len()
+            );
+            Ok(if v.problems.is_empty() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(1)
+            })
         }
         Command::Task {
             p,

@@ -313,6 +313,15 @@ struct Pending {
     failures: Vec<pack::Failure>,
 }
 
+/// What [`Store::verify`] found.
+#[derive(Clone, Debug, Default)]
+pub struct Verified {
+    pub loose: usize,
+    pub packs: usize,
+    pub packed: usize,
+    pub problems: Vec<String>,
+}
+
 /// A failure a pack records: the sweep point, the stage, why, and the pack.
 #[derive(Clone, Debug)]
 pub struct PointFailure {
@@ -491,6 +500,49 @@ impl Store {
                 }
             }
         }
+    }
+
+    /// Reads and verifies every entry of the cache, loose and packed — what
+    /// `ltcal verify` runs: a served entry is one of these, so a cache that
+    /// passes serves nothing bad. Removes nothing.
+    pub fn verify(&self) -> Verified {
+        let mut v = Verified::default();
+        if let Ok(rd) = fs::read_dir(self.entries()) {
+            for e in rd.flatten() {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with('.') {
+                    continue;
+                }
+                v.loose += 1;
+                if let Err(why) = self.read_entry(&e.path(), &name) {
+                    v.problems
+                        .push(format!("entry {}: {why:#}", e.path().display()));
+                }
+            }
+        }
+        self.refresh_packs();
+        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+        if let Some(p) = guard.as_ref() {
+            v.packs = p.files.len();
+            for (path, why) in &p.unreadable {
+                v.problems.push(format!("pack {}: {why}", path.display()));
+            }
+            for (key, copies) in &p.by_key {
+                let hex = pack::key_hex(key);
+                for &(file, span) in copies {
+                    v.packed += 1;
+                    let path = &p.files[file as usize];
+                    if let Err(why) = read_packed(path, span, &hex) {
+                        v.problems.push(format!(
+                            "entry {} in pack {}: {why:#}",
+                            short(&hex),
+                            path.display()
+                        ));
+                    }
+                }
+            }
+        }
+        v
     }
 
     /// Packs that could not be read, and why (reported by the runner, and

@@ -114,3 +114,16 @@ pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipel
         raw::parse(src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
     Ok(resolve::resolve(&raw, overrides).map_err(InputError)?)
 }
+
+/// [`load`] for a cluster task: of the sweep, only the (increasing) points
+/// `points` are resolved at load ([`resolve::resolve_checking`]).
+pub fn load_for_points(
+    path: &Path,
+    overrides: &[Override],
+    points: &[usize],
+) -> anyhow::Result<Pipeline> {
+    let src = read(path).map_err(|p| InputError(vec![p]))?;
+    let raw =
+        raw::parse(&src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    Ok(resolve::resolve_checking(&raw, overrides, Some(points)).map_err(InputError)?)
+}

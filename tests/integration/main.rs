@@ -17,6 +17,7 @@ mod layout_design;
 mod report;
 mod runner;
 mod sensitivity;
+mod slurm;
 mod snapshots;
 mod sweep;
 mod synthetic;

@@ -520,7 +520,7 @@ fn wait(
 }
 
 fn count(points: &str) -> usize {
-    parse_ranges(points, usize::MAX).map_or(0, |v| v.len())
+    parse_ranges(points, super::sweep::MAX_POINTS).map_or(0, |v| v.len())
 }
 
 /// Why point `i` is not in the cache after its task ended: the

@@ -1,0 +1,418 @@
+//! `--executor slurm` against a real Slurm: a controller and three slurmd
+//! nodes on this machine, started by `.ci/slurm-up` (which `.ci/run` calls),
+//! found through `SLURM_CONF`. Without it these tests say so and pass —
+//! except under `CI=true`, where they must run.
+//!
+//! The tests share the cluster's three nodes, so they run one at a time.
+
+use super::util::root;
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+static CLUSTER: Mutex<()> = Mutex::new(());
+
+/// The cluster's folder (where `slurm.conf` is), or `None` to skip.
+fn cluster() -> Option<PathBuf> {
+    match std::env::var_os("SLURM_CONF") {
+        Some(conf) if Path::new(&conf).is_file() => {
+            Some(Path::new(&conf).parent().unwrap().to_path_buf())
+        }
+        _ if std::env::var("CI").is_ok_and(|v| v == "true") => {
+            panic!(
+                "CI=true but no Slurm cluster: .ci/run starts one with .ci/slurm-up and sets SLURM_CONF"
+            )
+        }
+        _ => {
+            eprintln!(
+                "skipped: no Slurm cluster (start one with `.ci/slurm-up` and set SLURM_CONF=<its folder>/slurm.conf)"
+            );
+            None
+        }
+    }
+}
+
+fn ltcal(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn data(name: &str) -> String {
+    root()
+        .join("tests/data/slurm")
+        .join(name)
+        .display()
+        .to_string()
+}
+
+fn squeue(job: &str) -> Vec<(String, String, String, String)> {
+    let o = Command::new("squeue")
+        .args(["-h", "-r", "-t", "all", "-j", job, "-o", "%i|%A|%T|%N"])
+        .output()
+        .unwrap();
+    String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split('|').collect();
+            (f.len() == 4).then(|| (f[0].into(), f[1].into(), f[2].into(), f[3].into()))
+        })
+        .collect()
+}
+
+fn jobs_record(results: &Path, pipeline: &str) -> serde_json::Value {
+    let b = std::fs::read(results.join(pipeline).join(".ltcal/slurm/jobs.json")).unwrap();
+    serde_json::from_slice(&b).unwrap()
+}
+
+fn files_under(dir: &Path) -> usize {
+    std::fs::read_dir(dir)
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| {
+                    if e.file_type().unwrap().is_dir() {
+                        files_under(&e.path())
+                    } else {
+                        1
+                    }
+                })
+                .sum()
+        })
+        .unwrap_or(0)
+}
+
+fn wait_until(what: &str, secs: u64, mut f: impl FnMut() -> bool) {
+    let t = Instant::now();
+    while !f() {
+        assert!(
+            t.elapsed() < Duration::from_secs(secs),
+            "timed out waiting for {what}"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// Kills node `n` as a power cut would: its slurmd (by its PID file) and
+/// every process of the jobs running there.
+fn kill_node(dir: &Path, node: &str, job_ids: &[String]) {
+    let pid = std::fs::read_to_string(dir.join(format!("slurmd-{node}.pid"))).unwrap();
+    Command::new("kill")
+        .args(["-9", pid.trim()])
+        .status()
+        .unwrap();
+    for e in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let env = std::fs::read(e.path().join("environ")).unwrap_or_default();
+        let cmd = std::fs::read(e.path().join("cmdline")).unwrap_or_default();
+        let env = String::from_utf8_lossy(&env);
+        let cmd = String::from_utf8_lossy(&cmd);
+        let ours = job_ids.iter().any(|j| {
+            env.split('\0').any(|v| v == format!("SLURM_JOB_ID={j}"))
+                || cmd.contains(&format!("[{j}.batch]"))
+        });
+        if ours {
+            let _ = Command::new("kill").args(["-9", &pid.to_string()]).status();
+        }
+    }
+}
+
+fn gathered(results: &Path, pipeline: &str, table: &str) -> Vec<u8> {
+    std::fs::read(
+        results
+            .join(pipeline)
+            .join("sweep")
+            .join(format!("{table}.parquet")),
+    )
+    .unwrap()
+}
+
+#[test]
+fn a_sweep_on_slurm_equals_the_local_run_in_one_array_over_several_nodes() {
+    let Some(dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (local, slurm) = (tmp.path().join("local"), tmp.path().join("slurm"));
+    let file = data("sweep.toml");
+    let o = ltcal(&["run", &file, "-q", "--results", local.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let args = [
+        "run",
+        &file,
+        "-q",
+        "--executor",
+        "slurm",
+        "--results",
+        slurm.to_str().unwrap(),
+    ];
+    let o = ltcal(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    // Value-identical: the same bytes.
+    assert_eq!(
+        gathered(&local, "slurm-sweep", "evaluation.criteria"),
+        gathered(&slurm, "slurm-sweep", "evaluation.criteria")
+    );
+    // One sbatch for the wave: one job, 24 points in 5 tasks of ≤ 5.
+    let jobs = jobs_record(&slurm, "slurm-sweep");
+    assert_eq!(jobs.as_array().unwrap().len(), 1, "{jobs}");
+    let job = jobs[0]["job"].as_str().unwrap().to_string();
+    assert_eq!(jobs[0]["units"].as_array().unwrap().len(), 5);
+    // The job record shows the array's tasks on more than one node.
+    let comp = std::fs::read_to_string(dir.join("jobcomp.txt")).unwrap();
+    let nodes: BTreeSet<&str> = comp
+        .lines()
+        .filter(|l| l.contains(&format!("ArrayJobId={job} ")))
+        .filter_map(|l| {
+            l.split_whitespace()
+                .find_map(|f| f.strip_prefix("NodeList="))
+        })
+        .collect();
+    assert!(nodes.len() >= 2, "tasks ran on {nodes:?}:\n{comp}");
+    // Few files: packs and logs, not entries (22 files a point before).
+    let files = files_under(&slurm.join("slurm-sweep"));
+    assert!(files <= 24, "{files} files for 24 points");
+    // A rerun finds every point in the cache and submits nothing.
+    let o = ltcal(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(
+        jobs_record(&slurm, "slurm-sweep").as_array().unwrap().len(),
+        1
+    );
+    let o = ltcal(&["verify", &file, "--results", slurm.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("0 damaged"), "{}", text(&o));
+}
+
+#[test]
+fn a_node_killed_and_a_task_cancelled_mid_run_fail_exactly_their_points_and_a_rerun_submits_only_those()
+ {
+    let Some(dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("r");
+    let r = results.to_str().unwrap();
+    let file = data("slow.toml");
+    let o = ltcal(&[
+        "run",
+        &file,
+        "-q",
+        "--executor",
+        "slurm",
+        "--detach",
+        "--results",
+        r,
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let job = jobs_record(&results, "slurm-slow")[0]["job"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // Three tasks of four points, one per node.
+    wait_until("three running tasks", 60, || {
+        squeue(&job).iter().filter(|t| t.2 == "RUNNING").count() == 3
+    });
+    let o = ltcal(&["status", &file, "--results", r]);
+    assert!(text(&o).contains("12 RUNNING"), "{}", text(&o));
+    let tasks = squeue(&job);
+    let on = |node: &str| tasks.iter().find(|t| t.3 == node).unwrap().clone();
+    let (killed, cancelled) = (on("n2"), on("n3"));
+    kill_node(&dir, "n2", std::slice::from_ref(&killed.1));
+    let c = Command::new("scancel").arg(&cancelled.0).status().unwrap();
+    assert!(c.success());
+    // The attached run adopts the job, waits for it and names what failed.
+    let o = ltcal(&["run", &file, "-q", "--executor", "slurm", "--results", r]);
+    let out = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    let index = |t: &(String, String, String, String)| -> usize {
+        t.0.rsplit('_').next().unwrap().parse().unwrap()
+    };
+    let units = jobs_record(&results, "slurm-slow")[0]["units"].clone();
+    let points_of = |k: usize| -> Vec<usize> {
+        let first = units[k]["first"].as_u64().unwrap() as usize;
+        (first..first + 4).collect()
+    };
+    let failed_by = |word: &str| -> BTreeSet<usize> {
+        out.lines()
+            .filter(|l| l.contains(word))
+            .filter_map(|l| {
+                l.split("sweep point ")
+                    .nth(1)?
+                    .split(' ')
+                    .next()?
+                    .parse()
+                    .ok()
+            })
+            .collect()
+    };
+    assert_eq!(
+        failed_by("NODE_FAIL on n2"),
+        points_of(index(&killed)).into_iter().collect(),
+        "{out}"
+    );
+    assert_eq!(
+        failed_by("ended CANCELLED"),
+        points_of(index(&cancelled)).into_iter().collect(),
+        "{out}"
+    );
+    assert!(
+        out.contains(&format!("Slurm job {job}, array task")),
+        "{out}"
+    );
+    assert!(out.contains("log "), "{out}");
+    // Nothing bad is served.
+    let v = ltcal(&["verify", &file, "--results", r]);
+    assert!(v.status.success(), "{}", text(&v));
+    // The node comes back; a rerun submits the eight missing points only.
+    let conf = dir.join("slurm.conf");
+    let s = Command::new("slurmd")
+        .args(["-f", conf.to_str().unwrap(), "-N", "n2"])
+        .status()
+        .unwrap();
+    assert!(s.success());
+    wait_until("n2 back", 60, || {
+        let o = Command::new("sinfo")
+            .args(["-h", "-n", "n2", "-o", "%T"])
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&o.stdout).trim() == "idle"
+    });
+    let o = ltcal(&["run", &file, "-q", "--executor", "slurm", "--results", r]);
+    assert!(o.status.success(), "{}", text(&o));
+    let jobs = jobs_record(&results, "slurm-slow");
+    let last = jobs.as_array().unwrap().last().unwrap();
+    let resubmitted: BTreeSet<usize> = last["units"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|u| {
+            let (a, b) = (u["first"].as_u64().unwrap(), u["last"].as_u64().unwrap());
+            a as usize..=b as usize
+        })
+        .collect();
+    let expected: BTreeSet<usize> = points_of(index(&killed))
+        .into_iter()
+        .chain(points_of(index(&cancelled)))
+        .collect();
+    assert_eq!(resubmitted, expected);
+    // And the tables are the local run's.
+    let local = tmp.path().join("local");
+    let o = ltcal(&["run", &file, "-q", "--results", local.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(
+        gathered(&local, "slurm-slow", "uncertainty.params"),
+        gathered(&results, "slurm-slow", "uncertainty.params")
+    );
+    let v = ltcal(&["verify", &file, "--results", r]);
+    assert!(v.status.success(), "{}", text(&v));
+}
+
+#[test]
+fn sigterm_to_the_coordinator_cancels_its_jobs() {
+    let Some(_dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("r");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args([
+            "run",
+            &data("slow.toml"),
+            "-q",
+            "--executor",
+            "slurm",
+            "--results",
+        ])
+        .arg(&results)
+        .current_dir(root())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let jobs = results.join("slurm-slow/.ltcal/slurm/jobs.json");
+    wait_until("the submission", 60, || jobs.exists());
+    let job = jobs_record(&results, "slurm-slow")[0]["job"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    wait_until("a running task", 60, || {
+        squeue(&job).iter().any(|t| t.2 == "RUNNING")
+    });
+    Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!("interrupted: cancelled Slurm job {job}")),
+        "{err}"
+    );
+    // Cancelled: none ran on (a task may have completed before).
+    wait_until("every task cancelled or completed", 60, || {
+        let t = squeue(&job);
+        t.iter().any(|t| t.2 == "CANCELLED")
+            && t.iter().all(|t| t.2 == "CANCELLED" || t.2 == "COMPLETED")
+    });
+}
+
+#[test]
+fn a_task_of_another_binary_or_pipeline_file_refuses_and_writes_nothing() {
+    // No cluster needed: the task is what the job script runs.
+    let tmp = tempfile::tempdir().unwrap();
+    let r = tmp.path().to_str().unwrap();
+    let file = data("sweep.toml");
+    let text_hash = blake3::hash(&std::fs::read(&file).unwrap())
+        .to_hex()
+        .to_string();
+    let task = |code: &str, hash: &str| {
+        ltcal(&[
+            "task",
+            &file,
+            "--results",
+            r,
+            "--points",
+            "0-1",
+            "--code",
+            code,
+            "--pipeline-hash",
+            hash,
+            "--prefix",
+            "slurm-1_0",
+        ])
+    };
+    let o = task("0123456789abcdef", &text_hash);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        text(&o).contains("is not the coordinator's (code 0123456789ab)"),
+        "{}",
+        text(&o)
+    );
+    let o = task(ltcal::CODE_FINGERPRINT, "feed");
+    assert!(
+        text(&o).contains("changed since the job was submitted"),
+        "{}",
+        text(&o)
+    );
+    assert_eq!(files_under(tmp.path()), 0);
+    // The right binary and file: two points, one pack.
+    let o = task(ltcal::CODE_FINGERPRINT, &text_hash);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("2 ran, 0 cached, 0 failed"),
+        "{}",
+        text(&o)
+    );
+    assert_eq!(files_under(tmp.path()), 1);
+}
