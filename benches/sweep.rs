@@ -3,6 +3,13 @@
 //! pool of 1 thread and of 2 threads. Points are the parallel unit: the
 //! ratio of the two medians is the sweep's scaling.
 //!
+//! `cached_sweep/<n>`: the coordinator's cost per point — loading a
+//! sweep of a cheap stage chain (inject, mesh, measure over `n` seeds),
+//! checking every point in the cache, gathering its table — with every
+//! point cached (the rerun of a finished or resumed sweep), at 1 000,
+//! 4 000 and 16 000 points: the median over `n` is the cost of a cached
+//! point, their growth how it scales.
+//!
 //!     cargo bench --bench sweep
 
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
@@ -81,5 +88,66 @@ fn sweep_points(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, sweep_points);
+fn cheap_sweep(points: usize) -> String {
+    format!(
+        r#"
+[pipeline]
+name = "bench-cached-{points}"
+
+[stages.truth]
+kind = "inject"
+
+[stages.target]
+kind = "mesh"
+shape = "plane"
+x_mm = 3000.0
+y = {{ from = 0, to = 0, step = 1 }}
+z = {{ from = 0, to = 0, step = 1 }}
+
+[stages.reading]
+kind = "measure"
+inputs = {{ points = "target", errors = "truth" }}
+noise = {{ sigma_angle_urad = 1.0, sigma_range_um = 2.0 }}
+
+[[sweep.axis]]
+path = "stages.reading.seed"
+range = {{ from = 0, to = {}, step = 1 }}
+
+[sweep]
+gather = ["reading.readings"]
+"#,
+        points - 1
+    )
+}
+
+fn cached_sweep(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut g = c.benchmark_group("cached_sweep");
+    g.sample_size(10);
+    for points in [1000, 4000, 16000] {
+        let file = dir.path().join(format!("cached-{points}.toml"));
+        std::fs::write(&file, cheap_sweep(points)).unwrap();
+        let results = dir.path().join("results");
+        let rerun = |expect_ran: usize| {
+            let p = pipeline::load(&file, &[]).unwrap();
+            let r = run::run(
+                &p,
+                &run::RunOptions {
+                    results_root: results.clone(),
+                    keep_going: false,
+                    progress: false,
+                    not_computed: None,
+                },
+            )
+            .unwrap();
+            let sweep = r.sweep.unwrap();
+            assert_eq!((sweep.ran, sweep.cached), (expect_ran, points - expect_ran));
+        };
+        rerun(points);
+        g.bench_function(format!("{points}_points"), |b| b.iter(|| rerun(0)));
+    }
+    g.finish();
+}
+
+criterion_group!(benches, sweep_points, cached_sweep);
 criterion_main!(benches);
