@@ -344,10 +344,12 @@ fn execute_stages(
     (reports, produced)
 }
 
-/// Sweep points run at once and written as one pack in a local run: large
-/// enough that a pack holds many points (few files), small enough that a
-/// killed run loses little and the coordinator holds little.
-const LOCAL_CHUNK: usize = 256;
+/// A local run writes the new entries of its points as a pack every
+/// `PACK_POINTS` points or `PACK_SECONDS` of work, whichever comes first:
+/// many points to a file for cheap points, and little lost to a kill for
+/// slow ones (a resumed sweep redoes at most that).
+const PACK_POINTS: usize = 256;
+const PACK_SECONDS: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// Runs every point of a sweep (points in parallel, each point's stages
 /// cached like any), gathers the chosen tables with the swept values as
@@ -357,7 +359,7 @@ const LOCAL_CHUNK: usize = 256;
 fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced, SweepReport)> {
     let bar = progress_bar(runner.progress, sw.len());
     let all: Vec<usize> = (0..sw.len()).collect();
-    let done = run_point_set(runner, sw, &all, LOCAL_CHUNK, "local", true, &bar)?;
+    let done = run_point_set(runner, sw, &all, "local", true, &bar)?;
     bar.finish_and_clear();
     let PointsDone {
         reports,
@@ -423,16 +425,15 @@ struct PointOutcome {
     gathered: Vec<Option<Arc<DataFrame>>>,
 }
 
-/// Runs the sweep points `indices` (increasing) a chunk at a time: a
-/// chunk's points in parallel, then the chunk's new entries written as one
-/// pack named `<prefix>-…`, its gathered tables folded in and the rest of
-/// its outcomes dropped — what the coordinator holds does not grow with the
-/// points but by their gathered rows.
+/// Runs the sweep points `indices` (increasing) a few per thread at a time,
+/// in parallel; their new entries are written as packs named `<prefix>-…`
+/// ([`PACK_POINTS`], [`PACK_SECONDS`]), their gathered tables folded in and
+/// the rest of their outcomes dropped — what the coordinator holds does
+/// not grow with the points but by their gathered rows.
 fn run_point_set<'a>(
     runner: &Runner,
     sw: &'a Sweep,
     indices: &[usize],
-    chunk: usize,
     prefix: &str,
     gather: bool,
     bar: &indicatif::ProgressBar,
@@ -455,7 +456,10 @@ fn run_point_set<'a>(
     // Per per-point stage: its first report, how many points ran it, seconds.
     let mut per_stage: Vec<(StageReport, usize, f64)> = Vec::new();
     let mut failures: Vec<StageReport> = Vec::new();
-    for part in indices.chunks(chunk.max(1)) {
+    let batch = 4 * rayon::current_num_threads();
+    let (mut unpacked, mut flushed) = (0, Instant::now());
+    let parts: Vec<&[usize]> = indices.chunks(batch).collect();
+    for (n, part) in parts.iter().enumerate() {
         let outcomes: Vec<PointOutcome> = part
             .par_iter()
             .map(|&i| {
@@ -464,7 +468,11 @@ fn run_point_set<'a>(
                 out
             })
             .collect();
-        runner.store.flush(prefix)?;
+        unpacked += part.len();
+        if n + 1 == parts.len() || unpacked >= PACK_POINTS || flushed.elapsed() >= PACK_SECONDS {
+            runner.store.flush(prefix)?;
+            (unpacked, flushed) = (0, Instant::now());
+        }
         for (&i, out) in part.iter().zip(outcomes) {
             let failed: Vec<&StageReport> = out
                 .reports

@@ -325,7 +325,7 @@ fn sigterm_to_the_coordinator_cancels_its_jobs() {
     let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let results = tmp.path().join("r");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+    let child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
         .args([
             "run",
             &data("slow.toml"),

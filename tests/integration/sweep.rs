@@ -157,9 +157,9 @@ fn sweep_results_do_not_depend_on_the_number_of_threads() {
 #[test]
 fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
     let dir = tempfile::tempdir().unwrap();
-    let file = sweep_file(dir.path(), "killed", 20, 10);
+    let file = sweep_file(dir.path(), "killed", 40, 10);
     let killed = dir.path().join("killed-results");
-    let cache = killed.join("killed").join(".ltcal").join("cache");
+    let packs = killed.join("killed").join(".ltcal").join("packs");
     let mut child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
         .args([
             "run",
@@ -172,11 +172,17 @@ fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    // Kill once about a third of the points' entries exist.
+    // Kill once the first pack of points' entries exists.
     let t0 = Instant::now();
     loop {
-        let n = std::fs::read_dir(&cache).map(|d| d.count()).unwrap_or(0);
-        if n >= 200 || t0.elapsed() > Duration::from_secs(60) {
+        let n = std::fs::read_dir(&packs)
+            .map(|d| {
+                d.flatten()
+                    .filter(|e| e.path().extension().is_some_and(|x| x == "pack"))
+                    .count()
+            })
+            .unwrap_or(0);
+        if n >= 1 || t0.elapsed() > Duration::from_secs(60) {
             break;
         }
         if child.try_wait().unwrap().is_some() {
@@ -188,7 +194,7 @@ fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
     child.wait().unwrap();
     let resumed = run_pipeline(&file, &killed, &[]);
     let sw = resumed.sweep.unwrap();
-    assert_eq!(sw.ran + sw.cached, 200);
+    assert_eq!(sw.ran + sw.cached, 400);
     assert!(
         sw.cached >= 30 && sw.ran >= 30,
         "cached {} ran {}: the kill should fall mid-sweep",
@@ -368,15 +374,23 @@ fn plan_explain_and_show_follow_a_sweep_that_grew() {
     assert_code(&out, 1);
     assert!(stderr(&out).contains("differs from the result it was published from"));
 
-    // Shrunk back: the last runs recorded at points 8 and 9 are forgotten.
-    let recorded = || -> Vec<String> {
-        let b = std::fs::read(dir.path().join("grows/.ltcal/last/sweep-points.json")).unwrap();
-        let v: serde_json::Value = serde_json::from_slice(&b).unwrap();
-        v.as_object().unwrap().keys().cloned().collect()
-    };
-    assert_eq!(recorded().len(), 10);
-    run_pipeline(&sweep_file(dir.path(), "grows", 4, 2), dir.path(), &[]);
-    assert_eq!(recorded(), ["0", "1", "2", "3", "4", "5", "6", "7"]);
+    // Shrunk back: points 8 and 9 are no longer points of the sweep, and
+    // every remaining point is cached (its record of the last run is in
+    // the packs, 32 bytes a stage).
+    let small = sweep_file(dir.path(), "grows", 4, 2);
+    let shrunk = run_pipeline(&small, dir.path(), &[]);
+    assert_eq!(shrunk.sweep.unwrap().cached, 8);
+    let fs = small.to_str().unwrap();
+    let out = ltcal(
+        dir.path(),
+        &["explain", fs, "--results", r, "corner", "--point", "9"],
+    );
+    assert_code(&out, 2);
+    assert!(
+        stderr(&out).contains("the sweep has 8 points"),
+        "{}",
+        stderr(&out)
+    );
 }
 
 /// Regression: with an axis over a stage's input, the stages of one point
