@@ -222,6 +222,15 @@ impl<'a> TableRef<'a> {
         self.required(col, c.str()?.iter().map(|v| v.map(str::to_string)))
     }
 
+    /// A boolean column with missing values.
+    pub fn opt_bool(&self, col: &str) -> Result<Vec<Option<bool>>> {
+        let c = self.column(col)?;
+        let s = c
+            .bool()
+            .map_err(|_| anyhow!("table `{}`, column `{col}` is not boolean", self.name))?;
+        Ok(s.iter().collect())
+    }
+
     pub fn bool(&self, col: &str) -> Result<Vec<bool>> {
         let c = self.column(col)?;
         let s = c

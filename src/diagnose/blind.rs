@@ -89,6 +89,13 @@ impl CaseKind {
         }
     }
 
+    /// The kind a name (as [`CaseKind::name`] writes it) stands for.
+    pub fn parse(name: &str) -> Option<CaseKind> {
+        std::iter::once(CaseKind::None)
+            .chain(CaseKind::ALL)
+            .find(|k| k.name() == name)
+    }
+
     /// One effect or none, no blunder: scored by what is named first.
     pub fn is_single(self) -> bool {
         matches!(
@@ -102,6 +109,11 @@ impl CaseKind {
 #[derive(Clone, Debug)]
 pub struct Plan {
     pub cases: usize,
+    /// The number of the first case: cases `first … first + cases − 1`, each
+    /// drawn from `(seed, its number)` alone, so a check split into blocks
+    /// (a sweep over `first_case`, every block a sweep point) draws the
+    /// same cases as one check of them all.
+    pub first: usize,
     pub seed: u64,
     pub layouts: Vec<Kind>,
     /// Station counts, drawn uniformly from this inclusive range.
@@ -668,7 +680,7 @@ fn score_set(
 /// Runs every case (in parallel; the result does not depend on the
 /// number of threads: each case has its own random stream).
 pub fn run(plan: &Plan) -> Result<Vec<Case>> {
-    (0..plan.cases)
+    (plan.first..plan.first + plan.cases)
         .into_par_iter()
         .map(|k| run_case(plan, k))
         .collect()

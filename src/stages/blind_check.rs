@@ -7,6 +7,7 @@
 //! [stages.blind]
 //! kind = "blind_check"
 //! cases = 200
+//! first_case = 0                       # cases first_case … first_case + cases − 1
 //! seed = 1
 //! layouts = ["corner", "hall", "cmm-table"]
 //! stations = [4, 6]                    # inclusive range
@@ -23,6 +24,12 @@
 //! mc_draws = 20
 //! ```
 //!
+//! A case is drawn from `seed` and its number alone, so a big check can be
+//! split into blocks of cases — a sweep over `first_case`, each block a
+//! sweep point that a cluster runs as a task of its own — and scored whole
+//! by `blind_summary` on the gathered `cases`: the same cases and the same
+//! scores as one check of them all.
+//!
 //! Outputs: `cases` (one row per campaign: `case`, `kind`, `layout`, `stations`,
 //! `readings`, `sigma_angle_urad`, `sigma_range_um`, `true_effect`,
 //! `true_where`, `true_magnitude`, `signal_chi2`, `detectable`,
@@ -30,7 +37,7 @@
 //! `where_correct`, `magnitude_ratio`, and the case as a set: `true_set`,
 //! `named_set`, `members`, `members_detectable`, `members_found`,
 //! `spurious`, `blunders`, `blunders_found`, `false_blunders`,
-//! `time_effect_without_time`), `confusion` (single-effect kinds; `subset`
+//! `time_effect_without_time`, `detectable_blunders`, `clean_readings`), `confusion` (single-effect kinds; `subset`
 //! = all or detectable, `true_effect`, `named_effect`, `count`), `summary`
 //! (single-effect kinds: `subset`, `cases`, `effect_accuracy_pct` over
 //! campaigns with an effect, `where_accuracy_pct` over those with a station
@@ -57,6 +64,8 @@ use serde::{Deserialize, Serialize};
 pub struct BlindCheckStage {
     #[serde(default = "default_cases")]
     pub cases: usize,
+    #[serde(default)]
+    pub first_case: usize,
     #[serde(default)]
     pub seed: u64,
     #[serde(default = "default_layouts")]
@@ -101,7 +110,7 @@ fn default_range() -> [f64; 2] {
 fn default_none() -> f64 {
     0.25
 }
-fn default_effects() -> Vec<String> {
+pub(super) fn default_effects() -> Vec<String> {
     effects::IDS[..7].iter().map(|s| s.to_string()).collect()
 }
 fn default_kinds() -> Vec<CaseKind> {
@@ -121,6 +130,7 @@ impl BlindCheckStage {
     pub fn plan(&self) -> Plan {
         Plan {
             cases: self.cases,
+            first: self.first_case,
             seed: self.seed,
             layouts: self.layouts.clone(),
             stations: (self.stations[0], self.stations[1]),
@@ -175,6 +185,8 @@ impl StageKind for BlindCheckStage {
                 "blunders_found",
                 "false_blunders",
                 "time_effect_without_time",
+                "detectable_blunders",
+                "clean_readings",
             ]),
             "kinds" => Some(&[
                 "kind",
@@ -208,6 +220,12 @@ impl StageKind for BlindCheckStage {
         if !(1..=100_000).contains(&self.cases) {
             out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
         }
+        if self.first_case > 100_000_000 {
+            out.push(Invalid::new(
+                "first_case",
+                "`first_case` must be 0 … 100000000",
+            ));
+        }
         if self.layouts.is_empty() {
             out.push(Invalid::new(
                 "layouts",
@@ -240,17 +258,7 @@ impl StageKind for BlindCheckStage {
                 "`none_fraction` must lie in [0, 1]",
             ));
         }
-        for (i, e) in self.effects.iter().enumerate() {
-            if !effects::IDS[..7].contains(&e.as_str()) {
-                out.push(Invalid::new(
-                    format!("effects.{i}"),
-                    format!(
-                        "`{e}` is not an effect to hide; one of {}",
-                        effects::IDS[..7].join(", ")
-                    ),
-                ));
-            }
-        }
+        out.extend(invalid_effects(&self.effects));
         if self.kinds.is_empty() || self.kinds.contains(&CaseKind::None) {
             out.push(Invalid::new(
                 "kinds",
@@ -268,47 +276,71 @@ impl StageKind for BlindCheckStage {
 
     fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
         let cases = blind::run(&self.plan())?;
-        let labels: Vec<String> = std::iter::once("none".to_string())
-            .chain(self.effects.iter().cloned())
-            .collect();
-        // The single-effect kinds are scored by what is named first.
-        let single: Vec<&Case> = cases.iter().filter(|c| c.kind.is_single()).collect();
-        let detectable: Vec<&Case> = single.iter().copied().filter(|c| c.detectable).collect();
-        let matrix = |subset: &[&Case]| -> Vec<Vec<usize>> {
-            labels
-                .iter()
-                .map(|t| {
-                    labels
-                        .iter()
-                        .map(|n| {
-                            subset
-                                .iter()
-                                .filter(|c| &c.truth.effect == t && &c.named_effect == n)
-                                .count()
-                        })
-                        .collect()
-                })
-                .collect()
-        };
-        let all = single;
-        let svg = plots::confusion_matrix(
-            "Blind check: true effect (rows) against the diagnosis (columns), detectable cases",
-            &labels,
-            &matrix(&detectable),
-        )?;
-        Ok(StageOutput::default()
-            .table("summary", summary(&all, &detectable)?)
-            .table("cases", cases_table(&cases)?)
-            .table(
-                "confusion",
-                confusion_table(
-                    &labels,
-                    &[("all", matrix(&all)), ("detectable", matrix(&detectable))],
-                )?,
-            )
-            .table("kinds", kinds_table(&cases)?)
-            .file("confusion.svg".into(), svg.into_bytes()))
+        scored(&cases, &self.effects)
     }
+}
+
+/// The effect ids that are not effects a blind check hides, at their place.
+pub(super) fn invalid_effects(ids: &[String]) -> Vec<Invalid> {
+    ids.iter()
+        .enumerate()
+        .filter(|(_, e)| !effects::IDS[..7].contains(&e.as_str()))
+        .map(|(i, e)| {
+            Invalid::new(
+                format!("effects.{i}"),
+                format!(
+                    "`{e}` is not an effect to hide; one of {}",
+                    effects::IDS[..7].join(", ")
+                ),
+            )
+        })
+        .collect()
+}
+
+/// The outputs of a blind check of `cases`, `effects` the ids its
+/// confusion matrix has rows and columns for (with `none`): what
+/// `blind_check` writes, and `blind_summary` of the same cases gathered.
+pub(super) fn scored(cases: &[Case], effects: &[String]) -> Result<StageOutput> {
+    let labels: Vec<String> = std::iter::once("none".to_string())
+        .chain(effects.iter().cloned())
+        .collect();
+    // The single-effect kinds are scored by what is named first.
+    let single: Vec<&Case> = cases.iter().filter(|c| c.kind.is_single()).collect();
+    let detectable: Vec<&Case> = single.iter().copied().filter(|c| c.detectable).collect();
+    let matrix = |subset: &[&Case]| -> Vec<Vec<usize>> {
+        labels
+            .iter()
+            .map(|t| {
+                labels
+                    .iter()
+                    .map(|n| {
+                        subset
+                            .iter()
+                            .filter(|c| &c.truth.effect == t && &c.named_effect == n)
+                            .count()
+                    })
+                    .collect()
+            })
+            .collect()
+    };
+    let all = single;
+    let svg = plots::confusion_matrix(
+        "Blind check: true effect (rows) against the diagnosis (columns), detectable cases",
+        &labels,
+        &matrix(&detectable),
+    )?;
+    Ok(StageOutput::default()
+        .table("summary", summary(&all, &detectable)?)
+        .table("cases", cases_table(cases)?)
+        .table(
+            "confusion",
+            confusion_table(
+                &labels,
+                &[("all", matrix(&all)), ("detectable", matrix(&detectable))],
+            )?,
+        )
+        .table("kinds", kinds_table(cases)?)
+        .file("confusion.svg".into(), svg.into_bytes()))
 }
 
 /// Set-level accuracy per kind drawn, then over every case.
@@ -454,6 +486,8 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
                 .map(|c| c.set.time_effect_without_time)
                 .collect(),
         )
+        .i64("detectable_blunders", n(|c| c.set.detectable_blunders))
+        .i64("clean_readings", n(|c| c.set.clean_readings))
         .build()
 }
 

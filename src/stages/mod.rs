@@ -8,6 +8,7 @@
 
 pub mod b89_tests;
 pub mod blind_check;
+pub mod blind_summary;
 pub mod calibrate;
 mod campaign_tables;
 pub mod compare_models;
@@ -341,6 +342,7 @@ stage_kinds! {
     EvaluateCampaign => evaluate_campaign::EvaluateCampaignStage,
     Diagnose => diagnose::DiagnoseStage,
     BlindCheck => blind_check::BlindCheckStage,
+    BlindSummary => blind_summary::BlindSummaryStage,
     PaperGap => paper_gap::PaperGapStage,
     ImportCampaign => import_campaign::ImportCampaignStage,
     ExportCampaign => export_campaign::ExportCampaignStage,

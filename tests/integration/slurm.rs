@@ -367,6 +367,72 @@ fn sigterm_to_the_coordinator_cancels_its_jobs() {
     });
 }
 
+/// The blind check of one pipeline file, its blocks of cases scored whole.
+fn one_check_of(blocks_file: &str, cases: usize) -> String {
+    let text = std::fs::read_to_string(blocks_file).unwrap();
+    let head = &text[..text.find("[[sweep.axis]]").unwrap()];
+    head.replace("name = \"blind-blocks\"", "name = \"blind-whole\"")
+        .replace("cases = 4\n", &format!("cases = {cases}\n"))
+}
+
+/// Every table of `blind_summary` over the gathered blocks equals the one
+/// check of the same cases, wherever the blocks ran.
+fn assert_scores_equal_one_check(results: &Path, blocks: &str) {
+    let tmp = tempfile::tempdir().unwrap();
+    let whole = tmp.path().join("whole.toml");
+    std::fs::write(&whole, one_check_of(blocks, 12)).unwrap();
+    let o = ltcal(&[
+        "run",
+        whole.to_str().unwrap(),
+        "-q",
+        "--results",
+        results.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    for t in ["summary", "kinds", "confusion", "cases"] {
+        let a = std::fs::read(
+            results
+                .join("blind-blocks/scores")
+                .join(format!("{t}.parquet")),
+        )
+        .unwrap();
+        let b = std::fs::read(
+            results
+                .join("blind-whole/blind")
+                .join(format!("{t}.parquet")),
+        )
+        .unwrap();
+        assert_eq!(a, b, "table {t}");
+    }
+}
+
+#[test]
+fn a_blind_check_split_into_sweep_points_scores_as_one_check_locally_and_on_slurm() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = data("blind-blocks.toml");
+    let local = tmp.path().join("local");
+    let o = ltcal(&["run", &file, "-q", "--results", local.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_scores_equal_one_check(&local, &file);
+    let Some(_dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let slurm = tmp.path().join("slurm");
+    let o = ltcal(&[
+        "run",
+        &file,
+        "-q",
+        "--executor",
+        "slurm",
+        "--results",
+        slurm.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    // Each block an array task of one job.
+    let jobs = jobs_record(&slurm, "blind-blocks");
+    assert_eq!(jobs[0]["units"].as_array().unwrap().len(), 3);
+    assert_scores_equal_one_check(&slurm, &file);
+}
+
 #[test]
 fn a_task_of_another_binary_or_pipeline_file_refuses_and_writes_nothing() {
     // No cluster needed: the task is what the job script runs.
