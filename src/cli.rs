@@ -1,4 +1,4 @@
-//! The command line: `ltcal run`, `plan`, `explain`, `graph`, `snapshot`,
+//! The command line: `ltcal run`, `status`, `verify`, `task`, `plan`, `explain`, `graph`, `snapshot`,
 //! `show`, `kinds`.
 
 use crate::pipeline::{

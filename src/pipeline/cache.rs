@@ -10,6 +10,16 @@
 //! sees a complete entry or none. On reuse every file is hashed again: a
 //! truncated, flipped or edited file is reported and the entry recomputed.
 //!
+//! A sweep point's entries are not loose folders but go into **packs**
+//! ([`super::pack`]): kept in memory ([`Store::put_packed`]) until the
+//! runner writes them as one file ([`Store::flush`]), then found through the
+//! packs' indexes, which every process reads (and a coordinator re-reads,
+//! [`Store::refresh_packs`], to see what a cluster's tasks wrote). A packed
+//! entry is verified as a loose one when read; a bad copy is passed over
+//! (a pack is never edited) and the entry recomputed into a new pack. The
+//! packs also record which stages ran at each point (what `explain`
+//! compares with) and, for a cluster task, which failed and why.
+//!
 //! # Concurrency and killed runs
 //!
 //! There is no lock, by design. Two `ltcal run`s on one folder may compute
