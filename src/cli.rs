@@ -277,6 +277,9 @@ fn summarize(report: &run::RunReport) -> ExitCode {
             s.cache_problem.as_deref().unwrap_or_default()
         );
     }
+    for p in &report.unreadable_packs {
+        eprintln!("  DAMAGED pack, not read (its points are recomputed): {p}");
+    }
     for s in report.stages.iter().filter(|s| s.status == Status::Skipped) {
         eprintln!("  skipped `{}`: {}", s.stage, s.reason);
     }
@@ -306,6 +309,15 @@ fn task_command(
     prefix: &str,
     cpus: usize,
 ) -> Result<ExitCode> {
+    if prefix.is_empty()
+        || !prefix
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+    {
+        return Err(InputError::arg(format!(
+            "--prefix {prefix:?}: letters, digits, `_` and `-` only (it names the task's packs)"
+        )));
+    }
     if code != crate::CODE_FINGERPRINT {
         bail!(
             "this ltcal binary ({}) is not the coordinator's (code {}): it was rebuilt since the \
@@ -337,7 +349,7 @@ fn task_command(
         "ltcal task {prefix}: {} points ({points}) of {} on {}",
         indices.len(),
         pipeline.name,
-        crate::fs::host()
+        crate::fs::host_name()
     );
     let opts = run::RunOptions {
         results_root: p.results.clone(),
@@ -546,9 +558,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 }
                 return Ok(summarize(&run::run(&pipeline, &opts)?));
             }
+            // The first Ctrl-C or SIGTERM sets the flag the coordinator
+            // acts on (cancelling its jobs while it waits); a second one
+            // ends the process as the signal would.
             let interrupted = Arc::new(AtomicBool::new(false));
             for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-                signal_hook::flag::register(sig, interrupted.clone())
+                signal_hook::flag::register_conditional_default(sig, interrupted.clone())
+                    .and_then(|_| signal_hook::flag::register(sig, interrupted.clone()))
                     .context("watching for Ctrl-C")?;
             }
             let cluster = cluster::ClusterOptions {
@@ -589,13 +605,17 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             for why in &v.problems {
                 eprintln!("  {why}");
             }
+            for why in &v.superseded {
+                eprintln!("  (not served: another copy is good) {why}");
+            }
             println!(
-                "{}: {} loose entries, {} packed entries in {} packs, {} damaged",
+                "{}: {} loose entries, {} packed entries in {} packs, {} damaged, {} damaged copies superseded",
                 pipeline.name,
                 v.loose,
                 v.packed,
                 v.packs,
-                v.problems.len()
+                v.problems.len(),
+                v.superseded.len()
             );
             Ok(if v.problems.is_empty() {
                 ExitCode::SUCCESS

@@ -37,21 +37,21 @@ pub fn temp_name() -> String {
     )
 }
 
-/// This machine's name, letters and digits only (it sits inside names
-/// split at `-` and `.`), at most 24 of them.
+/// This machine's name as it is (for messages).
+pub fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .or_else(|_| std::env::var("HOSTNAME"))
+        .map(|h| h.trim().to_string())
+        .unwrap_or_default()
+}
+
+/// This machine in temporary names: the first 12 hex digits of the blake3
+/// of its name — letters and digits only (it sits inside names split at
+/// `-` and `.`), and two machines' names do not collide the way they
+/// would with their other characters dropped (`r1-12`, `r11-2`).
 pub fn host() -> &'static str {
     static HOST: std::sync::OnceLock<String> = std::sync::OnceLock::new();
-    HOST.get_or_init(|| {
-        let raw = std::fs::read_to_string("/proc/sys/kernel/hostname")
-            .or_else(|_| std::env::var("HOSTNAME"))
-            .unwrap_or_default();
-        let h: String = raw
-            .chars()
-            .filter(char::is_ascii_alphanumeric)
-            .take(24)
-            .collect();
-        if h.is_empty() { "host".into() } else { h }
-    })
+    HOST.get_or_init(|| blake3::hash(host_name().as_bytes()).to_hex()[..12].to_string())
 }
 
 /// Whether the process that made `name` — a [`temp_name`], possibly

@@ -29,14 +29,19 @@
 //! hashes everything an output depends on and stages are deterministic, so
 //! both copies are identical and losing the race costs only time. A run
 //! looks each stage up just before it would compute it, so it reuses every
-//! entry another run has finished by then.
+//! loose entry another run has finished by then; of packs, those written
+//! before it first looked (a process reads the packs' indexes once, and a
+//! coordinator again after its tasks ran). Two runs computing the same
+//! sweep point write two packs holding identical copies; either serves.
 //!
 //! A lock would serialise runs for no gain in correctness, and a lock held
 //! by a SIGKILLed process has to be recognised and broken — a guess about
 //! another process on the path that decides what is served. Here a dead
 //! process can neither block nor mislead a live one: its temporary
-//! directories and files are never read, and the next run removes them once
-//! their process id is gone (a guess that can only delay a clean-up). A key
+//! directories and files are never read, and the next run on the same
+//! machine removes them once their process id is gone (a guess that can
+//! only delay a clean-up; a temporary made on another machine is left to
+//! the runs there). A key
 //! directory without `manifest.json` cannot come from [`Store::put`]; if one
 //! appears it is treated as incomplete, ignored and removed.
 
@@ -252,7 +257,8 @@ pub struct Entry {
 pub enum Lookup {
     Hit(Box<Entry>),
     Miss,
-    /// The entry existed but failed verification; it has been removed.
+    /// The entry existed but failed verification; a loose one has been
+    /// removed, a packed copy is passed over from now on by every lookup.
     Corrupt(String),
 }
 
@@ -329,16 +335,30 @@ pub struct Verified {
     pub loose: usize,
     pub packs: usize,
     pub packed: usize,
+    /// Damaged entries (and unreadable packs) with no good copy.
     pub problems: Vec<String>,
+    /// Damaged packed copies of entries another copy of which is good.
+    pub superseded: Vec<String>,
 }
 
-/// A failure a pack records: the sweep point, the stage, why, and the pack.
+/// A failure a pack records: the sweep point, the stage, why, and the
+/// prefix of the pack's name (the task that wrote it).
 #[derive(Clone, Debug)]
 pub struct PointFailure {
     pub point: usize,
     pub stage: String,
     pub reason: String,
-    pub pack: PathBuf,
+    pub prefix: String,
+}
+
+/// `<prefix>` of a pack named `<time>-<prefix>-<hash>.pack`.
+fn pack_prefix(path: &Path) -> String {
+    let name = path
+        .file_stem()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let rest = name.split_once('-').map_or("", |(_, r)| r);
+    rest.rsplit_once('-').map_or("", |(p, _)| p).to_string()
 }
 
 impl Store {
@@ -429,7 +449,7 @@ impl Store {
     }
 
     /// One table of the entry for `key`, verified against `hash` (its
-    /// manifest's).
+    /// manifest's); the entry is read and verified whole to get it.
     pub fn table(&self, key: &str, name: &str, hash: &str) -> Result<Vec<u8>> {
         let bytes = match self.read(key) {
             None => bail!("its cache entry {} is gone", short(key)),
@@ -539,16 +559,24 @@ impl Store {
             }
             for (key, copies) in &p.by_key {
                 let hex = pack::key_hex(key);
+                let mut bad = Vec::new();
                 for &(file, span) in copies {
                     v.packed += 1;
                     let path = &p.files[file as usize];
                     if let Err(why) = read_packed(path, span, &hex) {
-                        v.problems.push(format!(
+                        bad.push(format!(
                             "entry {} in pack {}: {why:#}",
                             short(&hex),
                             path.display()
                         ));
                     }
+                }
+                // A pack is never edited: a damaged copy stays, but where
+                // another copy is good the damaged one is never served.
+                if bad.len() < copies.len() {
+                    v.superseded.append(&mut bad);
+                } else {
+                    v.problems.append(&mut bad);
                 }
             }
         }
@@ -566,8 +594,9 @@ impl Store {
             .unwrap_or_default()
     }
 
-    /// The failures packs whose names start with `prefix` record.
-    pub fn failures(&self, prefix: &str) -> Vec<PointFailure> {
+    /// Every failure the packs record, with the prefix of the pack's name
+    /// (`<time>-<prefix>-<hash>.pack`: which task wrote it).
+    pub fn failures(&self) -> Vec<PointFailure> {
         self.load_packs();
         let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
         let Some(p) = guard.as_ref() else {
@@ -575,25 +604,13 @@ impl Store {
         };
         p.failures
             .iter()
-            .filter(|(file, _)| {
-                p.files[*file as usize]
-                    .file_name()
-                    .is_some_and(|n| n.to_string_lossy().starts_with(prefix))
-            })
             .map(|(file, f)| PointFailure {
                 point: f.point as usize,
                 stage: f.stage.clone(),
                 reason: f.reason.clone(),
-                pack: p.files[*file as usize].clone(),
+                prefix: pack_prefix(&p.files[*file as usize]),
             })
             .collect()
-    }
-
-    /// Every pack file of the folder.
-    pub fn pack_files(&self) -> Vec<PathBuf> {
-        self.load_packs();
-        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
-        guard.as_ref().map(|p| p.files.clone()).unwrap_or_default()
     }
 
     /// Keeps an entry of a sweep point to be written with the next pack,
@@ -625,7 +642,8 @@ impl Store {
     }
 
     /// Writes what [`Store::put_packed`] and [`Store::fail_packed`] kept as
-    /// one pack, `packs/<prefix>-<time>-<hash>.pack`, by one rename; returns
+    /// one pack, `packs/<time>-<prefix>-<hash>.pack` (so that packs sort by
+    /// the time they were written), by one rename; returns
     /// its path (none when nothing was kept). The entries stay readable
     /// throughout: from memory until the pack is in place, from it after.
     pub fn flush(&self, prefix: &str) -> Result<Option<PathBuf>> {
@@ -666,7 +684,7 @@ impl Store {
             .map(|d| d.as_nanos())
             .unwrap_or(0);
         let path = self.packs_dir().join(format!(
-            "{prefix}-{nanos:020}-{}.pack",
+            "{nanos:020}-{prefix}-{}.pack",
             short(&hash_bytes(&bytes))
         ));
         write_atomic(&path, &bytes).context("writing a pack of sweep points' entries")?;
@@ -967,6 +985,13 @@ mod tests {
             tables: BTreeMap::from([("readings".to_string(), bytes)]),
             files: BTreeMap::new(),
         }
+    }
+
+    #[test]
+    fn a_packs_prefix_is_the_task_that_wrote_it() {
+        let p = Path::new("/r/.ltcal/packs/01795640197434165756-slurm-47_0-9208f04d7a72.pack");
+        assert_eq!(pack_prefix(p), "slurm-47_0");
+        assert_eq!(pack_prefix(Path::new("x.pack")), "");
     }
 
     #[test]

@@ -40,7 +40,8 @@ pub struct RunOptions {
     pub progress: bool,
     /// Sweep points another executor did not finish, and why: reported as
     /// failed with that reason, never computed here.
-    pub not_computed: Option<Arc<BTreeMap<usize, String>>>,
+    /// Point → (the stage it failed at, why).
+    pub not_computed: Option<Arc<BTreeMap<usize, (String, String)>>>,
 }
 
 /// What happened to one stage.
@@ -76,6 +77,9 @@ pub struct RunReport {
     pub stages: Vec<StageReport>,
     /// For a pipeline with a `[sweep]`.
     pub sweep: Option<SweepReport>,
+    /// Packs whose index could not be read, and why: their entries were
+    /// not served (and, if needed, recomputed into new packs).
+    pub unreadable_packs: Vec<String>,
 }
 
 impl RunReport {
@@ -180,7 +184,7 @@ struct Runner<'a> {
     /// would steal other points onto its stack.
     parallel: bool,
     /// [`RunOptions::not_computed`].
-    not_computed: Option<&'a BTreeMap<usize, String>>,
+    not_computed: Option<&'a BTreeMap<usize, (String, String)>>,
 }
 
 /// Runs the pipeline (and, with a `[sweep]`, every point of it).
@@ -229,6 +233,11 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         cleaned,
         stages,
         sweep,
+        unreadable_packs: store
+            .unreadable_packs()
+            .into_iter()
+            .map(|(path, why)| format!("{}: {why}", path.display()))
+            .collect(),
     };
     crate::fs::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
     let tables: report::Tables = produced
@@ -358,8 +367,7 @@ const PACK_SECONDS: std::time::Duration = std::time::Duration::from_secs(1);
 /// gathered tables as the producer `sweep`, and the sweep's counts.
 fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced, SweepReport)> {
     let bar = progress_bar(runner.progress, sw.len());
-    let all: Vec<usize> = (0..sw.len()).collect();
-    let done = run_point_set(runner, sw, &all, "local", true, &bar)?;
+    let done = run_point_set(runner, sw, &bar)?;
     bar.finish_and_clear();
     let PointsDone {
         reports,
@@ -425,36 +433,33 @@ struct PointOutcome {
     gathered: Vec<Option<Arc<DataFrame>>>,
 }
 
-/// Runs the sweep points `indices` (increasing) a few per thread at a time,
-/// in parallel; their new entries are written as packs named `<prefix>-…`
-/// ([`PACK_POINTS`], [`PACK_SECONDS`]), their gathered tables folded in and
-/// the rest of their outcomes dropped — what the coordinator holds does
-/// not grow with the points but by their gathered rows.
+/// Runs every sweep point, a few per thread at a time, in parallel; their
+/// new entries are written as packs ([`PACK_POINTS`], [`PACK_SECONDS`]),
+/// their gathered tables folded in and the rest of their outcomes dropped
+/// — what the coordinator holds does not grow with the points but by their
+/// gathered rows.
 fn run_point_set<'a>(
     runner: &Runner,
     sw: &'a Sweep,
-    indices: &[usize],
-    prefix: &str,
-    gather: bool,
     bar: &indicatif::ProgressBar,
 ) -> Result<PointsDone<'a>> {
+    let indices: Vec<usize> = (0..sw.len()).collect();
     let point_runner = Runner {
         publish: false,
         progress: false,
         parallel: false,
         ..*runner
     };
-    let mut gathered: Vec<sweep::Gatherer> = if gather {
-        sw.gather.iter().map(|_| sweep::Gatherer::new(sw)).collect()
-    } else {
-        Vec::new()
-    };
+    let mut gathered: Vec<sweep::Gatherer> =
+        sw.gather.iter().map(|_| sweep::Gatherer::new(sw)).collect();
     let mut counts = SweepReport {
         points: indices.len(),
         ..SweepReport::default()
     };
-    // Per per-point stage: its first report, how many points ran it, seconds.
-    let mut per_stage: Vec<(StageReport, usize, f64)> = Vec::new();
+    // Per per-point stage: its first report, how many points ran it, the
+    // seconds, how many points found its cached entry damaged (and the
+    // first such problem).
+    let mut per_stage: Vec<(StageReport, usize, f64, usize)> = Vec::new();
     let mut failures: Vec<StageReport> = Vec::new();
     let batch = 4 * rayon::current_num_threads();
     let (mut unpacked, mut flushed) = (0, Instant::now());
@@ -470,7 +475,7 @@ fn run_point_set<'a>(
             .collect();
         unpacked += part.len();
         if n + 1 == parts.len() || unpacked >= PACK_POINTS || flushed.elapsed() >= PACK_SECONDS {
-            runner.store.flush(prefix)?;
+            runner.store.flush("local")?;
             (unpacked, flushed) = (0, Instant::now());
         }
         for (&i, out) in part.iter().zip(outcomes) {
@@ -496,14 +501,22 @@ fn run_point_set<'a>(
                 counts.cached += 1;
             }
             for r in &out.reports {
-                match per_stage.iter_mut().find(|(x, _, _)| x.stage == r.stage) {
-                    Some((_, ran, secs)) => {
+                let damaged = usize::from(r.cache_problem.is_some());
+                match per_stage.iter_mut().find(|(x, ..)| x.stage == r.stage) {
+                    Some((first, ran, secs, n)) => {
                         *ran += usize::from(r.status == Status::Ran);
                         *secs += r.seconds;
+                        *n += damaged;
+                        if first.cache_problem.is_none() {
+                            first.cache_problem.clone_from(&r.cache_problem);
+                        }
                     }
-                    None => {
-                        per_stage.push((r.clone(), usize::from(r.status == Status::Ran), r.seconds))
-                    }
+                    None => per_stage.push((
+                        r.clone(),
+                        usize::from(r.status == Status::Ran),
+                        r.seconds,
+                        damaged,
+                    )),
                 }
             }
             if failed_none(&out.reports) {
@@ -521,14 +534,17 @@ fn run_point_set<'a>(
     }
     let mut reports = failures;
     // One line per per-point stage: ran if any point ran it.
-    for (mut r, ran, seconds) in per_stage {
+    for (mut r, ran, seconds, damaged) in per_stage {
         if reports.iter().any(|x| x.stage == r.stage) {
             continue;
         }
         r.status = if ran > 0 { Status::Ran } else { Status::Cached };
         r.reason = format!("{ran} of {} sweep points ran it", indices.len());
         r.key = None;
-        r.cache_problem = None;
+        // A damaged entry is reported, not silently repaired.
+        r.cache_problem = r
+            .cache_problem
+            .map(|first| format!("at {damaged} sweep points, recomputed; the first: {first}"));
         r.seconds = seconds;
         reports.push(r);
     }
@@ -549,11 +565,15 @@ fn failed_none(reports: &[StageReport]) -> bool {
 /// the damaged ones.
 fn run_point(runner: &Runner, sw: &Sweep, index: usize) -> PointOutcome {
     let pt = sw.point(index);
-    if let Some(why) = runner.not_computed.and_then(|m| m.get(&index)) {
-        let first = &pt.stages[0];
+    if let Some((stage, why)) = runner.not_computed.and_then(|m| m.get(&index)) {
+        let at = pt
+            .stages
+            .iter()
+            .find(|s| &s.name == stage)
+            .unwrap_or(&pt.stages[0]);
         let report = StageReport {
-            stage: first.name.clone(),
-            kind: first.config.kind().to_string(),
+            stage: at.name.clone(),
+            kind: at.config.kind().to_string(),
             status: Status::Failed,
             reason: why.clone(),
             cache_problem: None,
@@ -567,7 +587,6 @@ fn run_point(runner: &Runner, sw: &Sweep, index: usize) -> PointOutcome {
             gathered: Vec::new(),
         };
     }
-    let mut outcome = None;
     for lazy in [true, false] {
         let r = Runner {
             point: Some(index),
@@ -575,27 +594,26 @@ fn run_point(runner: &Runner, sw: &Sweep, index: usize) -> PointOutcome {
             ..*runner
         };
         let (reports, produced) = execute_stages(&r, &pt.stages, BTreeMap::new());
-        let damaged = reports
+        // Damaged since it was taken on its manifest: the second try reads
+        // every cached entry whole, which reports the damaged one
+        // (`cache_problem`) and recomputes it.
+        let mut damaged = reports
             .iter()
             .any(|r| r.status == Status::Failed && r.cache_problem.is_some());
         let mut gathered = Vec::new();
-        let mut unreadable = false;
         for g in &sw.gather {
             let out = produced.get(&g.stage).and_then(|p| p.tables.get(&g.table));
             match out.map(|o| o.frame(runner.store, &g.table)) {
                 None => gathered.push(None),
                 Some(Ok(df)) => gathered.push(Some(df)),
-                Some(Err(_)) => unreadable = true,
+                Some(Err(_)) => damaged = true,
             }
         }
-        let done = PointOutcome { reports, gathered };
-        if lazy && (damaged || unreadable) {
-            continue;
+        if !(lazy && damaged) {
+            return PointOutcome { reports, gathered };
         }
-        outcome = Some(done);
-        break;
     }
-    outcome.expect("the second try is taken as it comes")
+    unreachable!("the second try returns")
 }
 
 /// How much of a task's work a pack holds at most: a task killed (node
@@ -637,6 +655,9 @@ pub fn run_task(
     }
     let dir = pipeline_dir(&opts.results_root, p);
     let store = Store::new(&dir);
+    // What killed tasks on this machine left (another machine's are left
+    // to the tasks that run there).
+    store.clean_incomplete();
     let runner = Runner {
         pipeline: &p.name,
         store: &store,

@@ -30,11 +30,14 @@
 //! finish marked failed with their reasons, never computed locally.
 //!
 //! The coordinator polls the scheduler every `poll_seconds` (5 s by
-//! default: one `squeue` for the whole wave, whatever its size) and reads
-//! the new packs' indexes every second between, for the progress bar.
-//! Ctrl-C or SIGTERM cancels the run's jobs (`scancel`) unless it was
-//! detached. Two coordinators on one pipeline may both submit a missing
-//! point; both tasks write identical entries, and the cache keeps one.
+//! default: one `squeue` for the whole wave, whatever its size), which
+//! also feeds the progress bar. Ctrl-C or SIGTERM while it waits cancels
+//! the run's jobs (`scancel`); before it submits, it stops; a second one
+//! ends it at once. A job of an earlier run is waited for only if it runs
+//! the same code, pipeline file and `--set` arguments; any other is left
+//! alone and its points submitted again. Two coordinators on one pipeline
+//! may both submit a missing point; both tasks write identical entries,
+//! either copy serves.
 //!
 //! This module knows nothing of Slurm's commands: [`Scheduler`] is what a
 //! batch scheduler offers, [`slurm`] is Slurm's; PBS or LSF would be
@@ -83,8 +86,6 @@ pub struct TaskState {
     /// `OUT_OF_MEMORY`, …).
     pub state: String,
     pub node: String,
-    /// Why a pending task waits.
-    pub reason: String,
 }
 
 impl TaskState {
@@ -101,6 +102,8 @@ impl TaskState {
                 | "REQUEUE_HOLD"
                 | "RESIZING"
                 | "SUSPENDED"
+                | "STOPPED"
+                | "RESV_DEL_HOLD"
                 | "STAGE_OUT"
                 | "SIGNALING"
         )
@@ -153,9 +156,21 @@ pub struct JobRecord {
     pub job: String,
     pub wave: PathBuf,
     pub units: Vec<Unit>,
-    /// The code fingerprint its tasks were started with.
+    /// What its tasks compute with: a later run waits for the job only if
+    /// it would compute the same (the code fingerprint, the blake3 of the
+    /// pipeline file, the `--set` arguments).
     pub code: String,
+    pub pipeline_hash: String,
+    pub set_args: Vec<String>,
     pub submitted: String,
+}
+
+impl JobRecord {
+    fn computes_as(&self, pipeline_hash: &str, set_args: &[String]) -> bool {
+        self.code == crate::CODE_FINGERPRINT
+            && self.pipeline_hash == pipeline_hash
+            && self.set_args == set_args
+    }
 }
 
 /// `0-3,7,9-10` of increasing points.
@@ -177,7 +192,9 @@ pub fn ranges(points: &[usize]) -> String {
     out.join(",")
 }
 
-/// The points a `ranges` string names, each below `limit`.
+/// The points a `ranges` string names, increasing, each below `limit`;
+/// more than `limit` in all (counting repeats) is refused, so no string
+/// makes it allocate more than `limit` points.
 pub fn parse_ranges(s: &str, limit: usize) -> Result<Vec<usize>> {
     let mut out = Vec::new();
     for part in s.split(',').filter(|p| !p.is_empty()) {
@@ -191,6 +208,9 @@ pub fn parse_ranges(s: &str, limit: usize) -> Result<Vec<usize>> {
         if a > b || b >= limit {
             bail!("`{part}` is not a range of points below {limit}");
         }
+        if out.len() + (b - a) >= limit {
+            bail!("more than {limit} points");
+        }
         out.extend(a..=b);
     }
     out.sort_unstable();
@@ -203,11 +223,21 @@ fn jobs_path(store_dir: &Path) -> PathBuf {
     store_dir.join(".ltcal").join("slurm").join("jobs.json")
 }
 
-fn read_jobs(dir: &Path) -> Vec<JobRecord> {
-    std::fs::read(jobs_path(dir))
-        .ok()
-        .and_then(|b| serde_json::from_slice(&b).ok())
-        .unwrap_or_default()
+/// The jobs recorded for the pipeline: none when nothing was recorded; an
+/// error, not an empty list, when the record cannot be read (forgetting
+/// running jobs would submit their points again).
+fn read_jobs(dir: &Path) -> Result<Vec<JobRecord>> {
+    let path = jobs_path(dir);
+    match std::fs::read(&path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
+        Err(e) => Err(anyhow!("reading {}: {e}", path.display())),
+        Ok(b) => serde_json::from_slice(&b).map_err(|e| {
+            anyhow!(
+                "{} is damaged ({e}): remove it to forget the jobs it recorded",
+                path.display()
+            )
+        }),
+    }
 }
 
 fn write_jobs(dir: &Path, jobs: &[JobRecord]) -> Result<()> {
@@ -263,10 +293,18 @@ pub fn run(
     let dir = run::pipeline_dir(&opts.results_root, p);
     let store = Store::new(&dir);
     store.clean_incomplete();
-    let mut jobs = read_jobs(&dir);
-    // Jobs of earlier runs still running: waited for, not submitted again.
+    let pipeline_file = std::path::absolute(&cluster.pipeline_file)?;
+    let text = std::fs::read(&pipeline_file)
+        .with_context(|| format!("reading {}", pipeline_file.display()))?;
+    let pipeline_hash = super::cache::hash_bytes(&text);
+    let mut jobs = read_jobs(&dir)?;
+    // Jobs of earlier runs still running the same computation: waited for,
+    // not submitted again. Others are left alone.
     let mut active: Vec<JobRecord> = Vec::new();
-    for j in &jobs {
+    for j in jobs
+        .iter()
+        .filter(|j| j.computes_as(&pipeline_hash, &cluster.set_args))
+    {
         if let Some(tasks) = scheduler.tasks(&j.job)? {
             if tasks.iter().any(TaskState::active) {
                 active.push(j.clone());
@@ -282,9 +320,12 @@ pub fn run(
         .into_iter()
         .filter(|i| !in_flight.contains(i))
         .collect();
+    if cluster.interrupted.load(Ordering::SeqCst) {
+        bail!("interrupted before anything was submitted");
+    }
     let mut ours = active;
     if !missing.is_empty() {
-        let record = submit(p, opts, cluster, scheduler, &dir, &missing)?;
+        let record = submit(p, opts, cluster, scheduler, &dir, &missing, &pipeline_hash)?;
         if opts.progress {
             eprintln!(
                 "submitted {} points as {} job {} ({} array tasks of up to {} points, at most {} at once); logs in {}",
@@ -297,7 +338,11 @@ pub fn run(
                 record.wave.display()
             );
         }
-        jobs.retain(|j| ours.iter().any(|o| o.job == j.job));
+        // Kept: the jobs waited for, and those of other computations that
+        // may still run (for `ltcal status`); the new one.
+        jobs.retain(|j| {
+            ours.iter().any(|o| o.job == j.job) || !j.computes_as(&pipeline_hash, &cluster.set_args)
+        });
         jobs.push(record.clone());
         write_jobs(&dir, &jobs)?;
         ours.push(record);
@@ -306,14 +351,14 @@ pub fn run(
         let points = ours
             .iter()
             .flat_map(|j| j.units.iter())
-            .map(|u| parse_ranges(&u.points, sw.len()).map_or(0, |v| v.len()))
+            .map(|u| count(&u.points))
             .sum();
         return Ok(Outcome::Detached {
             jobs: ours.into_iter().map(|j| j.job).collect(),
             points,
         });
     }
-    let states = wait(p, opts, cluster, scheduler, &store, &ours)?;
+    let states = wait(p, opts, cluster, scheduler, &ours)?;
     // What the wave did not finish, and why.
     store.refresh_packs();
     let still = missing_points(sw, &store);
@@ -326,11 +371,23 @@ pub fn run(
             }
         }
     }
-    let failed: BTreeMap<usize, String> = still
+    // The failures the tasks recorded, by pack prefix and point.
+    let mut recorded: std::collections::HashMap<(String, usize), (String, String)> =
+        Default::default();
+    for f in store.failures() {
+        recorded.insert((f.prefix, f.point), (f.stage, f.reason));
+    }
+    let first = p
+        .stages
+        .iter()
+        .find(|s| sw.point_stages().any(|n| n == s.name))
+        .map(|s| s.name.clone())
+        .unwrap_or_default();
+    let failed: BTreeMap<usize, (String, String)> = still
         .into_iter()
         .map(|i| {
-            let why = why_missing(sw, &store, &ours, &states, i, owner.get(&i).copied());
-            (i, why)
+            let why = why_missing(sw, &ours, &states, &recorded, i, owner.get(&i).copied());
+            (i, (why.0.unwrap_or_else(|| first.clone()), why.1))
         })
         .collect();
     let run_opts = RunOptions {
@@ -349,6 +406,7 @@ fn submit(
     scheduler: &dyn Scheduler,
     dir: &Path,
     missing: &[usize],
+    pipeline_hash: &str,
 ) -> Result<JobRecord> {
     let settings = &p.slurm;
     let units: Vec<Unit> = missing
@@ -372,8 +430,6 @@ fn submit(
     crate::fs::write_atomic(&units_file, text.as_bytes())?;
     let exe = std::env::current_exe().context("finding the ltcal binary to run tasks with")?;
     let pipeline_file = std::path::absolute(&cluster.pipeline_file)?;
-    let text = std::fs::read(&pipeline_file)
-        .with_context(|| format!("reading {}", pipeline_file.display()))?;
     let mut command = vec![
         exe.display().to_string(),
         "task".into(),
@@ -385,7 +441,7 @@ fn submit(
         "--code".into(),
         crate::CODE_FINGERPRINT.to_string(),
         "--pipeline-hash".into(),
-        super::cache::hash_bytes(&text),
+        pipeline_hash.to_string(),
         "--cpus".into(),
         settings.cpus_per_task.to_string(),
     ];
@@ -411,6 +467,8 @@ fn submit(
         wave,
         units,
         code: crate::CODE_FINGERPRINT.to_string(),
+        pipeline_hash: pipeline_hash.to_string(),
+        set_args: cluster.set_args.clone(),
         submitted: run::timestamp(started),
     })
 }
@@ -425,14 +483,14 @@ fn wait(
     opts: &RunOptions,
     cluster: &ClusterOptions,
     scheduler: &dyn Scheduler,
-    store: &Store,
     jobs: &[JobRecord],
 ) -> Result<States> {
-    let total: usize = jobs
+    // Points per task, counted once.
+    let sizes: Vec<Vec<usize>> = jobs
         .iter()
-        .flat_map(|j| j.units.iter())
-        .map(|u| count(&u.points))
-        .sum();
+        .map(|j| j.units.iter().map(|u| count(&u.points)).collect())
+        .collect();
+    let total: usize = sizes.iter().flatten().sum();
     let bar = if opts.progress {
         let b = indicatif::ProgressBar::new(total as u64);
         b.set_style(
@@ -475,10 +533,9 @@ fn wait(
             let mut ended = 0;
             let mut unsuccessful = 0;
             let mut any_active = false;
-            for j in jobs {
+            for (j, sizes) in jobs.iter().zip(&sizes) {
                 let tasks = states.get(&j.job);
-                for (k, u) in j.units.iter().enumerate() {
-                    let n = count(&u.points);
+                for (k, &n) in sizes.iter().enumerate() {
                     match tasks.and_then(|t| t.iter().find(|t| t.index == k)) {
                         Some(t) if t.pending() => {
                             queued += n;
@@ -513,7 +570,6 @@ fn wait(
             }
         }
         std::thread::sleep(Duration::from_millis(200));
-        store.refresh_packs();
     }
     bar.finish_and_clear();
     Ok(states)
@@ -528,16 +584,19 @@ fn count(points: &str) -> usize {
 /// stage's error a task recorded, and where the task's log is.
 fn why_missing(
     sw: &Sweep,
-    store: &Store,
     jobs: &[JobRecord],
     states: &States,
+    recorded: &std::collections::HashMap<(String, usize), (String, String)>,
     i: usize,
     owner: Option<(usize, usize)>,
-) -> String {
+) -> (Option<String>, String) {
     let Some((a, k)) = owner else {
-        return format!(
-            "it was not submitted (point {i}: {})",
-            point_label(sw, &sw.values[i])
+        return (
+            None,
+            format!(
+                "it was not submitted (point {i}: {})",
+                point_label(sw, &sw.values[i])
+            ),
         );
     };
     let j = &jobs[a];
@@ -546,27 +605,33 @@ fn why_missing(
     let task = states
         .get(&j.job)
         .and_then(|t| t.iter().find(|t| t.index == k));
-    let prefix = format!("slurm-{}_{k}-", j.job);
-    let recorded = store
-        .failures(&prefix)
-        .into_iter()
-        .rev()
-        .find(|f| f.point == i);
-    match (task, recorded) {
-        (_, Some(f)) => format!("stage `{}` failed: {} ({at})", f.stage, f.reason),
+    match (task, recorded.get(&(task_prefix(&j.job, k), i))) {
+        (_, Some((stage, reason))) => (
+            Some(stage.clone()),
+            format!("stage `{stage}` failed: {reason} ({at})"),
+        ),
         (Some(t), None) if t.state != "COMPLETED" => {
             let node = if t.node.is_empty() {
                 String::new()
             } else {
                 format!(" on {}", t.node)
             };
-            format!("its task ended {}{node} ({at})", t.state)
+            (None, format!("its task ended {}{node} ({at})", t.state))
         }
-        (Some(_), None) => format!("its task completed without its entries (see the log; {at})"),
-        (None, None) => {
-            format!("Slurm no longer knows its task and the cache does not hold it ({at})")
-        }
+        (Some(_), None) => (
+            None,
+            format!("its task completed without its entries (see the log; {at})"),
+        ),
+        (None, None) => (
+            None,
+            format!("Slurm no longer knows its task and the cache does not hold it ({at})"),
+        ),
     }
+}
+
+/// The name prefix of the packs array task `k` of `job` writes.
+pub fn task_prefix(job: &str, k: usize) -> String {
+    format!("slurm-{job}_{k}")
 }
 
 /// What `ltcal status` shows: points done, and where the recorded jobs stand.
@@ -584,7 +649,7 @@ pub fn status(p: &Pipeline, opts: &RunOptions, scheduler: &dyn Scheduler) -> Res
         sw.len(),
         missing.len()
     );
-    for j in read_jobs(&dir) {
+    for j in read_jobs(&dir)? {
         let tasks = scheduler.tasks(&j.job)?;
         let mut by_state: BTreeMap<String, usize> = BTreeMap::new();
         for (k, u) in j.units.iter().enumerate() {
@@ -629,5 +694,13 @@ mod tests {
         assert!(parse_ranges("9-12", 11).is_err());
         assert!(parse_ranges("3-1", 11).is_err());
         assert!(parse_ranges("x", 11).is_err());
+    }
+
+    #[test]
+    fn repeated_ranges_cannot_allocate_beyond_the_limit() {
+        let hostile = vec!["0-99999"; 1000].join(",");
+        let e = parse_ranges(&hostile, 100_000).unwrap_err();
+        assert!(e.to_string().contains("more than 100000 points"), "{e}");
+        assert_eq!(parse_ranges("0-99999", 100_000).unwrap().len(), 100_000);
     }
 }

@@ -75,7 +75,6 @@ impl Scheduler for Slurm {
         ));
         opt("--output=/dev/null".into());
         opt("--no-requeue".into());
-        opt(format!("--chdir={}", a.workdir.display()));
         opt(format!("--cpus-per-task={}", s.cpus_per_task));
         if let Some(p) = &s.partition {
             opt(format!("--partition={p}"));
@@ -94,6 +93,10 @@ impl Scheduler for Slurm {
         }
         let units = quote(&a.units.display().to_string());
         let wave = a.wave.display().to_string();
+        h.push_str(&format!(
+            "cd {} || exit 1\n",
+            quote(&a.workdir.display().to_string())
+        ));
         h.push_str(&format!(
             "# Task i runs line i+1 of the points file: \"<first>-<last> <points>\".\n\
              line=$(sed -n \"$((SLURM_ARRAY_TASK_ID + 1))p\" {units})\n\
@@ -131,7 +134,7 @@ impl Scheduler for Slurm {
             "--states=all",
             "--jobs",
             job,
-            "--format=%i|%T|%N|%r",
+            "--format=%i|%T|%N",
         ]))?;
         if ok {
             let tasks = parse_squeue(job, &out);
@@ -161,7 +164,6 @@ impl Scheduler for Slurm {
                     index: task_index(job, id)?,
                     state: state.split_whitespace().next()?.to_string(),
                     node: node.to_string(),
-                    reason: String::new(),
                 })
             })
             .collect();
@@ -185,17 +187,16 @@ fn task_index(job: &str, id: &str) -> Option<usize> {
     id.strip_prefix(job)?.strip_prefix('_')?.parse().ok()
 }
 
-/// `squeue --array` lines `<job>_<index>|<STATE>|<nodes>|<reason>`.
+/// `squeue --array` lines `<job>_<index>|<STATE>|<nodes>`.
 fn parse_squeue(job: &str, out: &str) -> Vec<TaskState> {
     out.lines()
         .filter_map(|l| {
-            let mut f = l.trim().splitn(4, '|');
-            let (id, state, node, reason) = (f.next()?, f.next()?, f.next()?, f.next()?);
+            let mut f = l.trim().splitn(3, '|');
+            let (id, state, node) = (f.next()?, f.next()?, f.next()?);
             Some(TaskState {
                 index: task_index(job, id)?,
                 state: state.to_string(),
                 node: node.to_string(),
-                reason: reason.to_string(),
             })
         })
         .collect()
@@ -207,14 +208,14 @@ mod tests {
 
     #[test]
     fn squeue_lines_are_read_per_array_task() {
-        let out = "12_0|COMPLETED|n1|None\n12_1|NODE_FAIL|n2|None\n12_2|PENDING||JobArrayTaskLimit\n13_0|RUNNING|n3|None\n";
+        let out = "12_0|COMPLETED|n1\n12_1|NODE_FAIL|n2\n12_2|PENDING|\n13_0|RUNNING|n3\n";
         let t = parse_squeue("12", out);
         assert_eq!(t.len(), 3);
         assert_eq!(
             (t[1].index, t[1].state.as_str(), t[1].node.as_str()),
             (1, "NODE_FAIL", "n2")
         );
-        assert_eq!(t[2].reason, "JobArrayTaskLimit");
+        assert!(t[2].pending());
     }
 
     #[test]
