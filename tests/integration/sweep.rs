@@ -503,3 +503,71 @@ fn a_plot_filter_naming_a_missing_column_is_refused_at_load() {
     assert!(err.contains("column `improvment_pct`"), "{err}");
     assert!(!err.contains("column `before_um`"), "{err}");
 }
+
+fn packs_of(results: &Path, name: &str) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(results.join(name).join(".ltcal/packs"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "pack"))
+        .collect();
+    v.sort();
+    v
+}
+
+/// A sweep point's damaged packed entry was recomputed without a word: the
+/// per-stage line of a sweep dropped every `cache_problem`, and a pack
+/// whose index could not be read was skipped silently.
+#[test]
+fn a_damaged_pack_is_reported_and_its_points_recomputed() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "damaged", 4, 2);
+    let results = dir.path().join("r");
+    run_pipeline(&file, &results, &[]);
+    let clean = gathered(&results, "damaged");
+    let pack = packs_of(&results, "damaged").remove(0);
+    // The last byte of a gathered stage's entry (a byte of its tables): read
+    // by the gather, it fails its hash, is reported and recomputed. (A
+    // damaged entry nothing reads is never read, so never served.)
+    use ltcal::pipeline::pack;
+    let ix = pack::read_index(&pack).unwrap();
+    let (_, span) = ix
+        .entries
+        .iter()
+        .find(|(_, span)| {
+            let m = pack::read_manifest(&pack, *span).unwrap();
+            let m: serde_json::Value = serde_json::from_slice(&m).unwrap();
+            m["stage"] == "evaluation"
+        })
+        .unwrap();
+    let mut bytes = std::fs::read(&pack).unwrap();
+    let at = (span.offset + span.len - 1) as usize;
+    bytes[at] ^= 0x01;
+    std::fs::write(&pack, &bytes).unwrap();
+    let r = run_pipeline(&file, &results, &[]);
+    let damaged: Vec<_> = r
+        .stages
+        .iter()
+        .filter(|s| s.cache_problem.is_some())
+        .collect();
+    assert!(!damaged.is_empty(), "{:?}", r.stages);
+    assert!(
+        damaged[0]
+            .cache_problem
+            .as_ref()
+            .unwrap()
+            .contains("recomputed"),
+        "{:?}",
+        damaged[0].cache_problem
+    );
+    assert_eq!(gathered(&results, "damaged"), clean);
+    // A byte of the index: the pack is not read at all, and said so.
+    bytes[at] ^= 0x01;
+    let end = bytes.len() - 60;
+    bytes[end] ^= 0x01;
+    std::fs::write(&pack, &bytes).unwrap();
+    let r = run_pipeline(&file, &results, &[]);
+    assert_eq!(r.unreadable_packs.len(), 1, "{:?}", r.unreadable_packs);
+    assert!(r.unreadable_packs[0].contains("does not match its hash"));
+    assert_eq!(gathered(&results, "damaged"), clean);
+}
