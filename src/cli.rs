@@ -91,8 +91,8 @@ enum Command {
         /// Name prefix of the packs this task writes.
         #[arg(long)]
         prefix: String,
-        /// Points run at once (the task's CPUs).
-        #[arg(long, default_value_t = 1)]
+        /// The task's CPUs: points run at once, and worker threads.
+        #[arg(long, default_value_t = 1, value_parser = thread_count())]
         cpus: usize,
     },
     /// Print what `run` would do and why, without running anything.
@@ -225,14 +225,16 @@ pub fn main() -> ExitCode {
     }
 }
 
-fn load(p: &PipelineArgs) -> Result<pipeline::resolve::Pipeline> {
-    let overrides = p
-        .set
+fn overrides(p: &PipelineArgs) -> Result<Vec<Override>> {
+    p.set
         .iter()
         .map(|s| Override::parse(s))
         .collect::<Result<Vec<_>>>()
-        .map_err(|e| InputError::arg(e.to_string()))?;
-    pipeline::load(&p.pipeline, &overrides)
+        .map_err(|e| InputError::arg(e.to_string()))
+}
+
+fn load(p: &PipelineArgs) -> Result<pipeline::resolve::Pipeline> {
+    pipeline::load(&p.pipeline, &overrides(p)?)
 }
 
 fn store(p: &PipelineArgs, pipeline: &pipeline::resolve::Pipeline) -> Store {
@@ -337,13 +339,13 @@ fn task_command(
     }
     let indices = cluster::parse_ranges(points, pipeline::sweep::MAX_POINTS)
         .map_err(|e| InputError::arg(format!("--points: {e}")))?;
-    let overrides = p
-        .set
-        .iter()
-        .map(|s| Override::parse(s))
-        .collect::<Result<Vec<_>>>()
-        .map_err(|e| InputError::arg(e.to_string()))?;
-    let pipeline = pipeline::load_for_points(&p.pipeline, &overrides, &indices)?;
+    let pipeline = pipeline::load_for_points(&p.pipeline, &overrides(p)?, &indices)?;
+    // The task's allocation, not the node's cores: a stage's own parallel
+    // work would otherwise spread over CPUs Slurm gave to other jobs.
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(cpus.clamp(1, MAX_THREADS as usize))
+        .build_global()
+        .context("setting the task's threads")?;
     let started = std::time::Instant::now();
     eprintln!(
         "ltcal task {prefix}: {} points ({points}) of {} on {}",

@@ -450,8 +450,7 @@ fn run_point_set<'a>(
         parallel: false,
         ..*runner
     };
-    let mut gathered: Vec<sweep::Gatherer> =
-        sw.gather.iter().map(|_| sweep::Gatherer::new(sw)).collect();
+    let mut gathered = sweep::Gatherer::each(sw);
     let mut counts = SweepReport {
         points: indices.len(),
         ..SweepReport::default()

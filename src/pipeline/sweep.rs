@@ -296,12 +296,17 @@ pub struct Gatherer<'a> {
 const GATHER_CHUNK: usize = 256;
 
 impl<'a> Gatherer<'a> {
-    pub fn new(sw: &'a Sweep) -> Gatherer<'a> {
+    fn new(sw: &'a Sweep) -> Gatherer<'a> {
         Gatherer {
             sw,
             parts: Vec::new(),
             chunk: Vec::new(),
         }
+    }
+
+    /// One gatherer per table the sweep gathers, in `gather` order.
+    pub fn each(sw: &'a Sweep) -> Vec<Gatherer<'a>> {
+        sw.gather.iter().map(|_| Gatherer::new(sw)).collect()
     }
 
     /// Adds point `index`'s table (points in increasing order).

@@ -482,3 +482,43 @@ fn a_task_of_another_binary_or_pipeline_file_refuses_and_writes_nothing() {
     );
     assert_eq!(files_under(tmp.path()), 1);
 }
+
+/// A later run waited for any job still running for the pipeline, even one
+/// started with other `--set` arguments (or another binary, or another
+/// pipeline file), whose tasks compute other entries: its points were
+/// neither submitted again nor computed.
+#[test]
+fn a_job_of_another_computation_is_not_waited_for() {
+    let Some(_dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("r");
+    let r = results.to_str().unwrap();
+    let file = data("slow.toml");
+    let detach = |set: &str| {
+        let o = ltcal(&[
+            "run",
+            &file,
+            "-q",
+            "--executor",
+            "slurm",
+            "--detach",
+            "--results",
+            r,
+            "--set",
+            set,
+        ]);
+        assert!(o.status.success(), "{}", text(&o));
+    };
+    detach("stages.corner.seed=1");
+    detach("stages.corner.seed=2");
+    let jobs = jobs_record(&results, "slurm-slow");
+    let jobs = jobs.as_array().unwrap();
+    assert_eq!(jobs.len(), 2, "{jobs:?}");
+    for j in jobs {
+        assert_eq!(j["units"].as_array().unwrap().len(), 3);
+    }
+    assert_eq!(jobs[1]["set_args"][0], "stages.corner.seed=2");
+    let ids: Vec<&str> = jobs.iter().map(|j| j["job"].as_str().unwrap()).collect();
+    Command::new("scancel").args(&ids).status().unwrap();
+}
