@@ -4,7 +4,7 @@
 //!
 //! A stage that runs at every point of a sweep is explained at one point
 //! (`--point`, else the first point that would run it, else point 0),
-//! against the last run at that point (`.ltcal/last/sweep-points.json`).
+//! against the last run at that point (recorded in the sweep's packs).
 //!
 //! An input whose producer would run first has no content hash yet; its
 //! row says which stage it waits for, and every other field is still

@@ -30,8 +30,10 @@
 //! finish marked failed with their reasons, never computed locally.
 //!
 //! The coordinator polls the scheduler every `poll_seconds` (5 s by
-//! default: one `squeue` for the whole wave, whatever its size), which
-//! also feeds the progress bar. Ctrl-C or SIGTERM while it waits cancels
+//! default: one `squeue` per job of the wave, whatever its size; `sacct`
+//! for a job the controller has forgotten), which also feeds the progress
+//! bar; every task's last known state is kept, since a scheduler lists an
+//! ended task only for a while. Ctrl-C or SIGTERM while it waits cancels
 //! the run's jobs (`scancel`); before it submits, it stops; a second one
 //! ends it at once. A job of an earlier run is waited for only if it runs
 //! the same code, pipeline file and `--set` arguments; any other is left
@@ -125,6 +127,9 @@ pub trait Scheduler {
     /// knows nothing of the job any more.
     fn tasks(&self, job: &str) -> Result<Option<Vec<TaskState>>>;
     fn cancel(&self, jobs: &[String]) -> Result<()>;
+    /// The name prefix of the packs task `task` of `job` writes (its job
+    /// script passes the same to `ltcal task --prefix`).
+    fn task_prefix(&self, job: &str, task: usize) -> String;
 }
 
 /// One array task's points.
@@ -166,10 +171,23 @@ pub struct JobRecord {
 }
 
 impl JobRecord {
+    /// Whether the job's tasks compute what a run with `set_args` would:
+    /// same code, same pipeline file, same settings of the stages (the
+    /// `executor.slurm` settings and the order of the arguments change
+    /// nothing the tasks compute).
     fn computes_as(&self, pipeline_hash: &str, set_args: &[String]) -> bool {
+        let stages = |args: &[String]| {
+            let mut v: Vec<String> = args
+                .iter()
+                .filter(|a| !a.trim_start().starts_with("executor."))
+                .map(|a| a.trim().to_string())
+                .collect();
+            v.sort();
+            v
+        };
         self.code == crate::CODE_FINGERPRINT
             && self.pipeline_hash == pipeline_hash
-            && self.set_args == set_args
+            && stages(&self.set_args) == stages(set_args)
     }
 }
 
@@ -359,6 +377,9 @@ pub fn run(
         });
     }
     let states = wait(p, opts, cluster, scheduler, &ours)?;
+    if cluster.interrupted.load(Ordering::SeqCst) {
+        bail!("interrupted after the jobs ended: a rerun gathers what they computed");
+    }
     // What the wave did not finish, and why.
     store.refresh_packs();
     let still = missing_points(sw, &store);
@@ -375,7 +396,11 @@ pub fn run(
     let mut recorded: std::collections::HashMap<(String, usize), (String, String)> =
         Default::default();
     for f in store.failures() {
-        recorded.insert((f.prefix, f.point), (f.stage, f.reason));
+        // The first failure a task recorded at a point: the one that
+        // stopped the stages after it.
+        recorded
+            .entry((f.prefix, f.point))
+            .or_insert((f.stage, f.reason));
     }
     let first = p
         .stages
@@ -386,7 +411,15 @@ pub fn run(
     let failed: BTreeMap<usize, (String, String)> = still
         .into_iter()
         .map(|i| {
-            let why = why_missing(sw, &ours, &states, &recorded, i, owner.get(&i).copied());
+            let why = why_missing(
+                scheduler,
+                sw,
+                &ours,
+                &states,
+                &recorded,
+                i,
+                owner.get(&i).copied(),
+            );
             (i, (why.0.unwrap_or_else(|| first.clone()), why.1))
         })
         .collect();
@@ -476,6 +509,10 @@ fn submit(
 /// Job → its tasks' last known states.
 type States = BTreeMap<String, Vec<TaskState>>;
 
+/// The state given a task that was active when last seen and is listed no
+/// more.
+const FORGOTTEN: &str = "ended (no longer listed)";
+
 /// Waits until no task of `jobs` is active, showing progress; cancels
 /// them on Ctrl-C or SIGTERM. Returns the tasks' last states.
 fn wait(
@@ -506,12 +543,24 @@ fn wait(
         indicatif::ProgressBar::hidden()
     };
     let poll = Duration::from_secs_f64(p.slurm.poll_seconds);
+    // Every task's last known state: a scheduler lists an ended task only
+    // for a while (Slurm: `MinJobAge`, 300 s), and a long wave's early
+    // failures must still be named at its end.
     let mut states = States::new();
     let mut last_poll: Option<Instant> = None;
+    let mut failed_polls = 0;
     loop {
         if cluster.interrupted.load(Ordering::SeqCst) {
             bar.finish_and_clear();
-            let ids: Vec<String> = jobs.iter().map(|j| j.job.clone()).collect();
+            let ids: Vec<String> = jobs
+                .iter()
+                .filter(|j| {
+                    states
+                        .get(&j.job)
+                        .is_none_or(|t| t.is_empty() || t.iter().any(TaskState::active))
+                })
+                .map(|j| j.job.clone())
+                .collect();
             scheduler.cancel(&ids)?;
             bail!(
                 "interrupted: cancelled {} job {} (a rerun submits the points still missing)",
@@ -522,10 +571,34 @@ fn wait(
         if last_poll.is_none_or(|t| t.elapsed() >= poll) {
             last_poll = Some(Instant::now());
             for j in jobs {
-                if let Some(tasks) = scheduler.tasks(&j.job)? {
-                    states.insert(j.job.clone(), tasks);
-                } else {
-                    states.remove(&j.job);
+                let known = states.entry(j.job.clone()).or_default();
+                match scheduler.tasks(&j.job) {
+                    Ok(listed) => {
+                        let listed = listed.unwrap_or_default();
+                        // Active when last seen and no longer listed: it
+                        // ended and was forgotten between two polls.
+                        for t in known.iter_mut() {
+                            if t.active() && !listed.iter().any(|l| l.index == t.index) {
+                                t.state = FORGOTTEN.into();
+                            }
+                        }
+                        for t in listed {
+                            match known.iter_mut().find(|x| x.index == t.index) {
+                                Some(x) => *x = t,
+                                None => known.push(t),
+                            }
+                        }
+                        failed_polls = 0;
+                    }
+                    // A controller that does not answer for a moment is no
+                    // reason to give up the wave (nor to stop listening for
+                    // Ctrl-C); three polls in a row are.
+                    Err(e) => {
+                        failed_polls += 1;
+                        if failed_polls >= 3 * jobs.len() {
+                            return Err(e);
+                        }
+                    }
                 }
             }
             let mut queued = 0;
@@ -551,8 +624,8 @@ fn wait(
                                 unsuccessful += n;
                             }
                         }
-                        // A pending array not yet split into tasks is
-                        // listed as one line; a forgotten job as none.
+                        // Not listed yet: a pending array not yet split
+                        // into tasks is listed as one line.
                         None if tasks.is_some_and(|t| t.iter().any(TaskState::active)) => {
                             queued += n;
                             any_active = true
@@ -583,6 +656,7 @@ fn count(points: &str) -> usize {
 /// scheduler's word for a task that did not complete (with its node), the
 /// stage's error a task recorded, and where the task's log is.
 fn why_missing(
+    scheduler: &dyn Scheduler,
     sw: &Sweep,
     jobs: &[JobRecord],
     states: &States,
@@ -599,16 +673,21 @@ fn why_missing(
             ),
         );
     };
+    let name = scheduler.name();
     let j = &jobs[a];
     let log = j.units[k].log(&j.wave);
     let at = format!("Slurm job {}, array task {k}, log {}", j.job, log.display());
     let task = states
         .get(&j.job)
         .and_then(|t| t.iter().find(|t| t.index == k));
-    match (task, recorded.get(&(task_prefix(&j.job, k), i))) {
+    match (task, recorded.get(&(scheduler.task_prefix(&j.job, k), i))) {
         (_, Some((stage, reason))) => (
             Some(stage.clone()),
             format!("stage `{stage}` failed: {reason} ({at})"),
+        ),
+        (Some(t), None) if t.state == FORGOTTEN => (
+            None,
+            format!("its task ended and {name} no longer lists it; see the log ({at})"),
         ),
         (Some(t), None) if t.state != "COMPLETED" => {
             let node = if t.node.is_empty() {
@@ -624,14 +703,9 @@ fn why_missing(
         ),
         (None, None) => (
             None,
-            format!("Slurm no longer knows its task and the cache does not hold it ({at})"),
+            format!("{name} no longer knows its task and the cache does not hold it ({at})"),
         ),
     }
-}
-
-/// The name prefix of the packs array task `k` of `job` writes.
-pub fn task_prefix(job: &str, k: usize) -> String {
-    format!("slurm-{job}_{k}")
 }
 
 /// What `ltcal status` shows: points done, and where the recorded jobs stand.

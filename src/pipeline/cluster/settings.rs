@@ -60,8 +60,8 @@ fn default_max_running() -> usize {
     100
 }
 
-/// One `squeue` a few seconds apart is a load no controller notices; the
-/// cache, read on the shared folder every second, tells progress between.
+/// One `squeue` per job a few seconds apart is a load no controller
+/// notices.
 fn default_poll_seconds() -> f64 {
     5.0
 }
@@ -76,8 +76,8 @@ impl SlurmSettings {
     /// What is wrong with the settings, field by field.
     pub fn problems(&self) -> Vec<String> {
         let mut out = Vec::new();
-        if self.cpus_per_task == 0 {
-            out.push("`cpus_per_task` must be at least 1".to_string());
+        if !(1..=1024).contains(&self.cpus_per_task) {
+            out.push("`cpus_per_task` must be 1 … 1024".to_string());
         }
         if self.points_per_task == 0 {
             out.push("`points_per_task` must be at least 1".to_string());

@@ -25,26 +25,19 @@ use std::process::Command;
 /// The Slurm client commands on `PATH`.
 pub struct Slurm;
 
-impl Slurm {
-    /// Whether `sbatch` and `squeue` run here.
-    pub fn available() -> bool {
-        ["sbatch", "squeue"].iter().all(|c| {
-            Command::new(c)
-                .arg("--version")
-                .output()
-                .is_ok_and(|o| o.status.success())
-        })
-    }
-}
-
 /// `'…'` for `sh`, whatever the text holds.
 pub fn quote(s: &str) -> String {
     format!("'{}'", s.replace('\'', r"'\''"))
 }
 
 fn run(cmd: &mut Command) -> Result<(bool, String, String)> {
+    use std::os::unix::process::CommandExt as _;
     let name = format!("{:?}", cmd.get_program());
+    // A process group of its own: a Ctrl-C at the terminal is the
+    // coordinator's to act on (cancelling its jobs), not a kill of the
+    // `squeue` or `scancel` it is running at that moment.
     let out = cmd
+        .process_group(0)
         .output()
         .with_context(|| format!("running {name} (is Slurm's client on PATH?)"))?;
     Ok((
@@ -168,6 +161,10 @@ impl Scheduler for Slurm {
             })
             .collect();
         Ok((!tasks.is_empty()).then_some(tasks))
+    }
+
+    fn task_prefix(&self, job: &str, task: usize) -> String {
+        format!("slurm-{job}_{task}")
     }
 
     fn cancel(&self, jobs: &[String]) -> Result<()> {
