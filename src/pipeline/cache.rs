@@ -451,20 +451,28 @@ impl Store {
     /// One table of the entry for `key`, verified against `hash` (its
     /// manifest's); the entry is read and verified whole to get it.
     pub fn table(&self, key: &str, name: &str, hash: &str) -> Result<Vec<u8>> {
-        let bytes = match self.read(key) {
-            None => bail!("its cache entry {} is gone", short(key)),
-            Some(e) => e?
-                .tables
-                .remove(name)
-                .ok_or_else(|| anyhow!("its cache entry has no table `{name}`"))?,
+        let Some(entry) = self.read(key) else {
+            bail!("its cache entry {} is gone", short(key));
         };
-        if hash_bytes(&bytes) != hash {
+        let mut entry = entry?;
+        // `read` has hashed every table against the entry's manifest: the
+        // bytes are the manifest's; that manifest must be the one `hash`
+        // came from.
+        if !entry
+            .manifest
+            .tables
+            .iter()
+            .any(|t| t.name == name && t.hash == hash)
+        {
             bail!(
                 "table {name} of entry {} does not match its manifest",
                 short(key)
             );
         }
-        Ok(bytes)
+        entry
+            .tables
+            .remove(name)
+            .ok_or_else(|| anyhow!("its cache entry has no table `{name}`"))
     }
 
     fn pending_entry(&self, key: &str) -> Option<Entry> {

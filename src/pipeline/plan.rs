@@ -228,11 +228,9 @@ fn gather_point(
     }
     for (g, gatherer) in sw.gather.iter().zip(gs) {
         let a = assessed.iter().find(|a| a.item.stage == g.stage)?;
-        let key = a.item.key.as_ref()?;
-        let m = store.manifest(key)?.ok()?;
-        let t = m.tables.iter().find(|t| t.name == g.table)?;
-        let bytes = store.table(key, &g.table, &t.hash).ok()?;
-        let df = table::from_parquet_bytes(&bytes).ok()?;
+        // One read of the entry, every table verified.
+        let entry = store.read(a.item.key.as_ref()?)?.ok()?;
+        let df = table::from_parquet_bytes(entry.tables.get(&g.table)?).ok()?;
         gatherer.push(index, &df).ok()?;
     }
     Some(())

@@ -366,7 +366,7 @@ const PACK_SECONDS: std::time::Duration = std::time::Duration::from_secs(1);
 /// one report per per-point stage (`ran` if any point ran it), the
 /// gathered tables as the producer `sweep`, and the sweep's counts.
 fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced, SweepReport)> {
-    let bar = progress_bar(runner.progress, sw.len());
+    let bar = progress_bar(runner.progress, sw.len(), "sweep".into());
     let done = run_point_set(runner, sw, &bar)?;
     bar.finish_and_clear();
     let PointsDone {
@@ -403,7 +403,9 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
     Ok((reports, Produced { tables }, counts))
 }
 
-fn progress_bar(show: bool, points: usize) -> indicatif::ProgressBar {
+/// The sweep's progress bar over `points` (hidden unless `show`), its
+/// counts in the message, named `prefix`.
+pub(super) fn progress_bar(show: bool, points: usize, prefix: String) -> indicatif::ProgressBar {
     if !show {
         return indicatif::ProgressBar::hidden();
     }
@@ -415,7 +417,7 @@ fn progress_bar(show: bool, points: usize) -> indicatif::ProgressBar {
         .expect("a valid template")
         .progress_chars("=> "),
     );
-    b.set_prefix("sweep");
+    b.set_prefix(prefix);
     b
 }
 

@@ -42,6 +42,14 @@ fn ltcal(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `ltcal run <file> -q --executor slurm --results <results> <extra>…`.
+fn on_slurm(file: &str, results: &Path, extra: &[&str]) -> Output {
+    let mut args = vec!["run", file, "-q", "--executor", "slurm", "--results"];
+    args.push(results.to_str().unwrap());
+    args.extend_from_slice(extra);
+    ltcal(&args)
+}
+
 fn text(o: &Output) -> String {
     format!(
         "{}{}",
@@ -149,16 +157,7 @@ fn a_sweep_on_slurm_equals_the_local_run_in_one_array_over_several_nodes() {
     let file = data("sweep.toml");
     let o = ltcal(&["run", &file, "-q", "--results", local.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
-    let args = [
-        "run",
-        &file,
-        "-q",
-        "--executor",
-        "slurm",
-        "--results",
-        slurm.to_str().unwrap(),
-    ];
-    let o = ltcal(&args);
+    let o = on_slurm(&file, &slurm, &[]);
     assert!(o.status.success(), "{}", text(&o));
     // Value-identical: the same bytes.
     assert_eq!(
@@ -185,7 +184,7 @@ fn a_sweep_on_slurm_equals_the_local_run_in_one_array_over_several_nodes() {
     let files = files_under(&slurm.join("slurm-sweep"));
     assert!(files <= 24, "{files} files for 24 points");
     // A rerun finds every point in the cache and submits nothing.
-    let o = ltcal(&args);
+    let o = on_slurm(&file, &slurm, &[]);
     assert!(o.status.success(), "{}", text(&o));
     assert_eq!(
         jobs_record(&slurm, "slurm-sweep").as_array().unwrap().len(),
@@ -205,16 +204,7 @@ fn a_node_killed_and_a_task_cancelled_mid_run_fail_exactly_their_points_and_a_re
     let results = tmp.path().join("r");
     let r = results.to_str().unwrap();
     let file = data("slow.toml");
-    let o = ltcal(&[
-        "run",
-        &file,
-        "-q",
-        "--executor",
-        "slurm",
-        "--detach",
-        "--results",
-        r,
-    ]);
+    let o = on_slurm(&file, &results, &["--detach"]);
     assert!(o.status.success(), "{}", text(&o));
     let job = jobs_record(&results, "slurm-slow")[0]["job"]
         .as_str()
@@ -233,7 +223,7 @@ fn a_node_killed_and_a_task_cancelled_mid_run_fail_exactly_their_points_and_a_re
     let c = Command::new("scancel").arg(&cancelled.0).status().unwrap();
     assert!(c.success());
     // The attached run adopts the job, waits for it and names what failed.
-    let o = ltcal(&["run", &file, "-q", "--executor", "slurm", "--results", r]);
+    let o = on_slurm(&file, &results, &[]);
     let out = text(&o);
     assert_eq!(o.status.code(), Some(1), "{out}");
     let index = |t: &(String, String, String, String)| -> usize {
@@ -289,7 +279,7 @@ fn a_node_killed_and_a_task_cancelled_mid_run_fail_exactly_their_points_and_a_re
             .unwrap();
         String::from_utf8_lossy(&o.stdout).trim() == "idle"
     });
-    let o = ltcal(&["run", &file, "-q", "--executor", "slurm", "--results", r]);
+    let o = on_slurm(&file, &results, &[]);
     assert!(o.status.success(), "{}", text(&o));
     let jobs = jobs_record(&results, "slurm-slow");
     let last = jobs.as_array().unwrap().last().unwrap();
@@ -417,15 +407,7 @@ fn a_blind_check_split_into_sweep_points_scores_as_one_check_locally_and_on_slur
     let Some(_dir) = cluster() else { return };
     let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
     let slurm = tmp.path().join("slurm");
-    let o = ltcal(&[
-        "run",
-        &file,
-        "-q",
-        "--executor",
-        "slurm",
-        "--results",
-        slurm.to_str().unwrap(),
-    ]);
+    let o = on_slurm(&file, &slurm, &[]);
     assert!(o.status.success(), "{}", text(&o));
     // Each block an array task of one job.
     let jobs = jobs_record(&slurm, "blind-blocks");
@@ -493,21 +475,9 @@ fn a_job_of_another_computation_is_not_waited_for() {
     let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let results = tmp.path().join("r");
-    let r = results.to_str().unwrap();
     let file = data("slow.toml");
     let detach = |set: &str| {
-        let o = ltcal(&[
-            "run",
-            &file,
-            "-q",
-            "--executor",
-            "slurm",
-            "--detach",
-            "--results",
-            r,
-            "--set",
-            set,
-        ]);
+        let o = on_slurm(&file, &results, &["--detach", "--set", set]);
         assert!(o.status.success(), "{}", text(&o));
     };
     detach("stages.corner.seed=1");

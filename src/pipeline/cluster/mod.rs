@@ -528,20 +528,11 @@ fn wait(
         .map(|j| j.units.iter().map(|u| count(&u.points)).collect())
         .collect();
     let total: usize = sizes.iter().flatten().sum();
-    let bar = if opts.progress {
-        let b = indicatif::ProgressBar::new(total as u64);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{prefix} [{bar:40}] {pos}/{len} points  {msg}  {elapsed_precise}",
-            )
-            .expect("a valid template")
-            .progress_chars("=> "),
-        );
-        b.set_prefix(format!("{} {}", p.name, scheduler.name()));
-        b
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
+    let bar = run::progress_bar(
+        opts.progress,
+        total,
+        format!("{} {}", p.name, scheduler.name()),
+    );
     let poll = Duration::from_secs_f64(p.slurm.poll_seconds);
     // Every task's last known state: a scheduler lists an ended task only
     // for a while (Slurm: `MinJobAge`, 300 s), and a long wave's early
