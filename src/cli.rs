@@ -171,6 +171,10 @@ enum Command {
         /// The tracker model to fit (default: the campaign's `[tracker] model`).
         #[arg(long, value_name = "ID", value_parser = tracker_model)]
         model: Option<crate::tracker::TrackerModel>,
+        /// A hypothesis file: your own effects, tried beside the catalogue's
+        /// (README, "Your own effects").
+        #[arg(long, value_name = "FILE")]
+        hypotheses: Option<PathBuf>,
     },
     /// List the stage kinds.
     Kinds,
@@ -216,6 +220,11 @@ pub fn main() -> ExitCode {
         Err(e) => {
             if let Some(input) = e.downcast_ref::<InputError>() {
                 eprintln!("error: {input}");
+                ExitCode::from(2)
+            } else if let Some(at) = e.downcast_ref::<crate::diagnostics::SourceError>() {
+                // A mistake found in a user's file while working (a
+                // hypothesis not finite at some reading).
+                eprintln!("error: {at}");
                 ExitCode::from(2)
             } else {
                 eprintln!("error: {e:#}");
@@ -438,23 +447,14 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
 fn diagnose_command(
     campaign: &Path,
     out: &Path,
-    effects: Vec<String>,
-    folds: usize,
-    mc_draws: usize,
-    seed: u64,
-    model: Option<crate::tracker::TrackerModel>,
+    stage: stages::diagnose::DiagnoseStage,
 ) -> Result<ExitCode> {
     use crate::stages::StageKind;
-    let stage = stages::diagnose::DiagnoseStage {
-        model,
-        effects,
-        folds,
-        mc_draws,
-        seed,
-        ..Default::default()
-    };
     if let Some(bad) = stage.validate().first() {
         return Err(InputError::arg(bad.message.clone()));
+    }
+    if let Some(path) = &stage.hypotheses {
+        crate::hypothesis::load(path).map_err(|p| anyhow::Error::from(InputError(p)))?;
     }
     let step = step_spinner();
     step.set_message(format!("reading {}", campaign.display()));
@@ -698,7 +698,20 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             mc_draws,
             seed,
             model,
-        } => diagnose_command(&campaign, &out, effects, folds, mc_draws, seed, model),
+            hypotheses,
+        } => diagnose_command(
+            &campaign,
+            &out,
+            stages::diagnose::DiagnoseStage {
+                model,
+                effects,
+                folds,
+                mc_draws,
+                seed,
+                hypotheses,
+                ..Default::default()
+            },
+        ),
         Command::Kinds => {
             let kinds: String = stages::summaries()
                 .into_iter()

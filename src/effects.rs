@@ -278,6 +278,23 @@ pub struct Effects {
     /// Any number of gross errors, each on one reading.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub blunder: Vec<Blunder>,
+    /// A researcher's hypotheses ([`crate::hypothesis`]), injected at their
+    /// parameters' `value`s. Never written under `effects`: a stage sets
+    /// them from its `hypotheses` file, whose content hash its cache key
+    /// holds.
+    #[serde(skip)]
+    pub hypotheses: Injected,
+}
+
+/// Hypotheses to inject; equal when they are the same list (a file's
+/// content is compared through its hash, not here).
+#[derive(Clone, Debug, Default)]
+pub struct Injected(pub std::sync::Arc<Vec<crate::hypothesis::Hypothesis>>);
+
+impl PartialEq for Injected {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.0, &other.0) || (self.0.is_empty() && other.0.is_empty())
+    }
 }
 
 impl Effects {

@@ -15,6 +15,7 @@ pub mod diagnostics;
 pub mod effects;
 pub mod error_model;
 pub mod fs;
+pub mod hypothesis;
 pub mod identifiability;
 pub mod identify;
 pub mod kinematics;

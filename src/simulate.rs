@@ -11,6 +11,8 @@
 use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
 use crate::effects::{Axis, Effects, RangeScale, incidence_angles, table9_delta_d_um};
 use crate::error_model::{ErrorParams, InverseError};
+use crate::hypothesis::ActsOn;
+use crate::hypothesis::covariates::Covariates;
 use crate::kinematics::{Face, Reading};
 use crate::layout::Layout;
 use crate::noise::Noise;
@@ -192,6 +194,43 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                 if let Some(d) = fx.station_drift.as_ref().filter(|d| d.applies_to(&pose.id)) {
                     origin += d.displacement_mm(time - first_time.unwrap_or(time));
                 }
+                let place = || format!("{}/{tid}/{}", pose.id, face.number());
+                // Hypotheses on positions: their covariates are those of
+                // the reading the unmoved geometry gives.
+                let (mut x, mut origin) = (x, origin);
+                for h in fx
+                    .hypotheses
+                    .0
+                    .iter()
+                    .filter(|h| matches!(h.acts_on, ActsOn::Reflector | ActsOn::Station))
+                {
+                    let local = StationPose {
+                        position: origin,
+                        ..pose.clone()
+                    }
+                    .to_local(&x);
+                    let r0 = crate::kinematics::nominal_reading(&local, face);
+                    let cov = Covariates {
+                        az: r0.az,
+                        el: r0.el,
+                        d: r0.d,
+                        face: face.number() as f64,
+                        time_s: Some(time),
+                        since_station_s: Some(time - first_time.unwrap_or(time)),
+                        temperature_c: fx.air_refraction.as_ref().map(|a| a.temperature_c(time)),
+                        incidence: Some(incidence_angles(&aim_dir, &(origin - x).normalize())),
+                        point: x,
+                        station_pos: origin,
+                        station: &pose.id,
+                        reflector: tid,
+                    };
+                    let theta = h.theta(&cov, &|k, inst| h.params[k].value.at(inst));
+                    let s = h.apply(&cov, &theta, &place()).map_err(|e| e.to_string())?;
+                    match h.acts_on {
+                        ActsOn::Station => origin += s,
+                        _ => x += s,
+                    }
+                }
                 let at = StationPose {
                     position: origin,
                     ..pose.clone()
@@ -229,6 +268,33 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                     }
                     None => 20.0 + 0.01 * random::normal(&mut temp_rng),
                 };
+                let cov = Covariates {
+                    az: r.az,
+                    el: r.el,
+                    d: r.d,
+                    face: face.number() as f64,
+                    time_s: Some(time),
+                    since_station_s: Some(time - first_time.unwrap_or(time)),
+                    temperature_c: Some(temperature),
+                    incidence: Some(angles),
+                    point: x,
+                    station_pos: origin,
+                    station: &pose.id,
+                    reflector: tid,
+                };
+                // Only when there are any: adding 0 would turn a −0 into +0.
+                for h in fx
+                    .hypotheses
+                    .0
+                    .iter()
+                    .filter(|h| matches!(h.acts_on, ActsOn::Reading(_)))
+                {
+                    let theta = h.theta(&cov, &|k, inst| h.params[k].value.at(inst));
+                    let v = h.apply(&cov, &theta, &place()).map_err(|e| e.to_string())?;
+                    r.az += v.x;
+                    r.el += v.y;
+                    dd_mm += v.z;
+                }
                 if let Some(e) = &fx.encoder_harmonic {
                     match e.axis {
                         Axis::Az => r.az += e.delta_rad(r.az),

@@ -11,6 +11,7 @@
 use super::linear::Signature;
 use crate::effects::{IncidenceAngles, incidence_angles, table9_delta_d_um};
 use nalgebra::{Matrix3, Vector3};
+use std::sync::Arc;
 
 /// What the candidates need to know about one reading.
 #[derive(Clone, Debug)]
@@ -31,20 +32,27 @@ pub struct ReadingInfo {
     pub since_station_s: Option<f64>,
     pub temperature_c: Option<f64>,
     pub incidence: Option<IncidenceAngles>,
+    /// What a hypothesis may read besides: the face (1, 2), `time_s` as
+    /// recorded, and the reflector's centre and the station's origin at
+    /// the base solution (campaign frame, mm).
+    pub face: f64,
+    pub time_s: Option<f64>,
+    pub point: Vector3<f64>,
+    pub station_pos: Vector3<f64>,
 }
 
 /// One candidate explanation.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct Candidate {
-    /// The id of `effects.md`.
-    pub effect: &'static str,
+    /// The id of `effects.md`, or a hypothesis's name.
+    pub effect: String,
     /// `all`, a station or reflector id, or an axis.
     pub place: String,
     /// Signature columns, one per parameter, on the readings it affects.
     pub columns: Signature,
     /// The magnitude reported from the fitted parameters, and its unit.
-    pub magnitude: fn(&[f64]) -> f64,
-    pub unit: &'static str,
+    pub magnitude: Magnitude,
+    pub unit: String,
     /// Alternatives this candidate was chosen from (orders, stations):
     /// counted in the multiple-testing correction.
     pub alternatives: usize,
@@ -55,7 +63,7 @@ pub struct Candidate {
 /// A candidate that could not be tried, and why.
 #[derive(Clone, Debug)]
 pub struct Skipped {
-    pub effect: &'static str,
+    pub effect: String,
     pub reason: String,
 }
 
@@ -65,15 +73,28 @@ fn norm(b: &[f64]) -> f64 {
 fn first(b: &[f64]) -> f64 {
     b[0]
 }
+fn largest(b: &[f64]) -> f64 {
+    b.iter().fold(0.0, |m: f64, x| m.max(x.abs()))
+}
+
+/// How a candidate's magnitude is read from its fitted parameters: a
+/// closure, since a hypothesis's is an expression of its own.
+pub type Magnitude = Arc<dyn Fn(&[f64]) -> f64 + Send + Sync>;
 
 /// Adds `w_d·value` to reading i's range row of column `col`.
-fn put_d(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
+pub(super) fn put_d(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
     c.add(i, 2, col, value_mm / r.sigma.z);
 }
 
 /// Adds a point displacement `s_mm` (campaign frame, per unit of the
 /// column's parameter) to reading i.
-fn put_point(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, s_mm: Vector3<f64>) {
+pub(super) fn put_point(
+    c: &mut Signature,
+    i: usize,
+    r: &ReadingInfo,
+    col: usize,
+    s_mm: Vector3<f64>,
+) {
     let dq = r.jinv * (r.rotation.transpose() * s_mm);
     for a in 0..3 {
         c.add(i, a, col, dq[a] / r.sigma[a]);
@@ -91,9 +112,9 @@ pub fn build(
 ) -> (Vec<Candidate>, Vec<Skipped>) {
     let mut out = Vec::new();
     let mut skipped = Vec::new();
-    let skip = |effect: &'static str, reason: &str, skipped: &mut Vec<Skipped>| {
+    let skip = |effect: &str, reason: &str, skipped: &mut Vec<Skipped>| {
         skipped.push(Skipped {
-            effect,
+            effect: effect.to_string(),
             reason: reason.to_string(),
         })
     };
@@ -121,11 +142,11 @@ pub fn build(
                 put_d(&mut c, i, r, 2, 1e-3 * a.alpha_v.sin());
             }
             out.push(Candidate {
-                effect: "incidence",
+                effect: "incidence".into(),
                 place: "all".into(),
                 columns: c,
-                magnitude: first,
-                unit: "µm",
+                magnitude: Arc::new(first),
+                unit: "µm".into(),
                 alternatives: 1,
                 detail: incidence_detail.clone(),
             });
@@ -147,11 +168,11 @@ pub fn build(
                 }
             }
             out.push(Candidate {
-                effect: "incidence-table9",
+                effect: "incidence-table9".into(),
                 place: "all".into(),
                 columns: c,
-                magnitude: first,
-                unit: "× Table 9",
+                magnitude: Arc::new(first),
+                unit: "× Table 9".into(),
                 alternatives: 1,
                 detail: incidence_detail.clone(),
             });
@@ -178,21 +199,21 @@ pub fn build(
         };
         for (s, id) in stations.iter().enumerate() {
             out.push(Candidate {
-                effect: "range-scale",
+                effect: "range-scale".into(),
                 place: id.clone(),
                 columns: scale(1, &|station| (station == s).then_some(0)),
-                magnitude: first,
-                unit: "ppm",
+                magnitude: Arc::new(first),
+                unit: "ppm".into(),
                 alternatives: 1,
                 detail: String::new(),
             });
         }
         out.push(Candidate {
-            effect: "range-scale",
+            effect: "range-scale".into(),
             place: "all".into(),
             columns: scale(stations.len(), &Some),
-            magnitude: |b| b.iter().fold(0.0, |m: f64, x| m.max(x.abs())),
-            unit: "ppm (largest)",
+            magnitude: Arc::new(largest),
+            unit: "ppm (largest)".into(),
             alternatives: 1,
             detail: String::new(),
         });
@@ -210,11 +231,11 @@ pub fn build(
                 put_d(&mut c, i, r, 1, 1e-6 * r.d);
             }
             out.push(Candidate {
-                effect: "air-refraction",
+                effect: "air-refraction".into(),
                 place: "all".into(),
                 columns: c,
-                magnitude: first,
-                unit: "ppm/K",
+                magnitude: Arc::new(first),
+                unit: "ppm/K".into(),
                 alternatives: 1,
                 detail: String::new(),
             });
@@ -239,11 +260,11 @@ pub fn build(
                     c.add(i, a, 1, 1e-6 * k.cos() / r.sigma[a]);
                 }
                 out.push(Candidate {
-                    effect: "encoder-harmonic",
+                    effect: "encoder-harmonic".into(),
                     place: axis.into(),
                     columns: c,
-                    magnitude: norm,
-                    unit: "µrad",
+                    magnitude: Arc::new(norm),
+                    unit: "µrad".into(),
                     alternatives: 3,
                     detail: format!("order {order}"),
                 });
@@ -269,11 +290,11 @@ pub fn build(
                     drift(&mut c, i, r);
                 }
                 out.push(Candidate {
-                    effect: "station-drift",
+                    effect: "station-drift".into(),
                     place: id.clone(),
                     columns: c,
-                    magnitude: norm,
-                    unit: "µm/min",
+                    magnitude: Arc::new(norm),
+                    unit: "µm/min".into(),
                     alternatives: 1,
                     detail: String::new(),
                 });
@@ -283,11 +304,11 @@ pub fn build(
                 drift(&mut c, i, r);
             }
             out.push(Candidate {
-                effect: "station-drift",
+                effect: "station-drift".into(),
                 place: "all".into(),
                 columns: c,
-                magnitude: norm,
-                unit: "µm/min",
+                magnitude: Arc::new(norm),
+                unit: "µm/min".into(),
                 alternatives: 1,
                 detail: String::new(),
             });
@@ -330,11 +351,11 @@ pub fn build(
                     }
                 }
                 out.push(Candidate {
-                    effect: "target-shift",
+                    effect: "target-shift".into(),
                     place: id.clone(),
                     columns: c,
-                    magnitude: norm,
-                    unit: "µm",
+                    magnitude: Arc::new(norm),
+                    unit: "µm".into(),
                     alternatives: n_from,
                     detail: format!("from station {}", stations[station_order[k]]),
                 });

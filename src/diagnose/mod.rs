@@ -50,6 +50,7 @@ pub mod blind;
 pub mod candidates;
 pub mod f_test;
 pub mod factors;
+pub mod hypotheses;
 pub mod linear;
 pub mod models;
 pub mod output;
@@ -58,14 +59,16 @@ use crate::calibrate::snooping::{self, WTest};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
 use crate::campaign::{Aim, Campaign};
 use crate::error_model::{ErrorModel, ErrorParams, ParamId};
+use crate::hypothesis::Hypothesis;
 use crate::kinematics::nominal_jacobian;
 use crate::random;
 use anyhow::{Result, anyhow};
-use candidates::{Candidate, ReadingInfo, Skipped};
+use candidates::{Candidate, Magnitude, ReadingInfo, Skipped};
 use factors::{FactorTest, ResidualRow};
 use linear::{LinearModel, Signature};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// How to diagnose.
 #[derive(Clone, Debug)]
@@ -84,6 +87,8 @@ pub struct Settings {
     pub seed: u64,
     /// Members of the explanation set at most.
     pub max_steps: usize,
+    /// A researcher's hypotheses, tried beside the catalogue's effects.
+    pub hypotheses: Arc<Vec<Hypothesis>>,
 }
 
 /// The default of [`Settings::max_steps`]: more effects than any real
@@ -101,6 +106,7 @@ impl Default for Settings {
             effects: Vec::new(),
             seed: 0,
             max_steps: DEFAULT_MAX_STEPS,
+            hypotheses: Arc::default(),
         }
     }
 }
@@ -437,7 +443,7 @@ fn compare_models(
                 Ok(f) => fits.push(f),
                 Err(e) => {
                     skipped.push(Skipped {
-                        effect: MODEL,
+                        effect: MODEL.to_string(),
                         reason: format!("the {t} model could not be fitted: {e}"),
                     });
                     return None;
@@ -508,7 +514,7 @@ enum Member {
     /// An effect — its candidate `(effect, place, detail)` — and its
     /// parameters.
     Effect {
-        effect: &'static str,
+        effect: String,
         place: String,
         detail: String,
         beta: Vec<f64>,
@@ -590,14 +596,14 @@ struct Path {
 }
 
 /// A member's row, and how its magnitude is read from its parameters.
-type MemberRow = (Row, Option<fn(&[f64]) -> f64>);
+type MemberRow = (Row, Option<Magnitude>);
 
 /// The standard uncertainty of `magnitude(β)` from β's covariance `cov`
 /// (whitened units) times `var_factor`: the delta method, `u² = gᵀ·Σ·g`
 /// with the gradient `g` by central differences. (For an amplitude near
 /// zero the distribution is far from normal and `u` only a scale.)
 fn magnitude_u(
-    magnitude: fn(&[f64]) -> f64,
+    magnitude: &dyn Fn(&[f64]) -> f64,
     beta: &[f64],
     cov: &DMatrix<f64>,
     var_factor: f64,
@@ -644,9 +650,9 @@ fn member_u(st: &State, members: &[Member], rows: &[MemberRow]) -> Vec<Option<f6
                 let k = beta.len();
                 let at = offset;
                 offset += k;
-                magnitude.map(|magnitude| {
+                magnitude.as_ref().map(|magnitude| {
                     let cov = fit.cov.view((at, at), (k, k)).into_owned();
-                    magnitude_u(magnitude, beta, &cov, var_factor)
+                    magnitude_u(magnitude.as_ref(), beta, &cov, var_factor)
                 })
             }
             Member::Blunder { .. } => None,
@@ -830,13 +836,24 @@ impl StepContext<'_> {
                 .clone()
                 .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
             let infos = reading_infos(self.campaign, &net, &cal);
-            let (cands, skipped) = candidates::build(
+            let (mut cands, mut skipped) = candidates::build(
                 &infos,
                 &net.stations,
                 &net.targets,
                 &self.order,
                 self.enabled,
             );
+            let lines: Vec<Option<usize>> = self.campaign.readings.iter().map(|r| r.line).collect();
+            let (hyp, hyp_skipped) = hypotheses::build(
+                &self.settings.hypotheses,
+                &infos,
+                &net.stations,
+                &net.targets,
+                &lines,
+            )
+            .map_err(anyhow::Error::from)?;
+            cands.extend(hyp);
+            skipped.extend(hyp_skipped);
             let sig = member_signature(members, &cands)?;
             if sig.ncols() > 0 && refit < MAX_REFITS {
                 let step = linear::fit_once(&lin.jacobian, &lin.residuals, &sig)?;
@@ -941,6 +958,14 @@ fn reading_infos(c: &Campaign, net: &Network, cal: &Calibration) -> Vec<ReadingI
                 rotation: *pose.rotation.matrix(),
                 since_station_s: r.time_s.zip(first_time[o.station]).map(|(t, t0)| t - t0),
                 temperature_c: r.temperature_c,
+                face: r.face.number() as f64,
+                time_s: r.time_s,
+                point: cal
+                    .points
+                    .get(&o.target)
+                    .copied()
+                    .unwrap_or_else(Vector3::zeros),
+                station_pos: pose.translation,
                 incidence: axis(o.target).and_then(|n| {
                     cal.points
                         .get(&o.target)
@@ -1009,7 +1034,7 @@ struct Pick {
     /// For an effect: the joint fit's parameters (members' increments,
     /// then the new member's), and how its magnitude is reported.
     joint_beta: Option<Vec<f64>>,
-    magnitude: Option<fn(&[f64]) -> f64>,
+    magnitude: Option<Magnitude>,
 }
 
 impl Scored {
@@ -1054,13 +1079,13 @@ impl Scored {
                     Pick {
                         row: r.clone(),
                         member: Member::Effect {
-                            effect: c.effect,
+                            effect: c.effect.clone(),
                             place: c.place.clone(),
                             detail: c.detail.clone(),
                             beta: vec![0.0; beta.len() - self.members_k],
                         },
                         joint_beta: Some(beta.clone()),
-                        magnitude: Some(c.magnitude),
+                        magnitude: Some(c.magnitude.clone()),
                     }
                 }
             })
@@ -1111,12 +1136,12 @@ impl StepContext<'_> {
         let used: Vec<&str> = members
             .iter()
             .filter_map(|m| match m {
-                Member::Effect { effect, .. } => Some(*effect),
+                Member::Effect { effect, .. } => Some(effect.as_str()),
                 Member::Blunder { .. } => None,
             })
             .collect();
         let open: Vec<usize> = (0..st.cands.len())
-            .filter(|&i| !used.contains(&st.cands[i].effect))
+            .filter(|&i| !used.contains(&st.cands[i].effect.as_str()))
             .collect();
         let fits: Vec<linear::Fit> = open
             .par_iter()
@@ -1159,7 +1184,12 @@ impl StepContext<'_> {
                     effect: cand.effect.to_string(),
                     place: cand.place.clone(),
                     magnitude: (cand.magnitude)(&fit.beta[k_m..]),
-                    magnitude_u: magnitude_u(cand.magnitude, &fit.beta[k_m..], &cov, var_factor),
+                    magnitude_u: magnitude_u(
+                        cand.magnitude.as_ref(),
+                        &fit.beta[k_m..],
+                        &cov,
+                        var_factor,
+                    ),
                     unit: cand.unit.to_string(),
                     score,
                     significant: p_corrected < alpha && delta_bic > 0.0 && score > 0.0,

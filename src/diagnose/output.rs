@@ -210,7 +210,10 @@ pub fn skipped_table(d: &Diagnosis) -> Result<DataFrame> {
     TableBuilder::new()
         .str(
             "effect",
-            &d.skipped.iter().map(|s| s.effect).collect::<Vec<_>>(),
+            &d.skipped
+                .iter()
+                .map(|s| s.effect.as_str())
+                .collect::<Vec<_>>(),
         )
         .str(
             "reason",

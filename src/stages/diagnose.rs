@@ -15,6 +15,7 @@
 //! effects = []                       # effect ids to try (empty: all of effects.md)
 //! seed = 0
 //! max_steps = 8                      # members of the explanation set at most
+//! hypotheses = "hypotheses/adm.toml" # your own effects, tried beside the catalogue's
 //! ```
 //!
 //! Outputs: `diagnosis` (the contract of `diagnosis.csv`, see
@@ -27,15 +28,41 @@
 //! `set_gap_shrink_pct`, `verdict`), `skipped` (`effect`, `reason`); files
 //! `diagnosis.csv`, `report.md` and `residuals-<factor>.svg`.
 
-use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
+use super::{Context, Invalid, Slot, StageFile, StageInputs, StageKind, StageOutput, fitting};
 use crate::campaign::{self, Campaign};
 use crate::diagnose::{self, Diagnosis, Settings, output};
 use crate::effects;
 use crate::error_model::{ParamId, Shape};
+use crate::hypothesis::Hypothesis;
 use crate::tracker::TrackerModel;
-use anyhow::Result;
+use anyhow::{Result, anyhow};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// A hypothesis file, every mistake in it at its place (one message).
+pub fn load_hypotheses(path: &Path) -> Result<Vec<Hypothesis>, String> {
+    crate::hypothesis::load(path).map_err(|problems| {
+        problems
+            .iter()
+            .map(|p| match p {
+                crate::diagnostics::Problem::At(e) => e.to_string(),
+                other => format!("{}: {}", other.location(), other.message()),
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
+    })
+}
+
+/// [`super::StageFile::check`] of a hypothesis file: its content hash once
+/// it parses.
+pub fn check_hypotheses(path: &Path) -> Result<String, String> {
+    load_hypotheses(path)?;
+    let bytes = crate::fs::read_regular_file(path, crate::hypothesis::MAX_FILE_BYTES)
+        .map_err(|e| e.to_string())?;
+    Ok(blake3::hash(&bytes).to_hex().to_string())
+}
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -58,6 +85,10 @@ pub struct DiagnoseStage {
     pub seed: u64,
     #[serde(default = "default_max_steps")]
     pub max_steps: usize,
+    /// A hypothesis file ([`crate::hypothesis`]): a researcher's effects,
+    /// tried beside the catalogue's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hypotheses: Option<PathBuf>,
 }
 
 fn default_max_steps() -> usize {
@@ -86,6 +117,7 @@ impl Default for DiagnoseStage {
             effects: Vec::new(),
             seed: 0,
             max_steps: default_max_steps(),
+            hypotheses: None,
         }
     }
 }
@@ -104,6 +136,10 @@ impl DiagnoseStage {
             effects: self.effects.clone(),
             seed: self.seed,
             max_steps: self.max_steps,
+            hypotheses: Arc::new(match &self.hypotheses {
+                Some(path) => load_hypotheses(path).map_err(|e| anyhow!(e))?,
+                None => Vec::new(),
+            }),
         })
     }
 
@@ -204,6 +240,14 @@ impl StageKind for DiagnoseStage {
             "skipped" => Some(&["effect", "reason"]),
             _ => None,
         }
+    }
+
+    fn file(&self) -> Option<StageFile<'_>> {
+        self.hypotheses.as_deref().map(|path| StageFile {
+            field: "hypotheses",
+            path,
+            check: check_hypotheses,
+        })
     }
 
     fn validate(&self) -> Vec<Invalid> {

@@ -17,7 +17,13 @@
 //! seed = 1
 //! [stages.corner.effects.incidence]     # any effect of effects.md, by its id
 //! e_axial_um = 5.0
+//! hypotheses = "hypotheses/adm.toml"     # your own effects (crate::hypothesis), at their `value`s
+//! [stages.corner.hypothesis_values.adm-cyclic]
+//! a = 6.0                                # a parameter's value, over the file's (a number, or per instance)
 //! ```
+//!
+//! A hypothesis's injected values are rows of `truth_effects` too (`effect`
+//! its name, `where` the instance, `parameter` the parameter's name).
 //!
 //! Outputs: the campaign (`readings`, `targets`, `gauge`, `meta`: a group
 //! other stages take whole, e.g. `inputs = { campaign = "corner" }`) and the
@@ -30,7 +36,9 @@
 use super::measure::Faces;
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::campaign::Aim;
+use crate::effects::Injected;
 use crate::effects::{Coordinate, Effects};
+use crate::hypothesis::{Hypothesis, Value};
 use crate::layout::{self, Spec};
 use crate::noise::Noise;
 use crate::schema;
@@ -39,6 +47,9 @@ use crate::table::TableBuilder;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
 
 /// How the SMR axes are given.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -79,6 +90,12 @@ pub struct SimulateCampaignStage {
     pub record_temperature: bool,
     #[serde(default)]
     pub seed: u64,
+    /// A hypothesis file whose hypotheses are injected.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hypotheses: Option<PathBuf>,
+    /// Values over the file's: hypothesis → parameter → value.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub hypothesis_values: BTreeMap<String, BTreeMap<String, Value>>,
 }
 
 fn default_name() -> String {
@@ -107,11 +124,33 @@ fn yes() -> bool {
 }
 
 impl SimulateCampaignStage {
+    /// The hypotheses to inject, with `hypothesis_values` over the file's.
+    pub fn injected(&self) -> Result<Vec<Hypothesis>> {
+        let Some(path) = &self.hypotheses else {
+            return Ok(Vec::new());
+        };
+        let mut hyps = super::diagnose::load_hypotheses(path).map_err(|e| anyhow!(e))?;
+        for h in &mut hyps {
+            if let Some(values) = self.hypothesis_values.get(&h.name) {
+                for p in &mut h.params {
+                    if let Some(v) = values.get(&p.name) {
+                        p.value = v.clone();
+                    }
+                }
+            }
+        }
+        Ok(hyps)
+    }
+
     pub fn simulate(
         &self,
         errors: Option<&crate::error_model::ErrorParams>,
     ) -> Result<SimulatedCampaign> {
         let layout = layout::build(&self.layout);
+        let effects = Effects {
+            hypotheses: Injected(Arc::new(self.injected()?)),
+            ..self.effects.clone()
+        };
         simulate::simulate_campaign(&CampaignSpec {
             name: self.name.clone(),
             layout: &layout,
@@ -123,7 +162,7 @@ impl SimulateCampaignStage {
             },
             max_angle_deg: self.max_angle_deg,
             noise: self.noise,
-            effects: &self.effects,
+            effects: &effects,
             gauge_u_mm: self.gauge_u_mm,
             reference_u_mm: self.reference_u_mm,
             level_urad: self.level_urad,
@@ -171,8 +210,55 @@ impl StageKind for SimulateCampaignStage {
         }
     }
 
+    fn file(&self) -> Option<super::StageFile<'_>> {
+        self.hypotheses.as_deref().map(|path| super::StageFile {
+            field: "hypotheses",
+            path,
+            check: super::diagnose::check_hypotheses,
+        })
+    }
+
     fn validate(&self) -> Vec<Invalid> {
         let mut out = Invalid::layout(&self.layout);
+        // Values for hypotheses and parameters the file has (checked
+        // against it when the file loads).
+        if let Some(path) = &self.hypotheses {
+            if let Ok(hyps) = super::diagnose::load_hypotheses(path) {
+                for (name, values) in &self.hypothesis_values {
+                    match hyps.iter().find(|h| &h.name == name) {
+                        None => out.push(Invalid::new(
+                            format!("hypothesis_values.{name}"),
+                            format!("{} has no hypothesis `{name}`", path.display()),
+                        )),
+                        Some(h) => {
+                            for (p, v) in values {
+                                if !h.params.iter().any(|q| &q.name == p) {
+                                    out.push(Invalid::new(
+                                        format!("hypothesis_values.{name}.{p}"),
+                                        format!("hypothesis `{name}` has no parameter `{p}`"),
+                                    ));
+                                }
+                                let finite = match v {
+                                    Value::Same(x) => x.is_finite(),
+                                    Value::Each(m) => m.values().all(|x| x.is_finite()),
+                                };
+                                if !finite {
+                                    out.push(Invalid::new(
+                                        format!("hypothesis_values.{name}.{p}"),
+                                        "values must be finite",
+                                    ));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        } else if !self.hypothesis_values.is_empty() {
+            out.push(Invalid::new(
+                "hypothesis_values",
+                "`hypothesis_values` without `hypotheses = \"file.toml\"`",
+            ));
+        }
         out.extend(
             self.effects
                 .check()
@@ -314,6 +400,17 @@ fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Resu
                     }
                 }
                 _ => {}
+            }
+        }
+    }
+    for h in stage.injected()? {
+        for p in &h.params {
+            match &p.value {
+                Value::Same(v) => rows.push((h.name.clone(), "all".into(), p.name.clone(), *v)),
+                Value::Each(m) => rows.extend(
+                    m.iter()
+                        .map(|(at, v)| (h.name.clone(), at.clone(), p.name.clone(), *v)),
+                ),
             }
         }
     }

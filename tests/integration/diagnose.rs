@@ -192,7 +192,7 @@ fn effects_that_need_time_or_temperature_are_skipped_with_a_reason_when_absent()
         r.temperature_c = None;
     }
     let d = diagnose::diagnose(&c, &Settings::default()).unwrap();
-    let skipped: Vec<&str> = d.skipped.iter().map(|s| s.effect).collect();
+    let skipped: Vec<&str> = d.skipped.iter().map(|s| s.effect.as_str()).collect();
     assert_eq!(skipped, ["air-refraction", "station-drift"]);
     assert!(
         d.skipped

@@ -136,3 +136,27 @@ fn every_file_ltcal_writes_goes_through_fs() {
         offending.join("\n  ")
     );
 }
+
+/// ARCHITECTURE.md: `hypothesis/` knows nothing of campaigns, the
+/// simulation or the diagnosis — they use it, not the other way round.
+#[test]
+fn hypothesis_knows_nothing_of_campaigns_the_simulation_or_the_diagnosis() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/hypothesis");
+    let files = rust_files(&dir);
+    assert!(files.len() >= 3, "{files:?}");
+    for f in files {
+        let code = code(&f);
+        for forbidden in [
+            "crate::campaign",
+            "crate::simulate",
+            "crate::diagnose",
+            "crate::calibrate",
+        ] {
+            assert!(
+                !code.contains(forbidden),
+                "{} names {forbidden}",
+                f.display()
+            );
+        }
+    }
+}

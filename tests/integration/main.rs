@@ -11,6 +11,7 @@ mod effects;
 mod errors;
 mod fuzz;
 mod hostile;
+mod hypotheses;
 mod incidence;
 mod layering;
 mod layout_design;
