@@ -681,7 +681,11 @@ impl Store {
             });
             return done;
         }
-        let known = if all { BTreeMap::new() } else { self.verified() };
+        let known = if all {
+            BTreeMap::new()
+        } else {
+            self.verified()
+        };
         let fresh = std::mem::take(&mut *self.fresh.lock().unwrap_or_else(|e| e.into_inner()));
         let mut good = BTreeMap::new();
         // Good as recorded, or written by this process: not read again.
@@ -782,8 +786,7 @@ impl Store {
                     Healed {
                         path: path.to_path_buf(),
                         damage: format!("{why:#}"),
-                        action: "removed (its points are computed again by the next run)"
-                            .into(),
+                        action: "removed (its points are computed again by the next run)".into(),
                     },
                     None,
                 )));

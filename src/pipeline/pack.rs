@@ -310,7 +310,11 @@ fn open(path: &Path) -> Result<(File, u64)> {
 /// is now (a pack cut short since its index was read).
 fn open_for(path: &Path, span: Span) -> Result<File> {
     let (f, len) = open(path)?;
-    if span.offset.checked_add(span.len).is_none_or(|end| end > len) {
+    if span
+        .offset
+        .checked_add(span.len)
+        .is_none_or(|end| end > len)
+    {
         bail!("the entry lies beyond the pack's end (the pack was cut short)");
     }
     Ok(f)

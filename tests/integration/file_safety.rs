@@ -167,12 +167,18 @@ fn export_campaign_overwrite_refuses_a_folder_that_is_not_a_campaign() {
     let out = cmd("run", &file, &results, &[]);
     assert_code(&out, 1);
     let err = stderr(&out);
-    assert!(err.contains("stage `export` (export_campaign) failed"), "{err}");
+    assert!(
+        err.contains("stage `export` (export_campaign) failed"),
+        "{err}"
+    );
     assert!(
         err.contains("is not a campaign ltcal wrote (it holds sub, thesis.tex)"),
         "{err}"
     );
-    assert!(err.contains("`overwrite` replaces only a campaign folder"), "{err}");
+    assert!(
+        err.contains("`overwrite` replaces only a campaign folder"),
+        "{err}"
+    );
     assert_eq!(
         std::fs::read_to_string(mine.join("thesis.tex")).unwrap(),
         "\\chapter{One}"
@@ -202,10 +208,7 @@ fn export_campaign_overwrite_refuses_a_folder_that_is_not_a_campaign() {
         files_in(&old),
         ["campaign.toml", "gauge.csv", "readings.csv", "targets.csv"]
     );
-    assert_eq!(
-        std::fs::read(old.join("readings.csv")).unwrap(),
-        std::fs::read(campaign.join("readings.csv")).unwrap()
-    );
+    assert_eq!(ltcal::campaign::read(&old).unwrap().readings.len(), 120);
 }
 
 /// Regression (issue 28, 4): a FIFO named `*.pack`, as a loose manifest or
@@ -289,7 +292,10 @@ fn a_fifo_named_pack_does_not_hang_run_or_verify() {
     assert!(err.contains("healed the cache"), "{err}");
     assert_eq!(gathered(&results, "fifo"), clean);
     assert_code(&cmd("verify", &file, &results, &[]), 0);
-    assert_code(&cmd("show", &file, &results, &["sweep.reading.readings"]), 0);
+    assert_code(
+        &cmd("show", &file, &results, &["sweep.reading.readings"]),
+        0,
+    );
 }
 
 /// Regression (issue 28, 4): a symbolic link to `/dev/zero` as a cached
@@ -368,7 +374,10 @@ fn a_symlinked_stage_folder_is_not_written_through() {
     assert_code(&out, 1);
     let link = dir.join("reading").display().to_string();
     assert!(
-        stderr(&out).contains(&format!("{link} is a symbolic link (to {}", outside.display())),
+        stderr(&out).contains(&format!(
+            "{link} is a symbolic link (to {}",
+            outside.display()
+        )),
         "{}",
         stderr(&out)
     );
@@ -385,7 +394,11 @@ fn a_symlinked_stage_folder_is_not_written_through() {
     std::os::unix::fs::symlink(&outside, ltcal_dir.join("packs")).unwrap();
     let out = cmd("run", &file, &results, &[]);
     assert_code(&out, 1);
-    assert!(stderr(&out).contains("is a symbolic link"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("is a symbolic link"),
+        "{}",
+        stderr(&out)
+    );
     assert!(files_in(&outside).is_empty(), "{:?}", files_in(&outside));
 
     // The pipeline's folder.
@@ -393,9 +406,16 @@ fn a_symlinked_stage_folder_is_not_written_through() {
     std::os::unix::fs::symlink(&outside, results.join("pipeline-link")).unwrap();
     let out = cmd("run", &file, &results, &[]);
     assert_code(&out, 1);
-    assert!(stderr(&out).contains("is a symbolic link"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("is a symbolic link"),
+        "{}",
+        stderr(&out)
+    );
     assert!(files_in(&outside).is_empty(), "{:?}", files_in(&outside));
 }
+
+/// A way to damage a pack in place.
+type Spoil = Box<dyn Fn(&Path)>;
 
 /// Regression (issue 28, 6): a flipped byte in a packed table nothing
 /// reads was reported by `verify` forever while `run` served it as
@@ -434,10 +454,16 @@ fn run_heals_what_verify_finds_damaged() {
     let out = cmd("run", &file, &results, &[]);
     assert_code(&out, 0);
     let err = stderr(&out);
-    assert!(err.contains("0 ran, "), "served as cached in this run: {err}");
+    assert!(
+        err.contains("0 ran, "),
+        "served as cached in this run: {err}"
+    );
     assert!(err.contains("healed the cache"), "{err}");
     assert!(err.contains("1 damaged entry"), "{err}");
-    assert!(err.contains("good entries and its records rewritten as"), "{err}");
+    assert!(
+        err.contains("good entries and its records rewritten as"),
+        "{err}"
+    );
     let healed = run_json(&results, "heal")["healed"].clone();
     assert_eq!(healed.as_array().unwrap().len(), 1, "{healed}");
     assert!(
@@ -461,8 +487,7 @@ fn run_heals_what_verify_finds_damaged() {
 
     // Whole packs damaged every way: each is recomputed, taken out, and
     // `verify` passes after one run.
-    let len = bytes.len();
-    let damage: Vec<(&str, Box<dyn Fn(&Path)>)> = vec![
+    let damage: Vec<(&str, Spoil)> = vec![
         (
             "truncated",
             Box::new(|p: &Path| {
@@ -492,7 +517,7 @@ fn run_heals_what_verify_finds_damaged() {
             "chmod 000",
             Box::new(|p: &Path| {
                 use std::os::unix::fs::PermissionsExt as _;
-                std::fs::set_permissions(p, std::fs::Permissions::from_mode(0)).unwrap();
+                std::fs::set_permissions(p, std::fs::Permissions::from_mode(0o000)).unwrap();
             }),
         ),
         (
@@ -508,14 +533,21 @@ fn run_heals_what_verify_finds_damaged() {
             Box::new(|p: &Path| replace_with_symlink(p, Path::new("/dev/zero"))),
         ),
     ];
-    assert!(len > 100);
     for (what, spoil) in &damage {
         for p in packs(&results, "heal") {
             spoil(&p);
         }
+        // (`chmod 000` hides nothing from root: then nothing is damaged.)
+        let damaged = cmd("verify", &file, &results, &[]).status.code() == Some(1);
+        assert!(damaged || *what == "chmod 000", "{what}");
         let out = cmd("run", &file, &results, &[]);
         assert_code(&out, 0);
-        assert!(stderr(&out).contains("healed the cache"), "{what}: {}", stderr(&out));
+        assert_eq!(
+            stderr(&out).contains("healed the cache"),
+            damaged,
+            "{what}: {}",
+            stderr(&out)
+        );
         assert_eq!(gathered(&results, "heal"), clean, "{what}");
         let v = cmd("verify", &file, &results, &[]);
         assert_code(&v, 0);
@@ -556,6 +588,11 @@ fn verify_repair_takes_out_what_is_damaged_and_verify_passes_after_it() {
     assert_code(&cmd("verify", &file, &results, &[]), 0);
     let out = cmd("run", &file, &results, &[]);
     assert_code(&out, 0);
-    assert_eq!(run_json(&results, "repair")["sweep"]["ran"], 4, "{}", stderr(&out));
+    assert_eq!(
+        run_json(&results, "repair")["sweep"]["ran"],
+        4,
+        "{}",
+        stderr(&out)
+    );
     assert_eq!(gathered(&results, "repair"), clean);
 }
