@@ -523,6 +523,67 @@ mod tests {
         std::fs::remove_dir_all(dir).unwrap();
     }
 
+    /// Regression (issue 28, 1): only a folder ltcal wrote is replaced.
+    #[test]
+    fn check_replaceable_accepts_only_an_empty_folder_or_one_of_ours() {
+        let root = scratch("replace");
+        let ours = |n: &str| n == "a.csv" || n == "m.csv";
+        let dir = root.join("d");
+        assert!(check_replaceable(&dir, "a thing", "m.csv", ours).is_ok());
+        std::fs::create_dir(&dir).unwrap();
+        assert!(check_replaceable(&dir, "a thing", "m.csv", ours).is_ok());
+        std::fs::write(dir.join("a.csv"), "x").unwrap();
+        let e = check_replaceable(&dir, "a thing", "m.csv", ours).unwrap_err();
+        assert!(e.contains("is not a thing ltcal wrote (no m.csv)"), "{e}");
+        std::fs::write(dir.join("m.csv"), "x").unwrap();
+        assert!(check_replaceable(&dir, "a thing", "m.csv", ours).is_ok());
+        std::fs::create_dir(dir.join("sub")).unwrap();
+        std::fs::write(dir.join("notes.txt"), "keep").unwrap();
+        let e = check_replaceable(&dir, "a thing", "m.csv", ours).unwrap_err();
+        assert!(e.contains("(it holds notes.txt, sub)"), "{e}");
+        assert!(e.contains("or an earlier thing"), "{e}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Regression (issue 28, 3): below a confined folder, nothing is
+    /// written or read through a link; above it, links are followed.
+    #[test]
+    fn nothing_is_written_or_read_through_a_link_below_a_confined_folder() {
+        let root = scratch("confine");
+        let outside = root.join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        std::fs::write(outside.join("t.parquet"), "x").unwrap();
+        let tree = root.join("results").join("p");
+        std::fs::create_dir_all(&tree).unwrap();
+        std::os::unix::fs::symlink(&outside, tree.join("stage")).unwrap();
+        // Not confined yet: the link is followed.
+        assert_eq!(
+            read_regular_file(&tree.join("stage/t.parquet"), 10).unwrap(),
+            b"x"
+        );
+        confine(&tree);
+        let e = write_atomic(&tree.join("stage/new.parquet"), b"y").unwrap_err();
+        assert!(
+            e.to_string().contains("stage is a symbolic link (to "),
+            "{e}"
+        );
+        let e = read_regular_file(&tree.join("stage/t.parquet"), 10).unwrap_err();
+        assert!(
+            e.to_string().contains("goes through the symbolic link"),
+            "{e}"
+        );
+        let e = create_dirs(&tree.join("stage/deeper")).unwrap_err();
+        assert!(e.to_string().contains("is a symbolic link"), "{e}");
+        assert_eq!(std::fs::read_dir(&outside).unwrap().count(), 1);
+        // A link as the file itself is replaced by the rename, not followed.
+        std::fs::create_dir(tree.join("real")).unwrap();
+        std::os::unix::fs::symlink(outside.join("t.parquet"), tree.join("real/f")).unwrap();
+        write_atomic(&tree.join("real/f"), b"z").unwrap();
+        assert_eq!(std::fs::read(outside.join("t.parquet")).unwrap(), b"x");
+        assert_eq!(read_regular_file(&tree.join("real/f"), 10).unwrap(), b"z");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
     #[cfg(target_os = "linux")]
     #[test]
     fn read_regular_file_does_not_block_on_a_fifo() {

@@ -417,6 +417,40 @@ mod tests {
         assert!(read_index(&path).is_err());
     }
 
+    /// Regression (issue 28, 4): a span was read as its index said, so a
+    /// pack cut short after its index was read made a read past its end.
+    /// Every positioned read lies within the pack's real length, and a
+    /// FIFO named `*.pack` is refused without blocking.
+    #[test]
+    fn a_read_inside_a_pack_is_bounded_by_its_real_length() {
+        let mut b = Builder::default();
+        b.add(
+            [1u8; 32],
+            &Blob {
+                manifest: b"{}",
+                parts: vec![b"0123456789"],
+            },
+        );
+        let (bytes, ix) = b.finish();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.pack");
+        std::fs::write(&path, &bytes[..20]).unwrap();
+        let span = ix.entries[0].1;
+        let e = read_span(&path, span).unwrap_err().to_string();
+        assert!(e.contains("beyond the pack's end"), "{e}");
+        let huge = Span {
+            offset: 8,
+            len: u64::MAX - 4,
+        };
+        assert!(read_manifest(&path, huge).is_err());
+        let fifo = dir.path().join("b.pack");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            let e = read_index(&fifo).unwrap_err().to_string();
+            assert_eq!(e, "is a FIFO, not a regular file");
+        }
+    }
+
     #[test]
     fn keys_round_trip_through_hex() {
         let hex = blake3::hash(b"x").to_hex().to_string();
