@@ -1079,8 +1079,10 @@ impl Store {
         if crate::fs::link_on_the_way(&self.root).is_some() {
             return 0;
         }
-        let mut n =
-            clean_temp_files_in(&self.root.join("last")) + clean_temp_files_in(&self.packs_dir());
+        // `verified.json`'s temporaries sit in the root.
+        let mut n = clean_temp_files_in(&self.root)
+            + clean_temp_files_in(&self.root.join("last"))
+            + clean_temp_files_in(&self.packs_dir());
         let Ok(rd) = fs::read_dir(self.entries()) else {
             return n;
         };
