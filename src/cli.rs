@@ -68,10 +68,15 @@ enum Command {
         p: PipelineArgs,
     },
     /// Read and verify every cached entry of a pipeline, loose and packed:
-    /// exit 1 if any is damaged (nothing is removed).
+    /// exit 1 if any is damaged (nothing is removed, unless `--repair`).
     Verify {
         #[command(flatten)]
         p: PipelineArgs,
+        /// Take out what is damaged (a damaged pack's good entries are
+        /// rewritten), say what was done, and exit 0 once the cache is good:
+        /// what is taken out is computed again by the next run.
+        #[arg(long)]
+        repair: bool,
     },
     /// Run a batch of sweep points as one task of a cluster job (the job
     /// scripts `--executor slurm` writes call this).
@@ -291,6 +296,9 @@ fn summarize(report: &run::RunReport) -> ExitCode {
     for p in &report.unreadable_packs {
         eprintln!("  DAMAGED pack, not read (its points are recomputed): {p}");
     }
+    for h in &report.healed {
+        eprintln!("  healed the cache: {h}");
+    }
     for s in report.stages.iter().filter(|s| s.status == Status::Skipped) {
         eprintln!("  skipped `{}`: {}", s.stage, s.reason);
     }
@@ -338,8 +346,7 @@ fn task_command(
             pipeline::cache::short(code)
         );
     }
-    let text =
-        std::fs::read(&p.pipeline).with_context(|| format!("reading {}", p.pipeline.display()))?;
+    let text = crate::fs::read_regular_file(&p.pipeline, pipeline::MAX_FILE_BYTES)?;
     if pipeline::cache::hash_bytes(&text) != pipeline_hash {
         bail!(
             "{} changed since the job was submitted; nothing is written — rerun `ltcal run --executor slurm`",
@@ -466,21 +473,13 @@ fn diagnose_command(
     ));
     // The folder is replaced whole, so it must be one a diagnosis wrote (or
     // empty): `--out .` must not delete the user's files.
-    if let Ok(entries) = std::fs::read_dir(out) {
-        let empty = entries.flatten().next().is_none();
-        if !empty && !out.join("diagnosis.csv").is_file() {
-            return Err(InputError::arg(format!(
-                "--out {} holds files that are not a diagnosis: it is replaced whole, so name a \
-                 new folder or an earlier diagnosis",
-                out.display()
-            )));
-        }
-    } else if out.symlink_metadata().is_ok() {
-        return Err(InputError::arg(format!(
-            "--out {} exists and is not a folder",
-            out.display()
-        )));
-    }
+    crate::fs::check_replaceable(out, "a diagnosis", "diagnosis.csv", |name| {
+        name == "report.md"
+            || [".csv", ".parquet", ".svg"]
+                .iter()
+                .any(|ext| name.ends_with(ext))
+    })
+    .map_err(|why| InputError::arg(format!("--out: {why}")))?;
     let d = stage.diagnose(&c)?;
     let output = stages::diagnose::outputs(&d)?;
     // Every file in memory first, then one folder published by one rename:
@@ -601,9 +600,10 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             print_out(&cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
             Ok(ExitCode::SUCCESS)
         }
-        Command::Verify { p } => {
+        Command::Verify { p, repair } => {
             let pipeline = load(&p)?;
-            let v = store(&p, &pipeline).verify();
+            let store = store(&p, &pipeline);
+            let v = store.verify();
             for why in &v.problems {
                 eprintln!("  {why}");
             }
@@ -619,7 +619,32 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 v.problems.len(),
                 v.superseded.len()
             );
-            Ok(if v.problems.is_empty() {
+            if v.problems.is_empty() && v.superseded.is_empty() {
+                return Ok(ExitCode::SUCCESS);
+            }
+            if !repair {
+                if !v.problems.is_empty() {
+                    eprintln!(
+                        "the damaged entries are never served; `ltcal verify --repair {}` (or the \
+                         next `ltcal run`) takes them out",
+                        p.pipeline.display()
+                    );
+                    return Ok(ExitCode::from(1));
+                }
+                return Ok(ExitCode::SUCCESS);
+            }
+            for h in store.heal(true) {
+                println!("repaired {h}");
+            }
+            let after = store.verify();
+            for why in &after.problems {
+                eprintln!("  still damaged: {why}");
+            }
+            Ok(if after.problems.is_empty() {
+                println!(
+                    "{}: the cache is good again; what was taken out is computed again by the next run",
+                    pipeline.name
+                );
                 ExitCode::SUCCESS
             } else {
                 ExitCode::from(1)

@@ -15,15 +15,92 @@
 //! - [`publish_folder`]: a whole folder of files built that way and renamed
 //!   into place (replacing the folder there, if any), so a full disk or a
 //!   kill never leaves a partial folder that looks finished.
-//! - [`read_regular_file`]: what a user points ltcal at (a pipeline file, a
-//!   campaign file, a data table) read only if it is a regular file of a sane
-//!   size: a FIFO would block the run forever, `/dev/zero` would fill memory.
+//! - [`read_regular_file`] (and [`open_regular_file`] for positioned
+//!   reads): the one way to read a file the runner did not just write — a
+//!   pipeline, a campaign, a cache entry, a pack, a published table — read
+//!   only if it is a regular file of at most a size its kind allows, opened
+//!   with `O_NONBLOCK`: a FIFO would block the run forever, `/dev/zero`
+//!   would fill memory.
+//! - [`confine`]: a folder ltcal owns (`results/<pipeline>`). Below it
+//!   nothing is read or written through a symbolic link — a link there is
+//!   refused with an error that names it, never followed — so a link cannot
+//!   make a run write its tables or packs, or read its cache, outside the
+//!   results folder. (The results folder itself, and what the user names
+//!   with `--out` or `path`, may be links: the user chose them.)
+//! - [`check_replaceable`]: a folder is replaced whole only when it is
+//!   recognisably one ltcal wrote (its marker file, and nothing it would
+//!   not write): `diagnose --out` and `export_campaign`'s `overwrite` never
+//!   delete a user's files.
 
 use anyhow::{Context as _, Result, anyhow, bail};
 use std::fmt;
 use std::io::{Read as _, Write as _};
 use std::path::{Path, PathBuf};
+use std::sync::RwLock;
 use std::sync::atomic::{AtomicU64, Ordering};
+
+/// The folders ltcal owns ([`confine`]).
+static TREES: RwLock<Vec<PathBuf>> = RwLock::new(Vec::new());
+
+/// Declares `tree` (a pipeline's results folder) a folder ltcal owns: from
+/// now on no read or write of this process below it goes through a
+/// symbolic link — `tree` itself included, the folders above it not.
+pub fn confine(tree: &Path) {
+    let mut trees = TREES.write().unwrap_or_else(|e| e.into_inner());
+    if !trees.iter().any(|t| t == tree) {
+        trees.push(tree.to_path_buf());
+    }
+}
+
+/// The first symbolic link on the way to `path` (`path` itself included)
+/// below a folder ltcal owns, if any. Components that do not exist end the
+/// walk: nothing below them exists either.
+pub fn link_on_the_way(path: &Path) -> Option<PathBuf> {
+    let trees = TREES.read().unwrap_or_else(|e| e.into_inner());
+    let tree = trees.iter().find(|t| path.starts_with(t))?;
+    let mut at = tree.clone();
+    let rest = path.strip_prefix(tree).ok()?;
+    for part in std::iter::once(None).chain(rest.components().map(Some)) {
+        if let Some(part) = part {
+            at.push(part);
+        }
+        match std::fs::symlink_metadata(&at) {
+            Ok(m) if m.file_type().is_symlink() => return Some(at),
+            Ok(_) => {}
+            Err(_) => return None,
+        }
+    }
+    None
+}
+
+/// Fails, naming the link, when `path` lies below a folder ltcal owns
+/// through a symbolic link.
+pub fn refuse_links(path: &Path) -> Result<()> {
+    match link_on_the_way(path) {
+        None => Ok(()),
+        Some(link) => Err(link_error(&link)),
+    }
+}
+
+fn link_error(link: &Path) -> anyhow::Error {
+    let target = std::fs::read_link(link)
+        .map(|t| format!(" (to {})", t.display()))
+        .unwrap_or_default();
+    anyhow!(
+        "{} is a symbolic link{target}: ltcal neither writes nor reads through a link inside \
+         the results folder — remove the link (the next run makes a real folder there)",
+        link.display()
+    )
+}
+
+/// `create_dir_all` that never creates through a link below a folder ltcal
+/// owns: checked before (an existing link is refused, nothing created
+/// beyond it) and after (a link made meanwhile).
+pub fn create_dirs(dir: &Path) -> Result<()> {
+    refuse_links(dir)?;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    refuse_links(dir)
+}
 
 /// `<pid>-<n>-<host>`: unique among every writer of every process on
 /// every machine sharing the folder.
@@ -81,9 +158,13 @@ pub fn temp_owner_gone(name: &str) -> bool {
 /// Writes `bytes` to `path` atomically: a temporary file beside it
 /// (`.<name>.<temp_name>.tmp`), synced, then renamed over it. Creates the
 /// folder if needed.
+///
+/// Below a folder ltcal owns ([`confine`]) no folder on the way may be a
+/// link; a link (or a FIFO, …) at `path` itself is replaced by the rename,
+/// never written through.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    create_dirs(dir)?;
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy())
@@ -121,8 +202,8 @@ pub fn write_staged(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()
 /// `.<name>.<temp_name>.tmp` with every file synced, then renamed into
 /// place. A folder already at `dir` is renamed away first and removed once
 /// the new one is in place (put back if that rename fails); whether it may
-/// be replaced at all is the caller's decision. On any failure nothing is
-/// left but what was there before.
+/// be replaced at all is the caller's decision ([`check_replaceable`]). On
+/// any failure nothing is left but what was there before.
 pub fn publish_folder<N: AsRef<Path>>(dir: &Path, files: &[(N, Vec<u8>)]) -> Result<()> {
     let name = dir
         .file_name()
@@ -133,7 +214,7 @@ pub fn publish_folder<N: AsRef<Path>>(dir: &Path, files: &[(N, Vec<u8>)]) -> Res
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    std::fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
+    create_dirs(&parent)?;
     let suffix = temp_name();
     let tmp = parent.join(format!(".{name}.{suffix}.tmp"));
     let built = (|| -> std::io::Result<()> {
@@ -167,6 +248,71 @@ pub fn publish_folder<N: AsRef<Path>>(dir: &Path, files: &[(N, Vec<u8>)]) -> Res
     })
 }
 
+/// Whether the folder `dir` may be replaced whole by one ltcal writes
+/// ([`publish_folder`]): when nothing is there, when it is an empty folder,
+/// or when it is recognisably one ltcal wrote — it holds the regular file
+/// `marker`, and every entry in it is a regular file whose name `ours`
+/// accepts. Anything else (a folder of the user's files, a file, a link)
+/// is refused with the reason, `what` naming what ltcal writes there
+/// ("a diagnosis", "a campaign"), so that replacing it never deletes a
+/// user's files.
+pub fn check_replaceable(
+    dir: &Path,
+    what: &str,
+    marker: &str,
+    ours: impl Fn(&str) -> bool,
+) -> Result<(), String> {
+    let Ok(meta) = std::fs::symlink_metadata(dir) else {
+        return Ok(());
+    };
+    if !meta.is_dir() {
+        return Err(format!(
+            "{} exists and is not a folder ({}): it is not replaced by {what}",
+            dir.display(),
+            if meta.file_type().is_symlink() {
+                "a symbolic link"
+            } else {
+                kind_of(&meta.file_type())
+            }
+        ));
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| format!("reading {}: {e}", dir.display()))?;
+    let mut has_marker = false;
+    let mut foreign = Vec::new();
+    let mut empty = true;
+    for e in entries {
+        let e = e.map_err(|e| format!("reading {}: {e}", dir.display()))?;
+        empty = false;
+        let name = e.file_name().to_string_lossy().into_owned();
+        let regular = e.file_type().is_ok_and(|t| t.is_file());
+        if regular && name == marker {
+            has_marker = true;
+        } else if !regular || !ours(&name) {
+            foreign.push(name);
+        }
+    }
+    if empty || (has_marker && foreign.is_empty()) {
+        return Ok(());
+    }
+    foreign.sort();
+    let shown: Vec<&str> = foreign.iter().take(3).map(String::as_str).collect();
+    Err(format!(
+        "{} is not {what} ltcal wrote ({}): it would be replaced whole, so its files are left \
+         alone — name a new folder, or an earlier {}",
+        dir.display(),
+        if foreign.is_empty() {
+            format!("no {marker}")
+        } else {
+            format!(
+                "it holds {}{}",
+                shown.join(", "),
+                if foreign.len() > 3 { ", …" } else { "" }
+            )
+        },
+        what.trim_start_matches("a ").trim_start_matches("an ")
+    ))
+}
+
 /// Why a file the user named was not read.
 #[derive(Debug)]
 pub struct ReadError {
@@ -182,11 +328,19 @@ pub enum Reason {
     NotRegular(&'static str),
     /// Larger than the caller allows.
     TooLarge { max_bytes: u64 },
+
     /// An error of the system, a missing file among them.
     Io(std::io::Error),
 }
 
 impl ReadError {
+    fn new(path: &Path, reason: Reason) -> ReadError {
+        ReadError {
+            path: path.to_path_buf(),
+            reason,
+        }
+    }
+
     pub fn is_missing(&self) -> bool {
         matches!(&self.reason, Reason::Io(e) if e.kind() == std::io::ErrorKind::NotFound)
     }
@@ -212,33 +366,70 @@ impl fmt::Display for ReadError {
 
 impl std::error::Error for ReadError {}
 
-/// Reads the regular file `path` if it holds at most `max_bytes`.
-///
-/// The kind of file is checked before it is opened (opening a FIFO blocks
-/// until a writer appears), and at most `max_bytes + 1` bytes are read, so a
-/// file that grows after the check is still refused rather than read whole.
+/// Reads the regular file `path` if it holds at most `max_bytes`: the one
+/// way ltcal reads a file it did not just write. At most `max_bytes + 1`
+/// bytes are read, so a file that grows after the check is still refused
+/// rather than read whole.
 pub fn read_regular_file(path: &Path, max_bytes: u64) -> Result<Vec<u8>, ReadError> {
-    let fail = |reason| ReadError {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let io = |e| fail(Reason::Io(e));
-    let meta = std::fs::metadata(path).map_err(io)?;
-    if !meta.is_file() {
-        return Err(fail(Reason::NotRegular(kind_of(&meta.file_type()))));
-    }
-    if meta.len() > max_bytes {
-        return Err(fail(Reason::TooLarge { max_bytes }));
-    }
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    let (file, len) = open_regular_file(path, max_bytes)?;
+    let mut bytes = Vec::with_capacity(len as usize);
     file.take(max_bytes.saturating_add(1))
         .read_to_end(&mut bytes)
-        .map_err(io)?;
+        .map_err(|e| ReadError::new(path, Reason::Io(e)))?;
     if bytes.len() as u64 > max_bytes {
-        return Err(fail(Reason::TooLarge { max_bytes }));
+        return Err(ReadError::new(path, Reason::TooLarge { max_bytes }));
     }
     Ok(bytes)
+}
+
+/// Opens the regular file `path` of at most `max_bytes` for reading, and
+/// gives its length — for positioned reads (a pack), which the caller
+/// bounds by that length.
+///
+/// The kind of file is checked before it is opened, and it is opened with
+/// `O_NONBLOCK` (a FIFO put there in between opens at once instead of
+/// waiting for a writer) and checked again on the open file. Below a
+/// folder ltcal owns ([`confine`]) a symbolic link on the way, or as the
+/// file, is refused (and the file opened with `O_NOFOLLOW`); elsewhere (a
+/// file the user names) a link is followed.
+pub fn open_regular_file(path: &Path, max_bytes: u64) -> Result<(std::fs::File, u64), ReadError> {
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let fail = |reason| ReadError::new(path, reason);
+    let confined = match link_on_the_way(path) {
+        Some(link) => {
+            return Err(fail(Reason::Io(std::io::Error::other(format!(
+                "goes through the symbolic link {}, and ltcal reads nothing inside the results \
+                 folder through a link (remove the link)",
+                link.display()
+            )))));
+        }
+        None => TREES
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .any(|t| path.starts_with(t)),
+    };
+    let regular = |meta: &std::fs::Metadata| {
+        if !meta.is_file() {
+            return Err(fail(Reason::NotRegular(kind_of(&meta.file_type()))));
+        }
+        if meta.len() > max_bytes {
+            return Err(fail(Reason::TooLarge { max_bytes }));
+        }
+        Ok(meta.len())
+    };
+    regular(&std::fs::metadata(path).map_err(|e| fail(Reason::Io(e)))?)?;
+    let mut flags = libc::O_NONBLOCK;
+    if confined {
+        flags |= libc::O_NOFOLLOW;
+    }
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(flags)
+        .open(path)
+        .map_err(|e| fail(Reason::Io(e)))?;
+    let len = regular(&file.metadata().map_err(|e| fail(Reason::Io(e)))?)?;
+    Ok((file, len))
 }
 
 /// "a folder", "a FIFO", …: what a path that is not a regular file is.
@@ -330,6 +521,67 @@ mod tests {
             assert!(zero.to_string().contains("a device"), "{zero}");
         }
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// Regression (issue 28, 1): only a folder ltcal wrote is replaced.
+    #[test]
+    fn check_replaceable_accepts_only_an_empty_folder_or_one_of_ours() {
+        let root = scratch("replace");
+        let ours = |n: &str| n == "a.csv" || n == "m.csv";
+        let dir = root.join("d");
+        assert!(check_replaceable(&dir, "a thing", "m.csv", ours).is_ok());
+        std::fs::create_dir(&dir).unwrap();
+        assert!(check_replaceable(&dir, "a thing", "m.csv", ours).is_ok());
+        std::fs::write(dir.join("a.csv"), "x").unwrap();
+        let e = check_replaceable(&dir, "a thing", "m.csv", ours).unwrap_err();
+        assert!(e.contains("is not a thing ltcal wrote (no m.csv)"), "{e}");
+        std::fs::write(dir.join("m.csv"), "x").unwrap();
+        assert!(check_replaceable(&dir, "a thing", "m.csv", ours).is_ok());
+        std::fs::create_dir(dir.join("sub")).unwrap();
+        std::fs::write(dir.join("notes.txt"), "keep").unwrap();
+        let e = check_replaceable(&dir, "a thing", "m.csv", ours).unwrap_err();
+        assert!(e.contains("(it holds notes.txt, sub)"), "{e}");
+        assert!(e.contains("or an earlier thing"), "{e}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Regression (issue 28, 3): below a confined folder, nothing is
+    /// written or read through a link; above it, links are followed.
+    #[test]
+    fn nothing_is_written_or_read_through_a_link_below_a_confined_folder() {
+        let root = scratch("confine");
+        let outside = root.join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        std::fs::write(outside.join("t.parquet"), "x").unwrap();
+        let tree = root.join("results").join("p");
+        std::fs::create_dir_all(&tree).unwrap();
+        std::os::unix::fs::symlink(&outside, tree.join("stage")).unwrap();
+        // Not confined yet: the link is followed.
+        assert_eq!(
+            read_regular_file(&tree.join("stage/t.parquet"), 10).unwrap(),
+            b"x"
+        );
+        confine(&tree);
+        let e = write_atomic(&tree.join("stage/new.parquet"), b"y").unwrap_err();
+        assert!(
+            e.to_string().contains("stage is a symbolic link (to "),
+            "{e}"
+        );
+        let e = read_regular_file(&tree.join("stage/t.parquet"), 10).unwrap_err();
+        assert!(
+            e.to_string().contains("goes through the symbolic link"),
+            "{e}"
+        );
+        let e = create_dirs(&tree.join("stage/deeper")).unwrap_err();
+        assert!(e.to_string().contains("is a symbolic link"), "{e}");
+        assert_eq!(std::fs::read_dir(&outside).unwrap().count(), 1);
+        // A link as the file itself is replaced by the rename, not followed.
+        std::fs::create_dir(tree.join("real")).unwrap();
+        std::os::unix::fs::symlink(outside.join("t.parquet"), tree.join("real/f")).unwrap();
+        write_atomic(&tree.join("real/f"), b"z").unwrap();
+        assert_eq!(std::fs::read(outside.join("t.parquet")).unwrap(), b"x");
+        assert_eq!(read_regular_file(&tree.join("real/f"), 10).unwrap(), b"z");
+        std::fs::remove_dir_all(&root).unwrap();
     }
 
     #[cfg(target_os = "linux")]

@@ -14,7 +14,10 @@
 //! before anything is written. A folder that already holds exactly the files
 //! to be written is left alone and counts as written: writing the same
 //! campaign twice (an export rerun after its cache was cleared) is not an
-//! overwrite.
+//! overwrite. [`overwrite`] replaces only a folder that is recognisably a
+//! campaign ([`crate::fs::check_replaceable`], as `ltcal diagnose --out`):
+//! `campaign.toml` and nothing but campaign files — never a folder of the
+//! user's other files, which replacing it whole would delete.
 
 use super::{Campaign, check::Issue};
 use anyhow::{Context as _, Result, anyhow, bail};
@@ -29,8 +32,9 @@ pub fn write(c: &Campaign, dir: &Path) -> Result<()> {
     publish(c, dir, false)
 }
 
-/// Writes `c` as the folder `dir`, replacing the folder there if any: the
-/// old one is renamed away, the new one renamed in, then the old one removed.
+/// Writes `c` as the folder `dir`, replacing the campaign folder there if
+/// any: the old one is renamed away, the new one renamed in, then the old
+/// one removed. A folder there that is not a campaign is refused.
 pub fn overwrite(c: &Campaign, dir: &Path) -> Result<()> {
     publish(c, dir, true)
 }
@@ -42,17 +46,16 @@ fn publish(c: &Campaign, dir: &Path, replace: bool) -> Result<()> {
     if exists.as_ref().is_some_and(|m| m.is_dir()) && holds(dir, &files) {
         return Ok(());
     }
-    match &exists {
-        Some(_) if !replace => bail!(
+    if exists.is_some() && !replace {
+        bail!(
             "{} already exists: choose another folder, or allow overwriting it",
             dir.display()
-        ),
-        Some(m) if !m.is_dir() => bail!(
-            "{} exists and is not a folder: it is not replaced by a campaign",
-            dir.display()
-        ),
-        _ => {}
+        );
     }
+    crate::fs::check_replaceable(dir, "a campaign", "campaign.toml", |name| {
+        super::FILES.contains(&name)
+    })
+    .map_err(|why| anyhow!("{why} (`overwrite` replaces only a campaign folder)"))?;
     crate::fs::publish_folder(dir, &files)
 }
 

@@ -44,15 +44,48 @@
 //! the runs there). A key
 //! directory without `manifest.json` cannot come from [`Store::put`]; if one
 //! appears it is treated as incomplete, ignored and removed.
+//!
+//! # Hostile files and healing
+//!
+//! Every file of the cache is read through [`crate::fs::read_regular_file`]
+//! (a pack through [`crate::fs::open_regular_file`]) with a bound of its
+//! kind ([`MAX_MANIFEST_BYTES`], [`MAX_TABLE_BYTES`], [`MAX_FIGURE_BYTES`],
+//! [`pack::MAX_PACK_BYTES`]): a FIFO, a device, a folder or a symbolic link
+//! where a file of the cache should be is damage, reported like a flipped
+//! byte — never waited on, read without end or followed out of the results
+//! folder ([`crate::fs::confine`]).
+//!
+//! What [`Store::verify`] finds damaged, [`Store::heal`] takes out — what
+//! `ltcal run` does at the end of every run and `ltcal verify --repair` on
+//! demand: a damaged loose entry is removed, a pack that cannot be read is
+//! removed (its points are recomputed by the next run), and a pack with
+//! some damaged entries is written again without them (its good entries,
+//! records and failures kept, under its old time, so records keep their
+//! order) before the old one is removed. A bad entry is never served
+//! meanwhile: it fails its hashes on every read. So one run after any
+//! damage leaves a cache that `verify` passes. To cost a cached rerun
+//! nothing, `run` re-reads only what changed since it was last found
+//! good: `.ltcal/verified.json` records each entry's and pack's identity
+//! (inode, size, modification and change times — a byte written, a
+//! `chmod`, a file put in its place all change it); `verify` and
+//! `verify --repair` read everything.
 
 use super::pack::{self, Key, Span};
-use crate::fs::{temp_name, write_atomic};
+use crate::fs::{ReadError, read_regular_file, temp_name, write_atomic};
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, RwLock};
+
+/// The largest manifest (or last-run record) read: a stage's key fields and
+/// the list of its tables and files, far below this.
+pub const MAX_MANIFEST_BYTES: u64 = 64 << 20;
+/// The largest table read (a cache entry's or a published one).
+pub const MAX_TABLE_BYTES: u64 = 16 << 30;
+/// The largest figure or other file of an entry read.
+pub const MAX_FIGURE_BYTES: u64 = 4 << 30;
 
 /// Everything a stage's output depends on. Its hash is the cache key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -274,6 +307,10 @@ pub struct Store {
     /// Entries of sweep points computed by this process and not yet
     /// written as a pack ([`Store::flush`]).
     pending: Mutex<Pending>,
+    /// What this process wrote (entries, packs), by [`Store::heal`]'s name
+    /// for it, with its identity ([`identity`]) just after: good without
+    /// being read again.
+    fresh: Mutex<BTreeMap<String, String>>,
 }
 
 /// What the packs of the folder hold, by key: 40-odd bytes an entry, so
@@ -341,6 +378,29 @@ pub struct Verified {
     pub superseded: Vec<String>,
 }
 
+/// One damaged thing [`Store::heal`] found in the cache and what it did.
+#[derive(Clone, Debug, Serialize)]
+pub struct Healed {
+    /// The entry or pack, as a path.
+    pub path: PathBuf,
+    /// What was wrong.
+    pub damage: String,
+    /// What was done: `removed`, or the pack it was rewritten as.
+    pub action: String,
+}
+
+impl std::fmt::Display for Healed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{}: {}; {}",
+            self.path.display(),
+            self.damage,
+            self.action
+        )
+    }
+}
+
 /// A failure a pack records: the sweep point, the stage, why, and the
 /// prefix of the pack's name (the task that wrote it).
 #[derive(Clone, Debug)]
@@ -363,11 +423,15 @@ fn pack_prefix(path: &Path) -> String {
 
 impl Store {
     /// `results/<pipeline>/.ltcal`; nothing is created until something is written.
+    /// Declares the folder ltcal's own ([`crate::fs::confine`]): nothing
+    /// below it is read or written through a symbolic link.
     pub fn new(pipeline_results: &Path) -> Store {
+        crate::fs::confine(pipeline_results);
         Store {
             root: pipeline_results.join(".ltcal"),
             packs: RwLock::new(None),
             pending: Mutex::new(Pending::default()),
+            fresh: Mutex::new(BTreeMap::new()),
         }
     }
 
@@ -389,9 +453,19 @@ impl Store {
     /// for another copy, and reported when there is none.
     pub fn lookup(&self, key: &str) -> Lookup {
         let dir = self.entry_dir(key);
-        if dir.exists() {
+        if dir.symlink_metadata().is_ok() {
+            let id = identity(&dir);
             return match self.read_entry(&dir, key) {
-                Ok(e) => Lookup::Hit(Box::new(e)),
+                Ok(e) => {
+                    // Good as it was before it was read.
+                    if let (Some(name), Some(id)) = (self.heal_name(&dir), id) {
+                        self.fresh
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .insert(name, id);
+                    }
+                    Lookup::Hit(Box::new(e))
+                }
                 Err(why) => {
                     self.discard(&dir);
                     Lookup::Corrupt(why.to_string())
@@ -412,7 +486,7 @@ impl Store {
     /// `None` when there is none, `Some(Err(why))` when it is bad.
     pub fn read(&self, key: &str) -> Option<Result<Entry>> {
         let dir = self.entry_dir(key);
-        if dir.exists() {
+        if dir.symlink_metadata().is_ok() {
             return Some(self.read_entry(&dir, key));
         }
         if let Some(e) = self.pending_entry(key) {
@@ -433,12 +507,8 @@ impl Store {
     /// ([`Store::table`]).
     pub fn manifest(&self, key: &str) -> Option<Result<Manifest>> {
         let dir = self.entry_dir(key);
-        if dir.exists() {
-            return Some(
-                fs::read(dir.join("manifest.json"))
-                    .map_err(|_| anyhow!("manifest.json is missing (an incomplete entry)"))
-                    .and_then(|b| parse_manifest(&b, key)),
-            );
+        if dir.symlink_metadata().is_ok() {
+            return Some(read_manifest_file(&dir).and_then(|b| parse_manifest(&b, key)));
         }
         if let Some(e) = self.pending_entry(key) {
             return Some(Ok(e.manifest));
@@ -591,6 +661,201 @@ impl Store {
         v
     }
 
+    /// Takes out of the cache what [`Store::verify`] would find damaged
+    /// (see the module's doc), and says what it did, one [`Healed`] a thing.
+    /// With `all`, reads everything (`verify --repair`); without, only
+    /// what changed since it was last found good (`run`). Never acts
+    /// through a link ([`crate::fs::confine`]): a link where the cache's
+    /// folders should be is reported, and nothing behind it touched.
+    pub fn heal(&self, all: bool) -> Vec<Healed> {
+        let mut done = Vec::new();
+        if let Some(link) = crate::fs::link_on_the_way(&self.packs_dir())
+            .or_else(|| crate::fs::link_on_the_way(&self.entries()))
+        {
+            done.push(Healed {
+                path: link.clone(),
+                damage: crate::fs::refuse_links(&link)
+                    .err()
+                    .map_or_else(String::new, |e| format!("{e:#}")),
+                action: "left alone: nothing is read or removed through it".into(),
+            });
+            return done;
+        }
+        let known = if all {
+            BTreeMap::new()
+        } else {
+            self.verified()
+        };
+        let fresh = std::mem::take(&mut *self.fresh.lock().unwrap_or_else(|e| e.into_inner()));
+        let mut good = BTreeMap::new();
+        // Good as recorded, or written by this process: not read again.
+        let still_good = |path: &Path, good: &mut BTreeMap<String, String>| {
+            let (Some(name), Some(id)) = (self.heal_name(path), identity(path)) else {
+                return false;
+            };
+            let ok = fresh.get(&name) == Some(&id) || known.get(&name) == Some(&id);
+            if ok {
+                good.insert(name, id);
+            }
+            ok
+        };
+        for path in list(&self.entries(), |name| !name.starts_with('.')) {
+            if still_good(&path, &mut good) {
+                continue;
+            }
+            let id = identity(&path);
+            let key = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            match self.read_entry(&path, &key) {
+                Ok(_) => {
+                    if let (Some(name), Some(id)) = (self.heal_name(&path), id) {
+                        good.insert(name, id);
+                    }
+                }
+                Err(why) => {
+                    self.discard(&path);
+                    done.push(Healed {
+                        path,
+                        damage: format!("{why:#}"),
+                        action: "removed (the stage runs again when it is needed)".into(),
+                    });
+                }
+            }
+        }
+        for path in list(&self.packs_dir(), |name| name.ends_with(".pack")) {
+            if still_good(&path, &mut good) {
+                continue;
+            }
+            let id = identity(&path);
+            match self.heal_pack(&path) {
+                Ok(None) => {
+                    if let (Some(name), Some(id)) = (self.heal_name(&path), id) {
+                        good.insert(name, id);
+                    }
+                }
+                Ok(Some((healed, new))) => {
+                    if let Some(new) = &new {
+                        if let (Some(name), Some(id)) = (self.heal_name(new), identity(new)) {
+                            good.insert(name, id);
+                        }
+                    }
+                    done.push(healed);
+                }
+                Err(e) => done.push(Healed {
+                    path,
+                    damage: format!("{e:#}"),
+                    action: "could not be removed".into(),
+                }),
+            }
+        }
+        // What another process recorded meanwhile is lost: it is only
+        // read again.
+        if let Ok(bytes) = serde_json::to_vec_pretty(&good) {
+            let _ = write_atomic(&self.root.join("verified.json"), &bytes);
+        }
+        // Packs were removed and written: read their indexes afresh.
+        *self.packs.write().unwrap_or_else(|e| e.into_inner()) = None;
+        done
+    }
+
+    /// What `.ltcal/verified.json` records as good: name → identity.
+    fn verified(&self) -> BTreeMap<String, String> {
+        read_regular_file(&self.root.join("verified.json"), MAX_MANIFEST_BYTES)
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok())
+            .unwrap_or_default()
+    }
+
+    /// `cache/<key>` or `packs/<name>`: how `verified.json` names a thing.
+    fn heal_name(&self, path: &Path) -> Option<String> {
+        let rel = path.strip_prefix(&self.root).ok()?;
+        Some(rel.to_string_lossy().into_owned())
+    }
+
+    /// Checks one pack: `None` when every entry is good; else takes it out,
+    /// rewriting its good entries, records and failures as a new pack
+    /// (returned) first when its index can be read.
+    fn heal_pack(&self, path: &Path) -> Result<Option<(Healed, Option<PathBuf>)>> {
+        let ix = match pack::read_index(path) {
+            Ok(ix) => ix,
+            Err(why) => {
+                remove_any(path)?;
+                return Ok(Some((
+                    Healed {
+                        path: path.to_path_buf(),
+                        damage: format!("{why:#}"),
+                        action: "removed (its points are computed again by the next run)".into(),
+                    },
+                    None,
+                )));
+            }
+        };
+        let mut b = pack::Builder::default();
+        let mut bad = Vec::new();
+        for (key, span) in &ix.entries {
+            let hex = pack::key_hex(key);
+            match pack::read_span(path, *span).and_then(|bytes| {
+                verify_packed(&bytes, &hex)?;
+                Ok(bytes)
+            }) {
+                Ok(bytes) => b.add_entry(*key, &bytes),
+                Err(why) => bad.push(format!("entry {}: {why:#}", short(&hex))),
+            }
+        }
+        if bad.is_empty() {
+            return Ok(None);
+        }
+        let kept = ix.entries.len() - bad.len();
+        for r in ix.records {
+            b.record(r);
+        }
+        for f in ix.failures {
+            b.fail(f);
+        }
+        // Under the old pack's time and prefix: records keep their order,
+        // failures their task.
+        let stem = path
+            .file_stem()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let head = stem.rsplit_once('-').map_or(stem.as_str(), |(h, _)| h);
+        let new = if b.is_empty() {
+            None
+        } else {
+            let (bytes, _) = b.finish();
+            let new = path.with_file_name(format!("{head}-{}.pack", short(&hash_bytes(&bytes))));
+            write_atomic(&new, &bytes).context("rewriting a damaged pack's good entries")?;
+            Some(new)
+        };
+        if new.as_deref() != Some(path) {
+            remove_any(path)?;
+        }
+        let action = match &new {
+            Some(new) => format!(
+                "removed; its {kept} good entr{} and its records rewritten as {} (the damaged \
+                 ones are computed again by the next run)",
+                if kept == 1 { "y" } else { "ies" },
+                new.display()
+            ),
+            None => "removed (its points are computed again by the next run)".into(),
+        };
+        Ok(Some((
+            Healed {
+                path: path.to_path_buf(),
+                damage: format!(
+                    "{} damaged entr{}: {}",
+                    bad.len(),
+                    if bad.len() == 1 { "y" } else { "ies" },
+                    bad.join("; ")
+                ),
+                action,
+            },
+            new,
+        )))
+    }
+
     /// Packs that could not be read, and why (reported by the runner, and
     /// by the cache verifier).
     pub fn unreadable_packs(&self) -> Vec<(PathBuf, String)> {
@@ -696,6 +961,7 @@ impl Store {
             short(&hash_bytes(&bytes))
         ));
         write_atomic(&path, &bytes).context("writing a pack of sweep points' entries")?;
+        self.mark_fresh(&path);
         {
             let mut guard = self.packs.write().unwrap_or_else(|e| e.into_inner());
             guard
@@ -707,25 +973,21 @@ impl Store {
     }
 
     fn read_entry(&self, dir: &Path, key: &str) -> Result<Entry> {
-        let bytes = fs::read(dir.join("manifest.json"))
-            .map_err(|_| anyhow!("manifest.json is missing (an incomplete entry)"))?;
+        let bytes = read_manifest_file(dir)?;
         let manifest = parse_manifest(&bytes, key)?;
         let mut tables = BTreeMap::new();
         for t in &manifest.tables {
-            let b = fs::read(dir.join(format!("{}.parquet", t.name)))
-                .map_err(|_| anyhow!("table {}.parquet is missing", t.name))?;
+            let name = format!("{}.parquet", t.name);
+            let b = read_part(&dir.join(&name), MAX_TABLE_BYTES, &format!("table {name}"))?;
             if hash_bytes(&b) != t.hash {
-                bail!(
-                    "table {}.parquet does not match its manifest (truncated, corrupted or edited)",
-                    t.name
-                );
+                bail!("table {name} does not match its manifest (truncated, corrupted or edited)");
             }
             tables.insert(t.name.clone(), b);
         }
         let mut files = BTreeMap::new();
         for f in &manifest.files {
-            let b = fs::read(dir.join("files").join(&f.name))
-                .map_err(|_| anyhow!("file {} is missing", f.name))?;
+            let path = dir.join("files").join(&f.name);
+            let b = read_part(&path, MAX_FIGURE_BYTES, &format!("file {}", f.name))?;
             if hash_bytes(&b) != f.hash {
                 bail!("file {} does not match its manifest", f.name);
             }
@@ -740,7 +1002,15 @@ impl Store {
 
     /// Moves a bad entry out of the way, then deletes it: readers never see
     /// a half-deleted entry under its key.
+    /// Never through a link: the entry itself may be one (the link is
+    /// what goes), the folders above it not.
     fn discard(&self, dir: &Path) {
+        if dir
+            .parent()
+            .is_none_or(|p| crate::fs::link_on_the_way(p).is_some())
+        {
+            return;
+        }
         let trash = self.entries().join(format!(".trash-{}", temp_name()));
         if fs::rename(dir, &trash).is_ok() {
             let _ = fs::remove_dir_all(&trash);
@@ -752,7 +1022,7 @@ impl Store {
     pub fn put(&self, entry: &Entry) -> Result<()> {
         let key = &entry.manifest.key;
         let entries = self.entries();
-        fs::create_dir_all(&entries).with_context(|| format!("creating {}", entries.display()))?;
+        crate::fs::create_dirs(&entries)?;
         let tmp = entries.join(format!(".tmp-{}-{}", short(key), temp_name()));
         let result = (|| -> Result<()> {
             fs::create_dir_all(&tmp)?;
@@ -788,14 +1058,31 @@ impl Store {
         if !published && !matches!(self.lookup(key), Lookup::Hit(_)) {
             bail!("could not publish the cache entry {}", dest.display());
         }
+        self.mark_fresh(&dest);
         Ok(())
+    }
+
+    /// Records that what is at `path` is good as it is now.
+    fn mark_fresh(&self, path: &Path) {
+        if let (Some(name), Some(id)) = (self.heal_name(path), identity(path)) {
+            self.fresh
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .insert(name, id);
+        }
     }
 
     /// Removes what killed runs left behind: temporary entry directories and
     /// files of processes that no longer exist. Returns how many were removed.
     pub fn clean_incomplete(&self) -> usize {
-        let mut n =
-            clean_temp_files_in(&self.root.join("last")) + clean_temp_files_in(&self.packs_dir());
+        // Nothing is removed through a link: it would reach outside.
+        if crate::fs::link_on_the_way(&self.root).is_some() {
+            return 0;
+        }
+        // `verified.json`'s temporaries sit in the root.
+        let mut n = clean_temp_files_in(&self.root)
+            + clean_temp_files_in(&self.root.join("last"))
+            + clean_temp_files_in(&self.packs_dir());
         let Ok(rd) = fs::read_dir(self.entries()) else {
             return n;
         };
@@ -846,7 +1133,7 @@ impl Store {
                 Some(self.manifest(&pack::key_hex(&key))?.ok()?.key_fields)
             }
             None => {
-                let b = fs::read(self.last_path(stage)).ok()?;
+                let b = read_regular_file(&self.last_path(stage), MAX_MANIFEST_BYTES).ok()?;
                 serde_json::from_slice(&b).ok()
             }
         }
@@ -867,11 +1154,37 @@ fn parse_manifest(bytes: &[u8], key: &str) -> Result<Manifest> {
     Ok(manifest)
 }
 
+/// The `manifest.json` of the loose entry `dir`.
+fn read_manifest_file(dir: &Path) -> Result<Vec<u8>> {
+    read_regular_file(&dir.join("manifest.json"), MAX_MANIFEST_BYTES).map_err(|e| {
+        if e.is_missing() {
+            anyhow!("manifest.json is missing (an incomplete entry)")
+        } else {
+            anyhow!("manifest.json {}", e.reason)
+        }
+    })
+}
+
+/// A table or file of a loose entry, `what` naming it.
+fn read_part(path: &Path, max: u64, what: &str) -> Result<Vec<u8>> {
+    read_regular_file(path, max).map_err(|e: ReadError| {
+        if e.is_missing() {
+            anyhow!("{what} is missing")
+        } else {
+            anyhow!("{what} {}", e.reason)
+        }
+    })
+}
+
 /// An entry read from a pack and verified as a loose one is.
 fn read_packed(path: &Path, span: Span, key: &str) -> Result<Entry> {
-    let bytes = pack::read_span(path, span)?;
+    verify_packed(&pack::read_span(path, span)?, key)
+}
+
+/// The entry of `key` from its bytes in a pack, verified as a loose one is.
+fn verify_packed(bytes: &[u8], key: &str) -> Result<Entry> {
     let mut manifest = None;
-    let blob = pack::split(&bytes, |m| {
+    let blob = pack::split(bytes, |m| {
         let parsed = parse_manifest(m, key)?;
         let n = parsed.tables.len() + parsed.files.len();
         manifest = Some(parsed);
@@ -903,6 +1216,67 @@ fn read_packed(path: &Path, span: Span, key: &str) -> Result<Entry> {
         tables,
         files,
     })
+}
+
+/// The entries of `dir` whose names `keep` accepts, sorted.
+fn list(dir: &Path, keep: impl Fn(&str) -> bool) -> Vec<PathBuf> {
+    let Ok(rd) = fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    let mut out: Vec<PathBuf> = rd
+        .flatten()
+        .filter(|e| keep(&e.file_name().to_string_lossy()))
+        .map(|e| e.path())
+        .collect();
+    out.sort();
+    out
+}
+
+/// Removes what is at `path` in the cache's own folders, whatever it is (a
+/// link goes, not what it points to).
+fn remove_any(path: &Path) -> Result<()> {
+    let meta = fs::symlink_metadata(path)?;
+    if meta.is_dir() {
+        fs::remove_dir_all(path)
+    } else {
+        fs::remove_file(path)
+    }
+    .with_context(|| format!("removing {}", path.display()))
+}
+
+/// A file's or entry folder's identity: inode, size, modification and
+/// change times of it (and, for a folder, of everything in it and in its
+/// `files/`). Writing a byte, `chmod`, or another file put in its place
+/// all change it; `None` when it cannot be read.
+fn identity(path: &Path) -> Option<String> {
+    use std::os::unix::fs::MetadataExt as _;
+    let one = |m: &fs::Metadata| {
+        format!(
+            "{}:{}:{}.{}:{}.{}:{:o}",
+            m.ino(),
+            m.len(),
+            m.mtime(),
+            m.mtime_nsec(),
+            m.ctime(),
+            m.ctime_nsec(),
+            m.mode()
+        )
+    };
+    let meta = fs::symlink_metadata(path).ok()?;
+    if !meta.is_dir() {
+        return Some(one(&meta));
+    }
+    let mut parts = vec![one(&meta)];
+    for dir in [path.to_path_buf(), path.join("files")] {
+        for p in list(&dir, |_| true) {
+            parts.push(format!(
+                "{}={}",
+                p.file_name()?.to_string_lossy(),
+                one(&fs::symlink_metadata(&p).ok()?)
+            ));
+        }
+    }
+    Some(short(&hash_bytes(parts.join("\n").as_bytes())).to_string())
 }
 
 /// Removes the temporary files [`write_atomic`] leaves when its process is

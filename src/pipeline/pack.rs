@@ -25,7 +25,11 @@
 //! manifest belongs to its key, every table matches its hash), with one
 //! positioned read instead of a file open per table. The index's hash
 //! guards the offsets; a pack whose trailer or index does not check out is
-//! not read at all (and reported), never half-trusted.
+//! not read at all (and reported), never half-trusted. A pack is opened
+//! only as a regular file of at most [`MAX_PACK_BYTES`]
+//! ([`crate::fs::open_regular_file`]: a FIFO or `/dev/zero` named `*.pack`
+//! is refused, not waited on or read), and every positioned read lies
+//! within the file's real length, whatever its index says.
 //!
 //! `records` are the stages that *ran* at each sweep point (what `explain`
 //! compares with, 32 bytes a stage a point instead of a JSON record);
@@ -36,6 +40,10 @@ use anyhow::{Result, anyhow, bail};
 use std::fs::File;
 use std::os::unix::fs::FileExt as _;
 use std::path::Path;
+
+/// The largest pack ltcal opens: far beyond one (a pack holds a batch of
+/// points, flushed every 256 points or second of work).
+pub const MAX_PACK_BYTES: u64 = 1 << 40;
 
 const MAGIC: &[u8; 8] = b"LTCALPK1";
 const END: &[u8; 8] = b"LTCALPKE";
@@ -131,6 +139,16 @@ impl Builder {
             self.bytes.extend_from_slice(p);
         }
         let len = self.bytes.len() as u64 - offset;
+        self.index.entries.push((key, Span { offset, len }));
+    }
+
+    /// Adds an entry as the bytes [`read_span`] gave for it (already laid
+    /// out as [`Builder::add`] lays one out): how a damaged pack's good
+    /// entries move to a new pack unchanged.
+    pub fn add_entry(&mut self, key: Key, entry: &[u8]) {
+        let offset = self.bytes.len() as u64;
+        self.bytes.extend_from_slice(entry);
+        let len = entry.len() as u64;
         self.index.entries.push((key, Span { offset, len }));
     }
 
@@ -261,8 +279,7 @@ fn decode_index(bytes: &[u8], file_len: u64) -> Result<Index> {
 
 /// Reads a pack's index, checking its trailer and its hash.
 pub fn read_index(path: &Path) -> Result<Index> {
-    let f = File::open(path)?;
-    let len = f.metadata()?.len();
+    let (f, len) = open(path)?;
     if len < (MAGIC.len() + TRAILER) as u64 {
         bail!("too short to be a pack");
     }
@@ -284,9 +301,28 @@ pub fn read_index(path: &Path) -> Result<Index> {
     decode_index(&index, offset)
 }
 
+/// Opens a pack: a regular file of at most [`MAX_PACK_BYTES`]; its length.
+fn open(path: &Path) -> Result<(File, u64)> {
+    crate::fs::open_regular_file(path, MAX_PACK_BYTES).map_err(|e| anyhow!("{}", e.reason))
+}
+
+/// Opens a pack to read `span` of it, which must lie within the file as it
+/// is now (a pack cut short since its index was read).
+fn open_for(path: &Path, span: Span) -> Result<File> {
+    let (f, len) = open(path)?;
+    if span
+        .offset
+        .checked_add(span.len)
+        .is_none_or(|end| end > len)
+    {
+        bail!("the entry lies beyond the pack's end (the pack was cut short)");
+    }
+    Ok(f)
+}
+
 /// Reads one entry's bytes from a pack.
 pub fn read_span(path: &Path, span: Span) -> Result<Vec<u8>> {
-    let f = File::open(path)?;
+    let f = open_for(path, span)?;
     let mut buf = vec![0u8; span.len as usize];
     f.read_exact_at(&mut buf, span.offset)?;
     Ok(buf)
@@ -317,7 +353,10 @@ pub fn split(bytes: &[u8], parts: impl FnOnce(&[u8]) -> Result<usize>) -> Result
 
 /// Just the manifest of an entry: its length, then its bytes.
 pub fn read_manifest(path: &Path, span: Span) -> Result<Vec<u8>> {
-    let f = File::open(path)?;
+    let f = open_for(path, span)?;
+    if span.len < 4 {
+        bail!("the manifest ends early");
+    }
     let mut n = [0u8; 4];
     f.read_exact_at(&mut n, span.offset)?;
     let n = u32::from_le_bytes(n) as u64;
@@ -376,6 +415,40 @@ mod tests {
         }
         std::fs::write(&path, &bytes[..bytes.len() - 1]).unwrap();
         assert!(read_index(&path).is_err());
+    }
+
+    /// Regression (issue 28, 4): a span was read as its index said, so a
+    /// pack cut short after its index was read made a read past its end.
+    /// Every positioned read lies within the pack's real length, and a
+    /// FIFO named `*.pack` is refused without blocking.
+    #[test]
+    fn a_read_inside_a_pack_is_bounded_by_its_real_length() {
+        let mut b = Builder::default();
+        b.add(
+            [1u8; 32],
+            &Blob {
+                manifest: b"{}",
+                parts: vec![b"0123456789"],
+            },
+        );
+        let (bytes, ix) = b.finish();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.pack");
+        std::fs::write(&path, &bytes[..20]).unwrap();
+        let span = ix.entries[0].1;
+        let e = read_span(&path, span).unwrap_err().to_string();
+        assert!(e.contains("beyond the pack's end"), "{e}");
+        let huge = Span {
+            offset: 8,
+            len: u64::MAX - 4,
+        };
+        assert!(read_manifest(&path, huge).is_err());
+        let fifo = dir.path().join("b.pack");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            let e = read_index(&fifo).unwrap_err().to_string();
+            assert_eq!(e, "is a FIFO, not a regular file");
+        }
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //! whether a published table is the current result: its bytes must hash to
 //! the table of the cache entry the plan would use now. An edited or damaged
 //! file is refused; a result from an earlier run is returned with the reason
-//! it is stale, for the caller to say so.
+//! it is stale, for the caller to say so. The file is read as every file ltcal
+//! did not just write is ([`crate::fs::read_regular_file`]): a FIFO, a device
+//! or a link in its place is refused, not waited on or read without end.
 
 use super::cache::{self, Store};
 use super::resolve::Pipeline;
@@ -84,15 +86,15 @@ pub fn read(
             (dir.join(stage).join(format!("{name}.parquet")), expected)
         }
     };
-    let bytes = match std::fs::read(&path) {
+    let bytes = match crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES) {
         Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+        Err(e) if e.is_missing() => {
             bail!(
                 "no result yet ({} does not exist): run {rerun} first",
                 path.display()
             )
         }
-        Err(e) => bail!("reading {}: {e}", path.display()),
+        Err(e) => bail!("{e}: {rerun} restores it"),
     };
     let stale = match expected {
         Ok(hash) if hash != cache::hash_bytes(&bytes) => bail!(

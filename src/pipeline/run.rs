@@ -80,6 +80,9 @@ pub struct RunReport {
     /// Packs whose index could not be read, and why: their entries were
     /// not served (and, if needed, recomputed into new packs).
     pub unreadable_packs: Vec<String>,
+    /// What was damaged in the cache and taken out after the run
+    /// ([`Store::heal`]), so that `ltcal verify` passes again.
+    pub healed: Vec<cache::Healed>,
 }
 
 impl RunReport {
@@ -238,6 +241,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
             .into_iter()
             .map(|(path, why)| format!("{}: {why}", path.display()))
             .collect(),
+        healed: store.heal(false),
     };
     crate::fs::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
     let tables: report::Tables = produced
@@ -391,7 +395,9 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
                 .dir
                 .join(sweep::PSEUDO_STAGE)
                 .join(format!("{name}.parquet"));
-            if !std::fs::read(&path).is_ok_and(|old| old == bytes) {
+            if !crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES)
+                .is_ok_and(|old| old == bytes)
+            {
                 crate::fs::write_atomic(&path, &bytes)?;
             }
         }
@@ -955,7 +961,7 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<PathBuf>> 
         .chain(entry.files.iter().map(|(n, b)| (n.clone(), b)));
     for (name, bytes) in items {
         let path = out.join(name);
-        match std::fs::read(&path) {
+        match crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES) {
             Ok(old) if old == *bytes => continue,
             Ok(_) => {
                 crate::fs::write_atomic(&path, bytes)?;

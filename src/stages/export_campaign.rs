@@ -8,13 +8,17 @@
 //! kind = "export_campaign"
 //! inputs = { campaign = "campaign" }
 //! path = "exports/corner-lab"      # the folder to write, relative to the current directory
-//! overwrite = false                # true: replace a folder already there
+//! overwrite = false                # true: replace a campaign folder already there
 //! ```
 //!
 //! The campaign is held to the format's rules first; an invalid one fails
 //! the stage and nothing is written. The folder appears whole or not at all
 //! (written beside it, then renamed in); without `overwrite`, a folder
-//! already at `path` fails the stage unless it holds exactly this campaign.
+//! already at `path` fails the stage unless it holds exactly this campaign;
+//! with it, the folder there is replaced only if it is a campaign folder
+//! (`campaign.toml` and nothing but campaign files, as `ltcal diagnose
+//! --out` asks of an earlier diagnosis) — a folder of other files, a file
+//! or a link fails the stage, and nothing of it is touched.
 //! Output `export`: one row, `path`, `readings`, `targets`, `gauge_rows`
 //! (the numbers of rows written).
 //!

@@ -9,6 +9,7 @@ mod columns;
 mod diagnose;
 mod effects;
 mod errors;
+mod file_safety;
 mod fuzz;
 mod hostile;
 mod hypotheses;

@@ -246,9 +246,9 @@ fn jobs_path(store_dir: &Path) -> PathBuf {
 /// running jobs would submit their points again).
 fn read_jobs(dir: &Path) -> Result<Vec<JobRecord>> {
     let path = jobs_path(dir);
-    match std::fs::read(&path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
-        Err(e) => Err(anyhow!("reading {}: {e}", path.display())),
+    match crate::fs::read_regular_file(&path, super::cache::MAX_MANIFEST_BYTES) {
+        Err(e) if e.is_missing() => Ok(Vec::new()),
+        Err(e) => Err(e.into()),
         Ok(b) => serde_json::from_slice(&b).map_err(|e| {
             anyhow!(
                 "{} is damaged ({e}): remove it to forget the jobs it recorded",
@@ -312,8 +312,7 @@ pub fn run(
     let store = Store::new(&dir);
     store.clean_incomplete();
     let pipeline_file = std::path::absolute(&cluster.pipeline_file)?;
-    let text = std::fs::read(&pipeline_file)
-        .with_context(|| format!("reading {}", pipeline_file.display()))?;
+    let text = crate::fs::read_regular_file(&pipeline_file, super::MAX_FILE_BYTES)?;
     let pipeline_hash = super::cache::hash_bytes(&text);
     let mut jobs = read_jobs(&dir)?;
     // Jobs of earlier runs still running the same computation: waited for,
