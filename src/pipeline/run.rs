@@ -292,7 +292,7 @@ fn execute_stages(
                 // A producer without the table (a gathered table no sweep
                 // point contributed to) leaves its readers skipped.
                 !stop
-                    && stages[i].inputs.values().all(|r| {
+                    && stages[i].wired_tables().iter().all(|(_, r)| {
                         done.get(&r.stage)
                             .is_some_and(|p| p.tables.contains_key(&r.table))
                     })
@@ -341,22 +341,24 @@ fn execute_stages(
         .map(|(i, r)| {
             r.unwrap_or_else(|| {
                 let s = &stages[i];
-                let failed_inputs: Vec<String> = s
-                    .inputs
-                    .values()
-                    .filter(|r| {
+                let mut failed_inputs: Vec<String> = s
+                    .wired_tables()
+                    .into_iter()
+                    .filter(|(_, r)| {
                         produced
                             .get(&r.stage)
                             .is_none_or(|p| !p.tables.contains_key(&r.table))
                     })
-                    .map(|r| {
+                    .map(|(_, r)| {
                         if r.stage == sweep::PSEUDO_STAGE {
                             format!("{r} (no sweep point produced it)")
                         } else {
-                            r.stage.clone()
+                            r.stage
                         }
                     })
                     .collect();
+                // A group slot's tables all come from one stage.
+                failed_inputs.dedup();
                 skipped(
                     s,
                     if failed_inputs.is_empty() {

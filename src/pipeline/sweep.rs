@@ -276,9 +276,10 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
         .try_fold(1usize, |acc, n| acc.checked_mul(n))
         .unwrap_or(usize::MAX);
     if total > MAX_POINTS {
-        // Placed at the axis with the most values: the one to shorten.
+        // Placed at the (first) axis with the most values: the one to shorten.
         let widest = axes
             .iter()
+            .rev()
             .max_by_key(|a| a.values.len())
             .expect("a sweep has an axis");
         let total = if total == usize::MAX {

@@ -572,15 +572,19 @@ fn a_damaged_pack_is_reported_and_its_points_recomputed() {
     assert_eq!(gathered(&results, "damaged"), clean);
 }
 
-/// A sweep of a plane mesh measured by a perfect tracker, over the plane's
-/// distance `x_mm`: a distance of 0 puts a reflector at the tracker's
-/// origin, which has no reading, and fails that point's `measure`. With
+/// A sweep of a plane mesh measured by a tracker with errors, over the
+/// plane's distance `x_mm`: a distance of 0 puts a reflector at the
+/// tracker's origin, where the error model has no inverse, and fails that
+/// point's `measure`. With
 /// `after`, a plot of the gathered readings runs after the sweep.
 pub fn origin_sweep(name: &str, xs: &str, after: bool) -> String {
     let mut text = format!(
         r#"
 [pipeline]
 name = "{name}"
+
+[stages.truth]
+kind = "inject"
 
 [stages.mesh]
 kind = "mesh"
@@ -591,7 +595,7 @@ z = {{ from = 0, to = 500, step = 500 }}
 
 [stages.reading]
 kind = "measure"
-inputs = {{ points = "mesh" }}
+inputs = {{ points = "mesh", errors = "truth" }}
 
 [[sweep.axis]]
 path = "stages.mesh.x_mm"
@@ -763,8 +767,8 @@ fn a_random_axis_of_a_billion_points_is_refused_at_load() {
             "more than the limit of 100000 points",
         ),
         (
-            "range = { from = 0, to = 1, step = 0.000001 }",
-            "`range` gives 1000001 values, more than the limit of 100000 points",
+            "range = { from = 0, to = 1, step = 0.00001 }",
+            "`range` gives 100001 values, more than the limit of 100000 points",
         ),
         (
             "range = { from = 0, to = 1, step = 1e-12 }",
