@@ -6,7 +6,11 @@
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
 //! reported as a failure of that stage with its message; by default the run
 //! stops after the level in which it failed, with `keep_going` every stage
-//! whose inputs exist runs.
+//! whose inputs exist runs. A sweep's failed points are data, not a stop:
+//! every point runs and each failure is reported with its point; the
+//! stages after the sweep run on the gathered tables of the points that
+//! succeeded only with `keep_going` (otherwise they are skipped, saying how
+//! many points failed), and never on a table no point produced.
 //!
 //! A cached entry that fails verification is recomputed, and the stage's
 //! report says so (`cache_problem`), so that a damaged cache is visible

@@ -29,6 +29,10 @@
 //! killed one stopped. Stages whose inputs name `sweep` (`inputs = { table =
 //! "sweep.evaluation.table7" }`) run once, after the points, on the gathered
 //! tables.
+//!
+//! Every count is bounded before anything is allocated: `random.count`, a
+//! `range`'s values and the grid of all axes at [`MAX_POINTS`], each
+//! refused at its place in the file.
 
 use super::Problem;
 use super::resolve::{Override, Sweep, split_path};
