@@ -19,6 +19,17 @@ pub struct Range {
 /// Most values a range may hold: a typo in a step should not allocate gigabytes.
 pub const MAX_RANGE_VALUES: usize = 1_000_000;
 
+/// Most points a grid of ranges (a mesh, a sensitivity sphere) may hold:
+/// three ranges within [`MAX_RANGE_VALUES`] each would still make 10^18.
+pub const MAX_GRID_POINTS: usize = 1_000_000;
+
+/// The points of the grid of `ranges` (checked ranges), saturating.
+pub fn grid_points(ranges: &[&Range]) -> usize {
+    ranges
+        .iter()
+        .fold(1usize, |n, r| n.saturating_mul(r.count()))
+}
+
 impl Range {
     pub const fn new(from: f64, to: f64, step: f64) -> Range {
         Range { from, to, step }
@@ -53,10 +64,16 @@ impl Range {
         Ok(())
     }
 
+    /// How many values a checked range holds.
+    pub fn count(&self) -> usize {
+        ((self.to - self.from) / self.step + 1e-9).floor() as usize + 1
+    }
+
     /// The values of a checked range.
     pub fn values(&self) -> Vec<f64> {
-        let n = ((self.to - self.from) / self.step + 1e-9).floor() as usize + 1;
-        (0..n).map(|i| self.from + i as f64 * self.step).collect()
+        (0..self.count())
+            .map(|i| self.from + i as f64 * self.step)
+            .collect()
     }
 }
 

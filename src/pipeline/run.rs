@@ -6,7 +6,11 @@
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
 //! reported as a failure of that stage with its message; by default the run
 //! stops after the level in which it failed, with `keep_going` every stage
-//! whose inputs exist runs.
+//! whose inputs exist runs. A sweep's failed points are data, not a stop:
+//! every point runs and each failure is reported with its point; the
+//! stages after the sweep run on the gathered tables of the points that
+//! succeeded only with `keep_going` (otherwise they are skipped, saying how
+//! many points failed), and never on a table no point produced.
 //!
 //! A cached entry that fails verification is recomputed, and the stage's
 //! report says so (`cache_problem`), so that a damaged cache is visible
@@ -221,11 +225,24 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
                 .filter(|s| sw.after.contains(&s.name))
                 .cloned()
                 .collect();
-            let external = BTreeMap::from([(sweep::PSEUDO_STAGE.to_string(), Arc::new(gathered))]);
-            let (mut reports, produced) = execute_stages(&runner, &after, external);
             let mut all = point_reports;
-            all.append(&mut reports);
-            (all, produced, Some(sweep))
+            if sweep.failed > 0 && !runner.keep_going {
+                // The gathered tables would lack the failed points: the
+                // stages after the sweep do not run on them, and the run
+                // ends with the failed points named.
+                let why = format!(
+                    "{} of {} sweep points failed (--keep-going runs it on the others)",
+                    sweep.failed, sweep.points
+                );
+                all.extend(after.iter().map(|s| skipped(s, why.clone())));
+                (all, BTreeMap::new(), Some(sweep))
+            } else {
+                let external =
+                    BTreeMap::from([(sweep::PSEUDO_STAGE.to_string(), Arc::new(gathered))]);
+                let (mut reports, produced) = execute_stages(&runner, &after, external);
+                all.append(&mut reports);
+                (all, produced, Some(sweep))
+            }
         }
     };
     let report = RunReport {
@@ -280,11 +297,13 @@ fn execute_stages(
             .copied()
             .filter(|&i| {
                 let done = produced.lock().expect("no panics hold this lock");
+                // A producer without the table (a gathered table no sweep
+                // point contributed to) leaves its readers skipped.
                 !stop
-                    && stages[i]
-                        .inputs
-                        .values()
-                        .all(|r| done.contains_key(&r.stage))
+                    && stages[i].wired_tables().iter().all(|(_, r)| {
+                        done.get(&r.stage)
+                            .is_some_and(|p| p.tables.contains_key(&r.table))
+                    })
             })
             .collect();
         let run_one = |&i: &usize| {
@@ -330,31 +349,51 @@ fn execute_stages(
         .map(|(i, r)| {
             r.unwrap_or_else(|| {
                 let s = &stages[i];
-                let failed_inputs: Vec<&str> = s
-                    .inputs
-                    .values()
-                    .map(|r| r.stage.as_str())
-                    .filter(|n| !produced.contains_key(*n))
+                let mut failed_inputs: Vec<String> = s
+                    .wired_tables()
+                    .into_iter()
+                    .filter(|(_, r)| {
+                        produced
+                            .get(&r.stage)
+                            .is_none_or(|p| !p.tables.contains_key(&r.table))
+                    })
+                    .map(|(_, r)| {
+                        if r.stage == sweep::PSEUDO_STAGE {
+                            format!("{r} (no sweep point produced it)")
+                        } else {
+                            r.stage
+                        }
+                    })
                     .collect();
-                StageReport {
-                    stage: s.name.clone(),
-                    kind: s.config.kind().to_string(),
-                    status: Status::Skipped,
-                    cache_problem: None,
-                    reason: if failed_inputs.is_empty() {
+                // A group slot's tables all come from one stage.
+                failed_inputs.dedup();
+                skipped(
+                    s,
+                    if failed_inputs.is_empty() {
                         "the run stopped at the first failure (use --keep-going)".into()
                     } else {
                         format!("its input {} did not complete", failed_inputs.join(", "))
                     },
-                    key: None,
-                    seconds: 0.0,
-                    tables: BTreeMap::new(),
-                    files: Vec::new(),
-                }
+                )
             })
         })
         .collect();
     (reports, produced)
+}
+
+/// The report of a stage that did not run, and why.
+fn skipped(s: &Stage, reason: String) -> StageReport {
+    StageReport {
+        stage: s.name.clone(),
+        kind: s.config.kind().to_string(),
+        status: Status::Skipped,
+        cache_problem: None,
+        reason,
+        key: None,
+        seconds: 0.0,
+        tables: BTreeMap::new(),
+        files: Vec::new(),
+    }
 }
 
 /// A local run writes the new entries of its points as a pack every
@@ -387,6 +426,11 @@ fn run_points(runner: &Runner, sw: &Sweep) -> Result<(Vec<StageReport>, Produced
     }
     let mut tables = BTreeMap::new();
     for (g, gatherer) in sw.gather.iter().zip(gathered) {
+        if gatherer.is_empty() {
+            // Every point failed (kept going): no table, and its readers
+            // are skipped rather than run on nothing.
+            continue;
+        }
         let (df, bytes) = gatherer.finish()?;
         let name = g.to_string();
         counts.gathered.insert(name.clone(), df.height());

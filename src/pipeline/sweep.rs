@@ -29,6 +29,10 @@
 //! killed one stopped. Stages whose inputs name `sweep` (`inputs = { table =
 //! "sweep.evaluation.table7" }`) run once, after the points, on the gathered
 //! tables.
+//!
+//! Every count is bounded before anything is allocated: `random.count`, a
+//! `range`'s values and the grid of all axes at [`MAX_POINTS`], each
+//! refused at its place in the file.
 
 use super::Problem;
 use super::resolve::{Override, Sweep, split_path};
@@ -58,7 +62,9 @@ pub struct RawRange {
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawRandom {
-    pub count: usize,
+    /// Any integer TOML holds: bounded by [`MAX_POINTS`] before a value is
+    /// drawn.
+    pub count: u64,
     pub seed: u64,
     pub low: f64,
     pub high: f64,
@@ -151,6 +157,17 @@ fn axis_values(src: &Source, a: &RawAxis) -> Result<Vec<serde_json::Value>, Prob
                 src.error(r.span(), format!("`range.{part}` {msg}")),
             ));
         }
+        // Counted before a value is made: a step of 1e-9 is refused here,
+        // not after a billion values are allocated.
+        if range.count() > MAX_POINTS {
+            return Err(Problem::At(src.error(
+                r.span(),
+                format!(
+                    "`range` gives {} values, more than the limit of {MAX_POINTS} points a sweep may have",
+                    range.count()
+                ),
+            )));
+        }
         let integral = [rr.from, rr.to, rr.step].iter().all(|x| x.fract() == 0.0);
         return Ok(range
             .values()
@@ -170,6 +187,15 @@ fn axis_values(src: &Source, a: &RawAxis) -> Result<Vec<serde_json::Value>, Prob
         return Err(Problem::At(
             src.error(r.span(), "`random` needs count ≥ 1 and finite low < high"),
         ));
+    }
+    if rr.count > MAX_POINTS as u64 {
+        return Err(Problem::At(src.error(
+            r.span(),
+            format!(
+                "`random.count` = {} is more than the limit of {MAX_POINTS} points a sweep may have",
+                rr.count
+            ),
+        )));
     }
     let mut rng = random::stream(rr.seed, &a.path.get_ref().to_string());
     Ok((0..rr.count)
@@ -254,9 +280,20 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
         .try_fold(1usize, |acc, n| acc.checked_mul(n))
         .unwrap_or(usize::MAX);
     if total > MAX_POINTS {
-        return Err(vec![Problem::arg(format!(
-            "{}: the sweep expands to {total} points, more than the limit of {MAX_POINTS}",
-            src.path.display()
+        // Placed at the (first) axis with the most values: the one to shorten.
+        let widest = axes
+            .iter()
+            .rev()
+            .max_by_key(|a| a.values.len())
+            .expect("a sweep has an axis");
+        let total = if total == usize::MAX {
+            "more than 2^64".to_string()
+        } else {
+            total.to_string()
+        };
+        return Err(vec![Problem::At(src.error(
+            widest.span.clone(),
+            format!("the sweep expands to {total} points, more than the limit of {MAX_POINTS}"),
         ))]);
     }
     let mut points = Vec::with_capacity(total);
@@ -290,6 +327,8 @@ pub struct Gatherer<'a> {
     /// and 100 000 points' chunks cost more to carry than their rows.
     parts: Vec<DataFrame>,
     chunk: Vec<DataFrame>,
+    /// Points pushed so far.
+    points: usize,
 }
 
 /// Points whose tables are stacked at once.
@@ -301,7 +340,13 @@ impl<'a> Gatherer<'a> {
             sw,
             parts: Vec::new(),
             chunk: Vec::new(),
+            points: 0,
         }
+    }
+
+    /// No point's table was pushed (every point failed).
+    pub fn is_empty(&self) -> bool {
+        self.points == 0
     }
 
     /// One gatherer per table the sweep gathers, in `gather` order.
@@ -317,6 +362,7 @@ impl<'a> Gatherer<'a> {
             &self.sw.values[index],
             df,
         )?);
+        self.points += 1;
         if self.chunk.len() >= GATHER_CHUNK {
             self.fold()?;
         }

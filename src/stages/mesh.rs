@@ -171,6 +171,24 @@ impl StageKind for MeshStage {
                 ));
             }
         }
+        if out.is_empty() {
+            let n = match self.geometry() {
+                Geometry::Plane { y, z, .. } => mesh::grid_points(&[&y, &z]),
+                Geometry::Cube { x, y, z } => mesh::grid_points(&[&x, &y, &z]),
+                Geometry::Sphere { h_deg, v_deg, r_mm } => {
+                    mesh::grid_points(&[&h_deg, &v_deg, &r_mm])
+                }
+            };
+            if n > mesh::MAX_GRID_POINTS {
+                out.push(Invalid::new(
+                    used[used.len() - 1],
+                    format!(
+                        "the mesh has {n} points, more than the limit of {}: use fewer or coarser ranges",
+                        mesh::MAX_GRID_POINTS
+                    ),
+                ));
+            }
+        }
         if let Some(x) = self.x_mm.filter(|x| !x.is_finite()) {
             out.push(Invalid::new(
                 "x_mm",

@@ -137,6 +137,16 @@ impl StageKind for SensitivityStage {
                 ));
             }
         }
+        let n = mesh::grid_points(&[&self.h_deg, &self.v_deg, &self.r_mm]);
+        if out.is_empty() && n > mesh::MAX_GRID_POINTS {
+            out.push(Invalid::new(
+                "r_mm",
+                format!(
+                    "the sphere has {n} points, more than the limit of {}: use fewer or coarser ranges",
+                    mesh::MAX_GRID_POINTS
+                ),
+            ));
+        }
         if let Some(r) = Some(&self.r_mm).filter(|r| r.from.min(r.to) <= 0.0) {
             out.push(Invalid::new(
                 "r_mm.from",

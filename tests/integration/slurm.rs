@@ -492,3 +492,173 @@ fn a_job_of_another_computation_is_not_waited_for() {
     let ids: Vec<&str> = jobs.iter().map(|j| j["job"].as_str().unwrap()).collect();
     Command::new("scancel").args(&ids).status().unwrap();
 }
+
+/// `ltcal run` on Slurm of the origin sweep (two of four points fail at
+/// their `measure`), with or without the plot after the sweep.
+fn origin_on_slurm(tmp: &Path, name: &str, xs: &str, after: bool) -> String {
+    let file = tmp.join(format!("{name}.toml"));
+    let text = super::sweep::origin_sweep(name, xs, after)
+        + "\n[executor.slurm]\npoints_per_task = 1\npoll_seconds = 1\n";
+    std::fs::write(&file, text).unwrap();
+    file.display().to_string()
+}
+
+#[test]
+fn a_failed_sweep_point_on_slurm_is_named_with_and_without_an_after_sweep_stage() {
+    let Some(_dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("r");
+    for after in [true, false] {
+        let name = if after { "origin-after" } else { "origin" };
+        let file = origin_on_slurm(tmp.path(), name, "1000, 0, 2000, 0", after);
+        for keep_going in [false, true] {
+            let extra: &[&str] = if keep_going { &["--keep-going"] } else { &[] };
+            let o = on_slurm(&file, &results, extra);
+            let out = text(&o);
+            assert_eq!(o.status.code(), Some(1), "{out}");
+            assert!(!out.contains("panicked"), "{out}");
+            for point in ["sweep point 1 (plane_x=0)", "sweep point 3 (plane_x=0)"] {
+                let line = out
+                    .lines()
+                    .find(|l| l.contains(point))
+                    .unwrap_or_else(|| panic!("{point} not named: {out}"));
+                // The stage's own error, and where it ran.
+                assert!(line.contains("stage `reading` failed"), "{line}");
+                assert!(line.contains("array task"), "{line}");
+                assert!(line.contains("log "), "{line}");
+            }
+            let run = std::fs::read(results.join(name).join("run.json")).unwrap();
+            let run: serde_json::Value = serde_json::from_slice(&run).unwrap();
+            let figure = run["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["stage"] == "figure")
+                .cloned();
+            match (after, keep_going) {
+                (true, true) => assert_eq!(figure.unwrap()["status"], "ran"),
+                (true, false) => assert_eq!(figure.unwrap()["status"], "skipped"),
+                _ => assert!(figure.is_none()),
+            }
+        }
+        // The gathered rows of the points that ran are the local run's.
+        let local = tmp.path().join("local");
+        let o = ltcal(&[
+            "run",
+            &file,
+            "-q",
+            "--keep-going",
+            "--results",
+            local.to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+        assert_eq!(
+            gathered(&local, name, "reading.readings"),
+            gathered(&results, name, "reading.readings")
+        );
+    }
+}
+
+/// Every array task of the shipped blind check in blocks ended without its
+/// points (here cancelled while held; in the report, `NODE_FAIL`): the run
+/// names every point with its Slurm job, task and log, and the summary
+/// after the sweep is skipped — no panic.
+#[test]
+fn every_task_of_the_blind_check_blocks_failing_names_every_point_instead_of_panicking() {
+    let Some(_dir) = cluster() else { return };
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("r");
+    let file = tmp.path().join("blocks.toml");
+    let text0 = std::fs::read_to_string(root().join("pipelines/examples/blind-check-blocks.toml"))
+        .unwrap()
+        .replace(
+            "[executor.slurm]\n",
+            "[executor.slurm]\nsbatch_options = [\"--hold\"]\npoll_seconds = 1\n",
+        );
+    assert!(text0.contains("--hold"));
+    std::fs::write(&file, text0).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "-q",
+            "--executor",
+            "slurm",
+            "--results",
+        ])
+        .arg(&results)
+        .current_dir(root())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let jobs = results.join("blind-check-blocks/.ltcal/slurm/jobs.json");
+    wait_until("the submission", 60, || jobs.exists());
+    let job = jobs_record(&results, "blind-check-blocks")[0]["job"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    wait_until("eight held tasks", 60, || squeue(&job).len() == 8);
+    let c = Command::new("scancel").arg(&job).status().unwrap();
+    assert!(c.success());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    for point in 0..8 {
+        let line = err
+            .lines()
+            .find(|l| l.contains(&format!("sweep point {point} (")))
+            .unwrap_or_else(|| panic!("point {point} not named: {err}"));
+        assert!(
+            line.contains(&format!("Slurm job {job}, array task {point}")),
+            "{line}"
+        );
+    }
+    assert!(
+        err.contains("skipped `scores`: 8 of 8 sweep points failed"),
+        "{err}"
+    );
+}
+
+#[test]
+fn sbatch_option_prefixes_cannot_override_the_array_or_the_logs() {
+    // Refused at load, before anything reaches sbatch (no cluster needed).
+    let tmp = tempfile::tempdir().unwrap();
+    for bad in [
+        "--arr=0-99",
+        "--outpu=/tmp/x",
+        "--erro=/tmp/x",
+        "-Ho/tmp/x",
+        "--export=ALL,PATH=/tmp/evil",
+        "--qos=normal --arr=0",
+    ] {
+        let file = tmp.path().join("p.toml");
+        let pipeline = std::fs::read_to_string(data("sweep.toml"))
+            .unwrap()
+            .replace(
+                "[executor.slurm]\n",
+                &format!("[executor.slurm]\nsbatch_options = [{bad:?}]\n"),
+            );
+        std::fs::write(&file, &pipeline).unwrap();
+        let o = ltcal(&[
+            "plan",
+            file.to_str().unwrap(),
+            "--results",
+            tmp.path().to_str().unwrap(),
+        ]);
+        let out = text(&o);
+        assert_eq!(o.status.code(), Some(2), "{bad}: {out}");
+        let line = pipeline
+            .lines()
+            .position(|l| l == "[executor.slurm]")
+            .unwrap()
+            + 1;
+        assert!(out.contains(&format!("p.toml:{line}:")), "{bad}: {out}");
+        assert!(
+            out.contains("ltcal sets the array, the logs"),
+            "{bad}: {out}"
+        );
+    }
+}

@@ -571,3 +571,282 @@ fn a_damaged_pack_is_reported_and_its_points_recomputed() {
     assert!(r.unreadable_packs[0].contains("does not match its hash"));
     assert_eq!(gathered(&results, "damaged"), clean);
 }
+
+/// A sweep of a plane mesh measured by a tracker with errors, over the
+/// plane's distance `x_mm`: a distance of 0 puts a reflector at the
+/// tracker's origin, where the error model has no inverse, and fails that
+/// point's `measure`. With
+/// `after`, a plot of the gathered readings runs after the sweep.
+pub fn origin_sweep(name: &str, xs: &str, after: bool) -> String {
+    let mut text = format!(
+        r#"
+[pipeline]
+name = "{name}"
+
+[stages.truth]
+kind = "inject"
+
+[stages.mesh]
+kind = "mesh"
+shape = "plane"
+x_mm = 1000
+y = {{ from = 0, to = 500, step = 500 }}
+z = {{ from = 0, to = 500, step = 500 }}
+
+[stages.reading]
+kind = "measure"
+inputs = {{ points = "mesh", errors = "truth" }}
+
+[[sweep.axis]]
+path = "stages.mesh.x_mm"
+name = "plane_x"
+values = [{xs}]
+
+[sweep]
+gather = ["reading.readings"]
+"#
+    );
+    if after {
+        text.push_str(
+            r#"
+[stages.figure]
+kind = "plot"
+plot = "metric"
+inputs = { table = "sweep.reading.readings" }
+x = "plane_x"
+y = "d_mm"
+series = "target"
+"#,
+        );
+    }
+    text
+}
+
+/// The gathered readings' rows of `points`, the `point` column dropped.
+fn rows_of(results: &Path, name: &str, points: &[i64]) -> polars::prelude::DataFrame {
+    let df = ltcal::table::read_parquet(
+        &results
+            .join(name)
+            .join("sweep")
+            .join("reading.readings.parquet"),
+    )
+    .unwrap();
+    let point = ltcal::table::TableRef::new("t", &df).i64("point").unwrap();
+    let keep: polars::prelude::BooleanChunked = point.iter().map(|p| points.contains(p)).collect();
+    df.filter(&keep).unwrap().drop("point").unwrap()
+}
+
+#[test]
+fn a_failed_sweep_point_with_an_after_sweep_stage_names_the_point_instead_of_panicking() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path().join("r");
+    let results = r.to_str().unwrap();
+    for after in [true, false] {
+        let name = if after { "origin-after" } else { "origin" };
+        let file = dir.path().join(format!("{name}.toml"));
+        std::fs::write(&file, origin_sweep(name, "1000, 0, 2000, 0", after)).unwrap();
+        let f = file.to_str().unwrap();
+        for keep_going in [false, true] {
+            let mut args = vec!["run", f, "-q", "--results", results];
+            if keep_going {
+                args.push("--keep-going");
+            }
+            let out = ltcal(dir.path(), &args);
+            let err = stderr(&out);
+            assert_code(&out, 1);
+            assert!(!err.contains("panicked"), "{err}");
+            // Every failed point named, with its stage and reason.
+            for point in ["sweep point 1 (plane_x=0)", "sweep point 3 (plane_x=0)"] {
+                assert!(err.contains(point), "{point}: {err}");
+            }
+            assert_eq!(
+                err.matches("stage `reading` (measure) failed").count(),
+                2,
+                "{err}"
+            );
+            let st = stages(&run_json(&r, name));
+            if after && keep_going {
+                assert_eq!(st["figure"]["status"], "ran", "{err}");
+            } else if after {
+                assert_eq!(st["figure"]["status"], "skipped");
+                assert_eq!(
+                    st["figure"]["reason"],
+                    "2 of 4 sweep points failed (--keep-going runs it on the others)"
+                );
+            }
+        }
+        // Kept going, the gathered rows of the points that succeeded are a
+        // clean run's.
+        let clean = format!("{name}-clean");
+        let clean_file = dir.path().join(format!("{clean}.toml"));
+        std::fs::write(
+            &clean_file,
+            origin_sweep(&clean, "1000, 500, 2000, 700", after),
+        )
+        .unwrap();
+        let out = ltcal(
+            dir.path(),
+            &[
+                "run",
+                clean_file.to_str().unwrap(),
+                "-q",
+                "--results",
+                results,
+            ],
+        );
+        assert_code(&out, 0);
+        let kept = rows_of(&r, name, &[0, 2]);
+        assert_eq!(kept.height(), 2 * 4, "two points of four reflectors");
+        assert!(kept.equals(&rows_of(&r, &clean, &[0, 2])));
+        assert_eq!(rows_of(&r, name, &[1, 3]).height(), 0);
+    }
+}
+
+#[test]
+fn a_sweep_whose_every_point_failed_skips_its_after_sweep_stage_even_kept_going() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("all-failed.toml");
+    std::fs::write(&file, origin_sweep("all-failed", "0, 0", true)).unwrap();
+    let r = dir.path().join("r");
+    let out = ltcal(
+        dir.path(),
+        &[
+            "run",
+            file.to_str().unwrap(),
+            "-q",
+            "--keep-going",
+            "--results",
+            r.to_str().unwrap(),
+        ],
+    );
+    assert_code(&out, 1);
+    let err = stderr(&out);
+    assert!(err.contains("sweep point 0 (plane_x=0)"), "{err}");
+    assert!(err.contains("sweep point 1 (plane_x=0)"), "{err}");
+    let st = stages(&run_json(&r, "all-failed"));
+    assert_eq!(st["figure"]["status"], "skipped");
+    assert_eq!(
+        st["figure"]["reason"],
+        "its input sweep.reading.readings (no sweep point produced it) did not complete"
+    );
+}
+
+/// Writes a pipeline whose one axis is `axis` and returns `plan`'s output
+/// and how long it took.
+fn plan_with_axis(dir: &Path, axis: &str) -> (std::process::Output, Duration, String) {
+    let text = origin_sweep("big", "1", false).replace("values = [1]", axis);
+    let file = dir.join("big.toml");
+    std::fs::write(&file, &text).unwrap();
+    let t = Instant::now();
+    let out = ltcal(
+        dir,
+        &[
+            "plan",
+            file.to_str().unwrap(),
+            "--results",
+            dir.join("r").to_str().unwrap(),
+        ],
+    );
+    (out, t.elapsed(), text)
+}
+
+#[test]
+fn a_random_axis_of_a_billion_points_is_refused_at_load() {
+    let dir = tempfile::tempdir().unwrap();
+    for (axis, says) in [
+        (
+            "random = { count = 1000000000, seed = 1, low = 0, high = 1 }",
+            "`random.count` = 1000000000 is more than the limit of 100000 points",
+        ),
+        (
+            "random = { count = 100000000, seed = 1, low = 0, high = 1 }",
+            "`random.count` = 100000000 is more than the limit of 100000 points",
+        ),
+        (
+            "random = { count = 9223372036854775807, seed = 1, low = 0, high = 1 }",
+            "more than the limit of 100000 points",
+        ),
+        (
+            "range = { from = 0, to = 1, step = 0.00001 }",
+            "`range` gives 100001 values, more than the limit of 100000 points",
+        ),
+        (
+            "range = { from = 0, to = 1, step = 1e-12 }",
+            "more than the limit of 1000000",
+        ),
+    ] {
+        let (out, took, text) = plan_with_axis(dir.path(), axis);
+        let err = stderr(&out);
+        assert_code(&out, 2);
+        let line = text.lines().position(|l| l.contains(axis)).unwrap() + 1;
+        assert!(err.contains(&format!("big.toml:{line}:")), "{axis}: {err}");
+        assert!(err.contains(says), "{axis}: {err}");
+        assert!(took < Duration::from_secs(1), "{axis}: {took:?}");
+    }
+    // Numbers TOML cannot hold as integers are refused where they stand.
+    for axis in [
+        "random = { count = 18446744073709551615, seed = 1, low = 0, high = 1 }",
+        "random = { count = 1e8, seed = 1, low = 0, high = 1 }",
+    ] {
+        let (out, took, text) = plan_with_axis(dir.path(), axis);
+        let err = stderr(&out);
+        assert_code(&out, 2);
+        let line = text.lines().position(|l| l.contains(axis)).unwrap() + 1;
+        assert!(err.contains(&format!("big.toml:{line}:")), "{axis}: {err}");
+        assert!(took < Duration::from_secs(1), "{axis}: {took:?}");
+    }
+}
+
+#[test]
+fn a_grid_of_axes_over_the_limit_is_refused_at_the_widest_axis() {
+    let dir = tempfile::tempdir().unwrap();
+    let axis = "range = { from = 1, to = 1000, step = 1 }\n[[sweep.axis]]\npath = \"stages.reading.seed\"\nrange = { from = 1, to = 1000, step = 1 }";
+    let (out, took, text) = plan_with_axis(dir.path(), axis);
+    let err = stderr(&out);
+    assert_code(&out, 2);
+    let line = text
+        .lines()
+        .position(|l| l.contains("stages.mesh.x_mm"))
+        .unwrap()
+        + 1;
+    assert!(err.contains(&format!("big.toml:{line}:8")), "{err}");
+    assert!(
+        err.contains("the sweep expands to 1000000 points, more than the limit of 100000"),
+        "{err}"
+    );
+    assert!(took < Duration::from_secs(1), "{took:?}");
+}
+
+#[test]
+fn a_mesh_of_a_trillion_points_is_refused_at_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = origin_sweep("mesh", "1000", false).replace(
+        "y = { from = 0, to = 500, step = 500 }",
+        "y = { from = 0, to = 999999, step = 1 }",
+    );
+    let text = text.replace(
+        "z = { from = 0, to = 500, step = 500 }",
+        "z = { from = 0, to = 999999, step = 1 }",
+    );
+    let file = dir.path().join("mesh.toml");
+    std::fs::write(&file, &text).unwrap();
+    let t = Instant::now();
+    let out = ltcal(
+        dir.path(),
+        &[
+            "plan",
+            file.to_str().unwrap(),
+            "--results",
+            dir.path().join("r").to_str().unwrap(),
+        ],
+    );
+    let err = stderr(&out);
+    assert_code(&out, 2);
+    assert!(
+        err.contains("the mesh has 1000000000000 points, more than the limit of 1000000"),
+        "{err}"
+    );
+    let line = text.lines().position(|l| l.starts_with("z = ")).unwrap() + 1;
+    assert!(err.contains(&format!("mesh.toml:{line}:")), "{err}");
+    assert!(t.elapsed() < Duration::from_secs(1));
+}

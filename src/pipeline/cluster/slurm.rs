@@ -3,12 +3,15 @@
 //! they inherit, like every Slurm client).
 //!
 //! A wave is one `sbatch --array=0-(n-1)%max_running` of a job script that
-//! reads its task's line of the wave's points file — never the points
+//! reads its task's line of the wave's points file with the shell's own
+//! `read` (it runs no tool but `ltcal`, by its absolute path: nothing is
+//! looked up on `PATH`) — never the points
 //! themselves inlined (Slurm refuses scripts over 4 MB; a 100 000-point
 //! sweep's list would pass it) — and `exec`s `ltcal task` with its output
 //! appended to `points-<first>-<last>.log` in the wave's folder under
 //! `results/<pipeline>/slurm/`: one log per task, named by its points,
-//! never in the home folder (Slurm's own `--output` is `/dev/null`: what
+//! never in the home folder (Slurm's own `--output` and `--error` are
+//! `/dev/null`: what
 //! Slurm does to a task — cancelled, timed out, node failed — the
 //! coordinator asks Slurm for and reports itself).
 //!
@@ -67,6 +70,11 @@ impl Scheduler for Slurm {
             s.max_running.min(a.tasks).max(1)
         ));
         opt("--output=/dev/null".into());
+        opt("--error=/dev/null".into());
+        // The environment the coordinator runs in; `sbatch_options` may
+        // not change it (settings.rs), and the script below looks nothing
+        // up on `PATH`.
+        opt("--export=ALL".into());
         opt("--no-requeue".into());
         opt(format!("--cpus-per-task={}", s.cpus_per_task));
         if let Some(p) = &s.partition {
@@ -91,8 +99,15 @@ impl Scheduler for Slurm {
             quote(&a.workdir.display().to_string())
         ));
         h.push_str(&format!(
-            "# Task i runs line i+1 of the points file: \"<first>-<last> <points>\".\n\
-             line=$(sed -n \"$((SLURM_ARRAY_TASK_ID + 1))p\" {units})\n\
+            "# Task i runs line i+1 of the points file: \"<first>-<last> <points>\",\n\
+             # read with the shell's own `read`: no tool is looked up on PATH.\n\
+             i=0\n\
+             found=\n\
+             while IFS= read -r line; do\n\
+             \x20 if [ \"$i\" -eq \"$SLURM_ARRAY_TASK_ID\" ]; then found=1; break; fi\n\
+             \x20 i=$((i + 1))\n\
+             done < {units}\n\
+             [ -n \"$found\" ] || exit 1\n\
              range=${{line%% *}}\n\
              points=${{line#* }}\n\
              exec >>{}\"/points-$range.log\" 2>&1\n\
@@ -213,6 +228,56 @@ mod tests {
             (1, "NODE_FAIL", "n2")
         );
         assert!(t[2].pending());
+    }
+
+    #[test]
+    fn the_job_script_runs_its_task_with_no_tool_looked_up_on_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let units = dir.path().join("points.txt");
+        std::fs::write(&units, "0-1 0-1\n2-3 2,3\n4-5 4-5\n").unwrap();
+        let settings = super::super::SlurmSettings {
+            sbatch_options: vec!["--qos=long".into()],
+            ..Default::default()
+        };
+        let job = ArrayJob {
+            name: "p",
+            tasks: 3,
+            settings: &settings,
+            workdir: dir.path(),
+            wave: dir.path(),
+            units: &units,
+            command: vec!["/bin/echo".into(), "task".into()],
+        };
+        let script = Slurm.script(&job);
+        // ltcal's own options come before the pipeline's.
+        let at = |o: &str| script.find(o).unwrap_or_else(|| panic!("{o}: {script}"));
+        for own in [
+            "--array=0-2%3",
+            "--output=/dev/null",
+            "--error=/dev/null",
+            "--export=ALL",
+        ] {
+            assert!(at(own) < at("--qos=long"), "{script}");
+        }
+        let path = dir.path().join("job.sh");
+        std::fs::write(&path, &script).unwrap();
+        // A PATH that finds nothing (what `--export=PATH=…` would have
+        // pointed at a folder of impostors).
+        let run = |task: &str| {
+            Command::new("/bin/sh")
+                .arg(&path)
+                .env_clear()
+                .env("PATH", dir.path().join("nothing"))
+                .env("SLURM_ARRAY_TASK_ID", task)
+                .env("SLURM_ARRAY_JOB_ID", "7")
+                .status()
+                .unwrap()
+        };
+        assert!(run("1").success());
+        let log = std::fs::read_to_string(dir.path().join("points-2-3.log")).unwrap();
+        assert_eq!(log, "task --points 2,3 --prefix slurm-7_1\n");
+        // A task beyond the points file runs nothing.
+        assert!(!run("3").success());
     }
 
     #[test]
