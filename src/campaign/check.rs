@@ -411,7 +411,7 @@ fn surely_off_one_line(points: &[Vector3<f64>], tol_mm: f64) -> bool {
         return false;
     };
     let span = (c - b).norm();
-    if !(span > 100.0 * tol_mm) {
+    if span.partial_cmp(&(100.0 * tol_mm)) != Some(std::cmp::Ordering::Greater) {
         return false;
     }
     let u = (c - b) / span;
