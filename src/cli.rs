@@ -463,9 +463,16 @@ fn diagnose_command(
     if let Some(path) = &stage.hypotheses {
         crate::hypothesis::load(path).map_err(|p| anyhow::Error::from(InputError(p)))?;
     }
+    // What a killed earlier run left beside --out (its owner gone).
+    for stale in stages::diagnose::remove_stale_temporaries(out, std::time::SystemTime::now()) {
+        eprintln!(
+            "removed {}, left by a diagnosis that was stopped",
+            stale.display()
+        );
+    }
     let step = step_spinner();
     step.set_message(format!("reading {}", campaign.display()));
-    let c = crate::campaign::read_for_calibration(campaign)
+    let c = crate::campaign::read_for_diagnosis(campaign)
         .map_err(|e| InputError::arg(e.to_string()))?;
     step.set_message(format!(
         "adjusting and diagnosing {} readings",

@@ -85,9 +85,13 @@ impl Layout {
                 })
             })
             .collect();
-        let coupled: Vec<bool> = (0..net.targets.len())
-            .map(|t| net.gauge.iter().any(|g| g.a == t || g.b == t))
-            .collect();
+        // One pass over the gauge: a lookup per target was quadratic in a
+        // campaign's rows.
+        let mut coupled = vec![false; net.targets.len()];
+        for g in &net.gauge {
+            coupled[g.a] = true;
+            coupled[g.b] = true;
+        }
         let mut point = vec![None; net.targets.len()];
         for t in 0..net.targets.len() {
             if seen[t] && coupled[t] {

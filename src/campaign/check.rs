@@ -125,7 +125,18 @@ impl Campaign {
         if m.name.is_empty() {
             issue("name", "`name` must not be empty".into());
         }
-        if TrackerModel::parse(&m.tracker.model).is_none() {
+        // An id is matched exactly: "api-tracker3 " is not an id (a
+        // reader that trims accepts what a stricter one refuses).
+        if m.tracker.model.trim() != m.tracker.model {
+            issue(
+                "tracker.model",
+                format!(
+                    "tracker model \"{}\" has spaces around the id: write the id alone, one of {}",
+                    m.tracker.model,
+                    TrackerModel::expected()
+                ),
+            );
+        } else if TrackerModel::parse(&m.tracker.model).is_none() {
             issue(
                 "tracker.model",
                 format!(
@@ -354,6 +365,9 @@ struct Seen<'a> {
 /// points farthest apart (all points within `tol_mm` of each other count as
 /// on one line: any line through them will do).
 fn on_one_line(points: &[Vector3<f64>], tol_mm: f64) -> bool {
+    if surely_off_one_line(points, tol_mm) {
+        return false;
+    }
     let mut far = (0, 0, 0.0);
     for (i, a) in points.iter().enumerate() {
         for (j, b) in points.iter().enumerate().skip(i + 1) {
@@ -371,6 +385,39 @@ fn on_one_line(points: &[Vector3<f64>], tol_mm: f64) -> bool {
     points.iter().all(|p| {
         let v = p - points[a];
         (v - u * v.dot(&u)).norm() <= tol_mm
+    })
+}
+
+/// Whether the points are certainly not within `tol_mm` of the line
+/// through their farthest pair, found in linear time: the pair search of
+/// [`on_one_line`] is quadratic, and a station may see thousands of
+/// reflectors. `b` is the point farthest from the first, `c` the point
+/// farthest from `b`; with `|bc| > 100·tol`, every point within `tol` of
+/// the farthest pair's line is within `4.1·tol` of line `bc` (both `b` and
+/// `c` lie within `tol` of it, and every point within `|bc|` of `b`), so a
+/// point beyond `5·tol` of line `bc` settles it. Otherwise (nearly on a
+/// line, or all close together) the exact test decides.
+fn surely_off_one_line(points: &[Vector3<f64>], tol_mm: f64) -> bool {
+    let farthest = |from: &Vector3<f64>| {
+        points
+            .iter()
+            .max_by(|p, q| (*p - from).norm().total_cmp(&(*q - from).norm()))
+            .copied()
+    };
+    let Some(b) = points.first().and_then(farthest) else {
+        return false;
+    };
+    let Some(c) = farthest(&b) else {
+        return false;
+    };
+    let span = (c - b).norm();
+    if span.partial_cmp(&(100.0 * tol_mm)) != Some(std::cmp::Ordering::Greater) {
+        return false;
+    }
+    let u = (c - b) / span;
+    points.iter().any(|p| {
+        let v = p - b;
+        (v - u * v.dot(&u)).norm() > 5.0 * tol_mm
     })
 }
 

@@ -20,9 +20,11 @@ pub use crate::diagnostics::Problem;
 pub use check::{Issue, LINE_TOLERANCE_MM, Place, Table};
 pub use read::{
     CampaignError, FILES, GAUGE_COLUMNS, MAX_FILE_BYTES, MAX_ROWS, READINGS_COLUMNS,
-    TARGETS_COLUMNS, content_hash, read, read_for_calibration,
+    TARGETS_COLUMNS, content_hash, read, read_for_calibration, read_for_diagnosis,
 };
-pub use usable::{MAX_RANGE_MM, POLE_COS_EL, SIGMA_RANGE};
+pub use usable::{
+    MAX_GAUGE_LENGTHS, MAX_RANGE_MM, MAX_REFLECTORS, MAX_STATIONS, POLE_COS_EL, SIGMA_RANGE,
+};
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};
@@ -140,9 +142,12 @@ pub struct Campaign {
 impl Campaign {
     /// Station ids in order of first appearance.
     pub fn stations(&self) -> Vec<String> {
+        // A set beside the list: a search of the list per reading was
+        // quadratic (40 000 stations in a million readings took minutes).
+        let mut seen = std::collections::HashSet::new();
         let mut out: Vec<String> = Vec::new();
         for r in &self.readings {
-            if !out.contains(&r.station) {
+            if seen.insert(r.station.as_str()) {
                 out.push(r.station.clone());
             }
         }

@@ -68,17 +68,32 @@ impl std::error::Error for CampaignError {}
 /// Reads the campaign in `dir`; relative paths are relative to the current
 /// directory.
 pub fn read(dir: &Path) -> Result<Campaign, CampaignError> {
-    read_checked(dir, false)
+    read_checked(dir, Use::Format)
 }
 
 /// Reads the campaign in `dir` for a calibration or diagnosis: besides the
 /// format's rules, what the format allows but a calibration cannot use
 /// ([`Campaign::calibration_issues`]) is refused at its `file:line:col`.
 pub fn read_for_calibration(dir: &Path) -> Result<Campaign, CampaignError> {
-    read_checked(dir, true)
+    read_checked(dir, Use::Calibration)
 }
 
-fn read_checked(dir: &Path, for_calibration: bool) -> Result<Campaign, CampaignError> {
+/// Reads the campaign in `dir` for a diagnosis: as [`read_for_calibration`],
+/// and what a diagnosis cannot test against ([`Campaign::diagnosis_issues`]:
+/// a stated noise of 0) refused at its `file:line:col` too.
+pub fn read_for_diagnosis(dir: &Path) -> Result<Campaign, CampaignError> {
+    read_checked(dir, Use::Diagnosis)
+}
+
+/// What the campaign is read for: each use refuses more than the last.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Use {
+    Format,
+    Calibration,
+    Diagnosis,
+}
+
+fn read_checked(dir: &Path, usage: Use) -> Result<Campaign, CampaignError> {
     let fail = |problems| CampaignError {
         dir: dir.to_path_buf(),
         problems,
@@ -135,9 +150,21 @@ fn read_checked(dir: &Path, for_calibration: bool) -> Result<Campaign, CampaignE
         targets,
         gauge,
     };
-    let mut issues = campaign.check();
-    if for_calibration && issues.is_empty() {
+    // Counts beyond ltcal's limits first, alone: the format's checks and
+    // the rest are linear too, but need not run on what is refused anyway.
+    let mut issues = if usage >= Use::Calibration {
+        campaign.count_issues()
+    } else {
+        Vec::new()
+    };
+    if issues.is_empty() {
+        issues = campaign.check();
+    }
+    if usage >= Use::Calibration && issues.is_empty() {
         issues = campaign.calibration_issues();
+    }
+    if usage >= Use::Diagnosis && issues.is_empty() {
+        issues = campaign.diagnosis_issues();
     }
     if issues.is_empty() {
         return Ok(campaign);

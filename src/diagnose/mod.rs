@@ -186,31 +186,37 @@ impl Diagnosis {
 
 /// Each station's earliest `time_s`, when its readings carry one.
 fn first_times(c: &Campaign, stations: &[String]) -> Vec<Option<f64>> {
-    stations
-        .iter()
-        .map(|id| {
-            c.readings
-                .iter()
-                .filter(|r| &r.station == id)
-                .filter_map(|r| r.time_s)
-                .reduce(f64::min)
-        })
-        .collect()
+    // One pass over the readings (a pass per station was quadratic).
+    let index = station_index(stations);
+    let mut out: Vec<Option<f64>> = vec![None; stations.len()];
+    for r in &c.readings {
+        if let (Some(&s), Some(t)) = (index.get(r.station.as_str()), r.time_s) {
+            out[s] = Some(out[s].map_or(t, |m: f64| m.min(t)));
+        }
+    }
+    out
+}
+
+/// Each station id's index in `stations`.
+fn station_index(stations: &[String]) -> std::collections::HashMap<&str, usize> {
+    let mut index = std::collections::HashMap::with_capacity(stations.len());
+    for (i, id) in stations.iter().enumerate() {
+        index.entry(id.as_str()).or_insert(i);
+    }
+    index
 }
 
 /// The order in which stations measured: by their earliest `time_s` when
 /// every station has one, else by their first reading in the file (times
 /// and file positions are not compared with each other).
 fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
-    let first_row: Vec<usize> = stations
-        .iter()
-        .map(|id| {
-            c.readings
-                .iter()
-                .position(|r| &r.station == id)
-                .unwrap_or(usize::MAX)
-        })
-        .collect();
+    let index = station_index(stations);
+    let mut first_row = vec![usize::MAX; stations.len()];
+    for (i, r) in c.readings.iter().enumerate() {
+        if let Some(&s) = index.get(r.station.as_str()) {
+            first_row[s] = first_row[s].min(i);
+        }
+    }
     let times: Option<Vec<f64>> = first_times(c, stations).into_iter().collect();
     let mut order: Vec<usize> = (0..stations.len()).collect();
     match times {
@@ -247,9 +253,22 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         n_folds,
         enabled: &enabled,
     };
-    let mut members: Vec<Member> = Vec::new();
-    let base = ctx.state(&mut members, Vec::new())?;
+    let (base, screened) = ctx.screened_base()?;
     let floor = noise_floor(&base.lm, s);
+    // The gross blunders screened out before the folds are the set's first
+    // members; every path starts from them.
+    let members: Vec<Member> = screened
+        .iter()
+        .map(|(t, _)| Member::Blunder {
+            obs: t.obs,
+            coordinate: t.coordinate,
+        })
+        .collect();
+    let screened_rows: Vec<MemberRow> = screened
+        .iter()
+        .enumerate()
+        .map(|(k, (t, p))| (ctx.screened_row(&base, t, *p, k + 1, floor), None))
+        .collect();
 
     // Where: the base model's residuals, with each coordinate's w-test.
     let residuals = residual_rows(
@@ -277,7 +296,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     // effect (an effect the base model lacks can make another model fit a
     // little better; only a model that beats every candidate is the
     // answer).
-    let first = ctx.score(&base, &members, 1, floor);
+    let first = ctx.score(&base, &members, members.len() + 1, floor);
     let best_effect_bic = first
         .rows
         .iter()
@@ -300,7 +319,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     };
     let path = if starts.is_empty() {
         Path {
-            rows: Vec::new(),
+            rows: screened_rows.into_iter().map(|(r, _)| r).collect(),
             state: base,
             scored: first,
             open,
@@ -308,7 +327,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     } else {
         let paths: Vec<Path> = starts
             .into_par_iter()
-            .map(|p| ctx.follow(&base, p, floor))
+            .map(|p| ctx.follow(&base, (&members, &screened_rows), p, floor))
             .collect::<Result<_>>()?;
         // The first of the best: the greedy path wins ties.
         paths
@@ -751,9 +770,15 @@ impl StepContext<'_> {
     /// the right place. So the first step's best few candidates each start
     /// a path, and the diagnosis keeps the path whose final model has the
     /// lowest information criterion ([`State::bic`]).
-    fn follow(&self, base: &State, first: Pick, floor: f64) -> Result<Path> {
-        let mut members = Vec::new();
-        let mut rows = Vec::new();
+    fn follow(
+        &self,
+        base: &State,
+        (members, rows): (&[Member], &[MemberRow]),
+        first: Pick,
+        floor: f64,
+    ) -> Result<Path> {
+        let mut members = members.to_vec();
+        let mut rows = rows.to_vec();
         let mut state = self.join(base, &mut members, &mut rows, first, floor)?;
         loop {
             let step = rows.len() + 1;
@@ -894,6 +919,147 @@ impl StepContext<'_> {
                 rejected: rejected.clone(),
                 lm,
             });
+        }
+    }
+}
+
+/// How many gross blunders [`StepContext::screened_base`] takes out at
+/// most before it gives up on the campaign (each is one more adjustment).
+const MAX_SCREENED: usize = 20;
+
+impl StepContext<'_> {
+    /// The base model, after the gross blunders that kept it from being
+    /// cross-validated are taken out. A gross blunder (an azimuth off by
+    /// 42°, a million σ) can leave a fold whose training readings do not
+    /// determine the adjustment at that blunder's solution: the base state
+    /// then fails with [`linear::Singular`] before any test could name the
+    /// reading. So, while it does, the worst reading coordinate by its
+    /// w-test on all data (which needs no fold) is rejected — if it is
+    /// significant — and the model built again. A campaign whose every
+    /// fold is fitted (every campaign that diagnosed before) is untouched.
+    /// Returns the base state and the coordinates screened out, in order.
+    fn screened_base(&self) -> Result<(State, Vec<(WTest, f64)>)> {
+        let mut members: Vec<Member> = Vec::new();
+        let mut screened: Vec<(WTest, f64)> = Vec::new();
+        loop {
+            let e = match self.state(&mut members, Vec::new()) {
+                Ok(st) => return Ok((st, screened)),
+                Err(e) => e,
+            };
+            let fold_failed = e.downcast_ref::<linear::Singular>().is_some();
+            let worst = (fold_failed
+                && (self.enabled)("blunder")
+                && screened.len() < MAX_SCREENED.min(self.settings.max_steps))
+            .then(|| self.worst_on_all_data(&members))
+            .flatten();
+            let Some((t, p)) = worst else {
+                let named: Vec<String> =
+                    screened.iter().map(|(t, _)| self.reading_name(t)).collect();
+                return Err(if named.is_empty() {
+                    e
+                } else {
+                    e.context(format!(
+                        "after the gross blunders {} were taken out",
+                        named.join(", ")
+                    ))
+                });
+            };
+            members.push(Member::Blunder {
+                obs: t.obs,
+                coordinate: t.coordinate,
+            });
+            screened.push((t, p));
+        }
+    }
+
+    /// The worst reading coordinate by its w-test on all data, with the
+    /// blunders of `members` down-weighted, when it is significant at the
+    /// first step's level; `None` when there is none or the model cannot be
+    /// solved even on all data. With it, its p-value (Bonferroni over the
+    /// coordinates tested, α spent as at the first step).
+    fn worst_on_all_data(&self, members: &[Member]) -> Option<(WTest, f64)> {
+        let rejected: Vec<(usize, usize)> = members
+            .iter()
+            .filter_map(|m| match m {
+                Member::Blunder { obs, coordinate } => Some((*obs, *coordinate)),
+                Member::Effect { .. } => None,
+            })
+            .collect();
+        let net = self.net0.adjusted(&[], &rejected);
+        let lin = base_calibration(&net, self.settings).ok()?.linearisation?;
+        let full = crate::calibrate::sparse::Normal::assemble(&lin.jacobian, None, |_| true)
+            .factor(0.0)?;
+        let v = crate::calibrate::sparse::project_out(&lin.jacobian, &full, &lin.residuals);
+        let tests = snooping::w_tests(&lin.jacobian, &full, v.as_slice(), net.obs.len(), None);
+        let n = snooping::testable(&tests);
+        let t = snooping::worst(&tests)?;
+        let p = (snooping::p_corrected(t.w, n) * 2.0).min(1.0);
+        (p < self.settings.alpha).then_some((t, p))
+    }
+
+    /// `station/target/face` and the readings.csv line of a test's reading.
+    fn reading_name(&self, t: &WTest) -> String {
+        let r = &self.campaign.readings[t.obs];
+        format!(
+            "{}/{}/{} ({}{})",
+            r.station,
+            r.target,
+            r.face.number(),
+            snooping::COORDINATES[t.coordinate],
+            r.line
+                .map(|l| format!(", readings.csv line {l}"))
+                .unwrap_or_else(|| format!(", reading {}", t.obs + 1))
+        )
+    }
+
+    /// The row of a blunder screened out before the folds, at step `step`.
+    /// What the base model left in it is not known (no fold could be fitted
+    /// with it): its held-out residual before, its score and the gap it
+    /// removes are NaN, and its test is the one on all data.
+    fn screened_row(&self, base: &State, t: &WTest, p: f64, step: usize, floor: f64) -> Row {
+        let o = &self.net0.obs[t.obs];
+        let reading = &self.campaign.readings[t.obs];
+        let (scale, unit) = match t.coordinate {
+            2 => (o.sigma[2] * 1e3, "µm"),
+            c => (o.sigma[c] * 1e6, "µrad"),
+        };
+        let rms_after = base.cv_rms_um();
+        let delta_chi2 = t.w * t.w;
+        Row {
+            rank: 0,
+            step: Some(step),
+            effect: "blunder".into(),
+            place: format!(
+                "{}/{}/{}",
+                reading.station,
+                reading.target,
+                reading.face.number()
+            ),
+            magnitude: t.size_sigma * scale,
+            magnitude_u: scale / t.redundancy.max(1e-12).sqrt(),
+            unit: unit.into(),
+            score: f64::NAN,
+            significant: true,
+            rms_before_um: f64::NAN,
+            rms_after_um: rms_after,
+            gap_before_um: f64::NAN,
+            gap_after_um: rms_after - floor,
+            gap_shrink_pct: f64::NAN,
+            k: 1,
+            delta_chi2,
+            p_corrected: p,
+            delta_bic: delta_chi2 - (base.lm.rows() as f64).ln(),
+            detail: format!(
+                "{}, w = {:+.2}, redundancy {:.2}{}; gross: screened on all data before the \
+                 cross-validation, whose folds could not be fitted with it",
+                snooping::COORDINATES[t.coordinate],
+                t.w,
+                t.redundancy,
+                reading
+                    .line
+                    .map(|l| format!(", readings.csv line {l}"))
+                    .unwrap_or_else(|| format!(", reading {}", t.obs + 1))
+            ),
         }
     }
 }
@@ -1149,15 +1315,22 @@ impl StepContext<'_> {
             .collect();
         let gain = |f: &linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
         let mut best: Vec<(usize, usize, f64)> = Vec::new();
+        // Each (effect, place)'s entry in `best`: a search of `best` per
+        // candidate was quadratic in the reflectors' target shifts.
+        let mut best_of: std::collections::HashMap<(&str, &str), usize> = Default::default();
         for (slot, (&i, f)) in open.iter().zip(&fits).enumerate() {
             let c = &st.cands[i];
-            match best
-                .iter_mut()
-                .find(|(j, _, _)| st.cands[*j].effect == c.effect && st.cands[*j].place == c.place)
-            {
-                Some(b) if gain(f) > b.2 => *b = (i, slot, gain(f)),
-                Some(_) => {}
-                None => best.push((i, slot, gain(f))),
+            match best_of.entry((c.effect.as_str(), c.place.as_str())) {
+                std::collections::hash_map::Entry::Occupied(e) => {
+                    let b = &mut best[*e.get()];
+                    if gain(f) > b.2 {
+                        *b = (i, slot, gain(f));
+                    }
+                }
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    e.insert(best.len());
+                    best.push((i, slot, gain(f)));
+                }
             }
         }
         let tried: usize = best.iter().map(|(i, _, _)| st.cands[*i].alternatives).sum();

@@ -188,7 +188,11 @@ pub fn explanation(d: &Diagnosis) -> String {
 /// it removes (%).
 pub fn set_numbers(d: &Diagnosis) -> (f64, f64, f64) {
     let set: Vec<&super::Row> = d.explanation().collect();
-    match (set.first(), set.last()) {
+    // A gross blunder screened out before the folds has no held-out
+    // residual before it: the set's gap is measured from the first member
+    // that has one.
+    let first = set.iter().find(|r| r.rms_before_um.is_finite()).copied();
+    match (first, set.last()) {
         (Some(a), Some(b)) => {
             let gb = a.rms_before_um - d.noise_floor_um;
             let ga = b.rms_after_um - d.noise_floor_um;
@@ -262,7 +266,7 @@ pub fn verdict(d: &Diagnosis) -> String {
         )
     } else {
         format!(
-            "{} at {}{}: {:.3}{} {}, {:.1} % of the held-out residual explained",
+            "{} at {}{}: {:.3}{} {}, {}",
             b.effect,
             b.place,
             if b.detail.is_empty() {
@@ -273,7 +277,11 @@ pub fn verdict(d: &Diagnosis) -> String {
             b.magnitude,
             plus_minus(b.magnitude_u),
             b.unit,
-            b.score
+            if b.score.is_finite() {
+                format!("{:.1} % of the held-out residual explained", b.score)
+            } else {
+                "the held-out residual before it not measurable".to_string()
+            }
         )
     }
 }

@@ -40,6 +40,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::time::SystemTime;
 
 /// A hypothesis file, every mistake in it at its place (one message).
 pub fn load_hypotheses(path: &Path) -> Result<Vec<Hypothesis>, String> {
@@ -143,9 +144,56 @@ impl DiagnoseStage {
         })
     }
 
+    /// The diagnosis of `c`; a campaign it cannot test against (a stated
+    /// noise of 0: [`Campaign::diagnosis_issues`]) is refused by its key.
+    /// (`ltcal diagnose` reads through [`campaign::read_for_diagnosis`],
+    /// which locates it in campaign.toml first.)
     pub fn diagnose(&self, c: &Campaign) -> Result<Diagnosis> {
+        if let Some(first) = c.diagnosis_issues().first() {
+            anyhow::bail!("the campaign cannot be diagnosed: {first}");
+        }
         diagnose::diagnose(c, &self.settings(c)?)
     }
+}
+
+/// Removes what a killed `ltcal diagnose --out <out>` left beside `out`:
+/// the folders `fs::publish_folder` builds (`.<name>.<temp_name>.tmp`) or
+/// sets aside (`.<name>.<temp_name>.old`), when the process that made them
+/// has ended on this machine ([`crate::fs::temp_owner_gone`]) and they are
+/// older than `started`. A SIGTERM during a million-reading diagnosis left
+/// 1.8 GB that no later run removed. Anything else — another name, a live
+/// owner, another machine's, a file or a symlink — is left alone. Returns
+/// what was removed.
+pub fn remove_stale_temporaries(out: &Path, started: SystemTime) -> Vec<PathBuf> {
+    let Some(name) = out.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return Vec::new();
+    };
+    let parent = match out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return Vec::new();
+    };
+    let prefix = format!(".{name}.");
+    let mut removed = Vec::new();
+    for entry in entries.flatten() {
+        let file = entry.file_name().to_string_lossy().into_owned();
+        let Some(temp) = file
+            .strip_prefix(&prefix)
+            .and_then(|t| t.strip_suffix(".tmp").or_else(|| t.strip_suffix(".old")))
+        else {
+            continue;
+        };
+        let path = entry.path();
+        // `symlink_metadata`: a symlink is not ours to follow or remove.
+        let ours = std::fs::symlink_metadata(&path)
+            .is_ok_and(|m| m.is_dir() && m.modified().is_ok_and(|t| t < started));
+        if ours && crate::fs::temp_owner_gone(temp) && std::fs::remove_dir_all(&path).is_ok() {
+            removed.push(path);
+        }
+    }
+    removed
 }
 
 /// Every output of a diagnosis, as a stage (or `ltcal diagnose`) writes it.

@@ -846,3 +846,124 @@ fn content_hash_is_not_a_setting() {
         "{err}"
     );
 }
+
+/// A valid campaign folder in `dir`: `stations` stations reading reflectors
+/// `T0`… (each station three, not on one line), `targets` rows in
+/// targets.csv (at least 3) and `gauge` gauge lengths between T0 and T1.
+fn counted_campaign(dir: &Path, stations: usize, targets: usize, gauge: usize) -> PathBuf {
+    let c = dir.join("counted");
+    std::fs::create_dir_all(&c).unwrap();
+    std::fs::write(
+        c.join("campaign.toml"),
+        "format = 1\nname = \"counted\"\n\n[tracker]\nmodel = \"api-tracker3\"\n\n[smr]\naim = \"stations-centroid\"\n",
+    )
+    .unwrap();
+    let mut readings = String::from("station,target,az_deg,el_deg,d_mm\n");
+    for s in 0..stations {
+        for (t, az) in [(0, 10.0), (1, 50.0), (2, 120.0)] {
+            readings.push_str(&format!("S{s},T{t},{az},{},{}\n", 5 * t, 3000 + 100 * t));
+        }
+    }
+    std::fs::write(c.join("readings.csv"), readings).unwrap();
+    let targets: String = (0..targets).map(|t| format!("T{t}\n")).collect();
+    std::fs::write(c.join("targets.csv"), format!("target\n{targets}")).unwrap();
+    let lengths: String = (0..gauge).map(|_| "T0,T1,1000\n").collect();
+    std::fs::write(
+        c.join("gauge.csv"),
+        format!("target_a,target_b,distance_mm\n{lengths}"),
+    )
+    .unwrap();
+    c
+}
+
+/// `ltcal diagnose` on `dir`: exit 2, in under a second, with every phrase
+/// of `expected` in stderr.
+fn refused_at_load_in_a_second(dir: &Path, expected: &[&str]) {
+    let start = std::time::Instant::now();
+    let o = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(["diagnose", dir.to_str().unwrap(), "--out"])
+        .arg(dir.with_extension("out"))
+        .output()
+        .unwrap();
+    let took = start.elapsed();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    for e in expected {
+        assert!(err.contains(e), "no `{e}` in:\n{err}");
+    }
+    assert!(took.as_secs_f64() < 1.0, "refused after {took:?}");
+    // Only a calibration refuses: the format allows the counts.
+    assert!(campaign::read(dir).is_ok());
+}
+
+/// Regression (issue 28): a million readings over 40 000 stations were
+/// accepted, ran 9 minutes and aborted allocating 500 GB (the adjustment's
+/// dense part holds six unknowns per station). Now the station beyond
+/// `MAX_STATIONS` is refused at its first reading, the limit named.
+#[test]
+fn a_campaign_over_the_station_limit_is_refused_at_load() {
+    let tmp = tempfile::tempdir().unwrap();
+    let n = campaign::MAX_STATIONS;
+    let at_limit = counted_campaign(tmp.path(), n, 3, 0);
+    assert!(campaign::read_for_calibration(&at_limit).is_ok());
+    let over = counted_campaign(&tmp.path().join("over"), n + 1, 3, 0);
+    // The first reading of station n + 1: line 2 + 3·n.
+    refused_at_load_in_a_second(
+        &over,
+        &[
+            &format!("readings.csv:{}:1", 2 + 3 * n),
+            &format!("at most {n} stations"),
+            "campaign::MAX_STATIONS",
+        ],
+    );
+    // The case of the issue, at the scale of a test: 40 000 stations.
+    let many = counted_campaign(&tmp.path().join("many"), 40_000, 3, 0);
+    refused_at_load_in_a_second(&many, &[&format!("readings.csv:{}:1", 2 + 3 * n)]);
+}
+
+/// Regression (issue 28): the reflector and gauge counts are checked at
+/// load too, each at its first row beyond the limit (the gauge joined
+/// reflectors were looked up once per target and gauge row: quadratic).
+#[test]
+fn a_campaign_over_the_reflector_or_gauge_limit_is_refused_at_load() {
+    let tmp = tempfile::tempdir().unwrap();
+    let r = campaign::MAX_REFLECTORS;
+    let at_limit = counted_campaign(tmp.path(), 3, r, campaign::MAX_GAUGE_LENGTHS);
+    assert!(campaign::read_for_calibration(&at_limit).is_ok());
+    let targets = counted_campaign(&tmp.path().join("targets"), 3, r + 1, 0);
+    refused_at_load_in_a_second(
+        &targets,
+        &[
+            &format!("targets.csv:{}:1", r + 2),
+            &format!("at most {r} reflectors"),
+        ],
+    );
+    let g = campaign::MAX_GAUGE_LENGTHS;
+    let gauge = counted_campaign(&tmp.path().join("gauge"), 3, 3, g + 1);
+    refused_at_load_in_a_second(
+        &gauge,
+        &[
+            &format!("gauge.csv:{}:1", g + 2),
+            &format!("at most {g} gauge lengths"),
+        ],
+    );
+}
+
+/// Regression (issue 28): `model = "api-tracker3 "` (a trailing space) was
+/// accepted: the id was trimmed before it was matched. Now it is refused
+/// at its place, the known ids listed.
+#[test]
+fn a_tracker_model_with_a_trailing_space_is_refused_at_its_place() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir =
+        crate::hostile::mutated_example(tmp.path(), "example-00-none", "campaign.toml", |t| {
+            t.replace("\"api-tracker3\"", "\"api-tracker3 \"")
+        });
+    let e = campaign::read(&dir).unwrap_err().to_string();
+    assert!(e.contains("campaign.toml:6:"), "{e}");
+    assert!(
+        e.contains("\"api-tracker3 \" has spaces around the id"),
+        "{e}"
+    );
+    assert!(e.contains("\"api-tracker3\" or \"mirror-tracker\""), "{e}");
+}
