@@ -1271,6 +1271,45 @@ impl Scored {
     }
 }
 
+/// The smallest robust scale of the w-tests [`w_scales`] applies.
+const MIN_W_SCALE: f64 = 1.5;
+
+/// Each coordinate's (az, el, d) robust scale of the w-tests, `k =
+/// median|w| / 0.6745` (1 for w of the stated noise), kept only when it is
+/// beyond its own sampling spread (`1 + 3·1.166/√n`, the standard error of
+/// a half-normal sample's median scale), else 1.
+///
+/// Baarda's w-test takes the stated σ as true. A structure the model lacks
+/// (an ADM's cyclic error) inflates every residual of a coordinate, and the
+/// largest of them then pass for blunders one after another; a few real
+/// blunders move the median not at all. Testing `w/k` — Pope's τ-test with a
+/// robust variance factor — keeps a gross error gross and a spread-out
+/// structure for the effects and the `none` row to account for.
+fn w_scales(tests: &[[WTest; 3]]) -> [f64; 3] {
+    // Below this the stated noise is taken as right: a catalogue effect
+    // not yet in the set inflates the residuals a little, and a blunder
+    // tested against it must not wait behind it.
+    let mut out = [1.0; 3];
+    for (c, k) in out.iter_mut().enumerate() {
+        let mut a: Vec<f64> = tests
+            .iter()
+            .map(|t| &t[c])
+            .filter(|t| t.testable() && t.w.is_finite())
+            .map(|t| t.w.abs())
+            .collect();
+        if a.len() < 10 {
+            continue;
+        }
+        let mid = a.len() / 2;
+        let (_, m, _) = a.select_nth_unstable_by(mid, f64::total_cmp);
+        let scale = *m / 0.6745;
+        if scale > (1.0 + 3.0 * 1.166 / (a.len() as f64).sqrt()).max(MIN_W_SCALE) {
+            *k = scale;
+        }
+    }
+    out
+}
+
 /// The gap before and after, and how much of it a row's addition removes.
 fn set_gap(row: &mut Row, floor: f64) {
     let (gb, ga) = (row.rms_before_um - floor, row.rms_after_um - floor);
@@ -1409,9 +1448,26 @@ impl StepContext<'_> {
     ) -> (Option<BlunderRow>, usize) {
         let tests = st.lm.w_tests(&st.members);
         let n = snooping::testable(&tests);
-        let Some(t) = snooping::worst(&tests) else {
+        let scales = w_scales(&tests);
+        // The worst by its scaled w (the first of equals, as `snooping::worst`).
+        let Some(t) =
+            tests
+                .iter()
+                .flatten()
+                .filter(|t| t.testable())
+                .fold(None, |best: Option<WTest>, t| match best {
+                    Some(b)
+                        if b.w.abs() / scales[b.coordinate] >= t.w.abs() / scales[t.coordinate] =>
+                    {
+                        Some(b)
+                    }
+                    _ => Some(*t),
+                })
+        else {
             return (None, n);
         };
+        let k = scales[t.coordinate];
+        let w = t.w / k;
         let o = &self.net0.obs[t.obs];
         let reading = &self.campaign.readings[t.obs];
         let (scale, unit) = match t.coordinate {
@@ -1422,7 +1478,11 @@ impl StepContext<'_> {
         let mut column = Signature::new(1);
         column.add(t.obs, t.coordinate, 0, 1.0);
         let rms_after = st.lm.cv_rms_um(&st.joint(&column));
-        let p_corrected = (snooping::p_corrected(t.w, n) * spend).min(1.0);
+        // Significance on w/k; the χ² the coordinate explains, which ranks
+        // it against the effects, is its own: a gross blunder smears its
+        // residual over the whole adjustment and inflates k too, and must
+        // still be taken out first.
+        let p_corrected = (snooping::p_corrected(w, n) * spend).min(1.0);
         let delta_chi2 = t.w * t.w;
         let delta_bic = delta_chi2 - (st.lm.rows() as f64).ln();
         let mut row = Row {
@@ -1451,9 +1511,17 @@ impl StepContext<'_> {
             p_corrected,
             delta_bic,
             detail: format!(
-                "{}, w = {:+.2}, redundancy {:.2}{}",
+                "{}, w = {:+.2}{}, redundancy {:.2}{}",
                 snooping::COORDINATES[t.coordinate],
                 t.w,
+                if k > 1.0 {
+                    format!(
+                        " (tested as w/k = {w:+.2}: the {} residuals are k = {k:.2} times the stated noise throughout)",
+                        snooping::COORDINATES[t.coordinate]
+                    )
+                } else {
+                    String::new()
+                },
                 t.redundancy,
                 reading
                     .line
