@@ -400,7 +400,12 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     // kept; with none left, the diagnosis stays at the base model.
     let results: Vec<(String, Result<Path>)> = starts
         .into_par_iter()
-        .map(|p| (format!("{} at {}", p.row.effect, p.row.place), ctx.follow(&base, p, floor)))
+        .map(|p| {
+            (
+                format!("{} at {}", p.row.effect, p.row.place),
+                ctx.follow(&base, p, floor),
+            )
+        })
         .collect();
     let mut dropped = Vec::new();
     let mut paths = Vec::new();
@@ -1040,8 +1045,7 @@ impl StepContext<'_> {
             Ok(st) => {
                 let tests = st.lm.w_tests(&st.members);
                 let n = snooping::testable(&tests);
-                if let Some(t) = snooping::worst(&tests).filter(|t| screen && t.w.abs() > GROSS_W)
-                {
+                if let Some(t) = snooping::worst(&tests).filter(|t| screen && t.w.abs() > GROSS_W) {
                     let p = (snooping::p_corrected(t.w, n) * 2.0).min(1.0);
                     if p < self.settings.alpha {
                         return Err(self.gross(&t, p, st.lm.rows()).into());
