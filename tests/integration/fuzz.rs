@@ -529,6 +529,31 @@ fn fuzz_100k_mutants() {
     assert!(total >= 100_000, "{total}");
 }
 
+/// Finding of `fuzz_100k_mutants` (issue 28, item 7 — the diagnosis, on
+/// branch fix28-e): campaign mutants 31680 (`example-04-encoder-harmonic`)
+/// and 37441 (`example-02-range-scale`), each a `readings.csv` with a
+/// value replaced, load for calibration and their diagnosis exits with
+/// "the base adjustment's normal matrix is singular on a cross-validation
+/// fold", naming no reading. Kept here, ignored, until the diagnosis
+/// handles such a fold; then it passes and the ignore goes.
+#[test]
+#[ignore = "finding: diagnosis gives up on a fold (issue 28 item 7, src/diagnose)"]
+fn fuzz_finding_mutants_31680_and_37441_diagnose_or_name_a_reading() {
+    let ex = examples();
+    let tmp = tempfile::tempdir().unwrap();
+    for n in [31680u64, 37441] {
+        let mut r = Rng::new(n + 1);
+        let e = &ex[r.below(ex.len())];
+        let f = CAMPAIGN_FILES[r.below(CAMPAIGN_FILES.len())];
+        let text = std::fs::read_to_string(e.join(f)).unwrap_or_default();
+        let bytes = mutate(&text, &mut r);
+        let dir = tmp.path().join(format!("m{n}"));
+        write_campaign(&dir, e, f, Some(&bytes));
+        let o = guarded(|| read_campaign(&dir, true));
+        assert_eq!(o, Outcome::Accepted, "mutant {n} ({}, {f})", e.display());
+    }
+}
+
 /// The kinds of [`crate::fuzz_files`] in the long run, and their counts:
 /// the in-process readers carry most, the `ltcal` processes (three a case)
 /// a few thousand.

@@ -1197,7 +1197,7 @@ fn plant(path: &Path, what: &str, case: &Path, r: &mut Rng) {
         }
         "chmod 000" => {
             if meta.is_some() {
-                std::fs::set_permissions(path, std::fs::Permissions::from_mode(0)).unwrap();
+                std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o000)).unwrap();
             }
         }
         _ => {

@@ -228,7 +228,7 @@ fn a_hypothesis_with_an_unknown_variable_is_refused_with_its_line_and_caret() {
     );
     let campaign = example("example-00-none");
     let out = ltcal(
-        &dir,
+        dir,
         &[
             "diagnose",
             campaign.to_str().unwrap(),
@@ -257,7 +257,7 @@ fn a_hypothesis_dividing_by_zero_at_a_reading_is_refused_naming_the_reading() {
     );
     let campaign = example("example-00-none");
     let out = ltcal(
-        &dir,
+        dir,
         &[
             "diagnose",
             campaign.to_str().unwrap(),
