@@ -498,9 +498,11 @@ fn fuzz_100k_mutants() {
         let t = std::time::Instant::now();
         let tally = crate::fuzz_files::fuzz(kind, 1_000_000, n);
         println!(
-            "fuzz: {kind:?}: {} cases, {} panics, {} hangs, {} aborts or other exits, \
-             {} unlocated errors, {} not healed, {} writes outside, in {:.0} s",
+            "fuzz: {kind:?}: {} cases ({} seen damaged), {} panics, {} hangs, \
+             {} aborts or other exits, {} unlocated errors, {} not healed, \
+             {} writes outside, in {:.0} s",
             tally.cases,
+            tally.caught,
             tally.panics,
             tally.hangs,
             tally.bad_exits,

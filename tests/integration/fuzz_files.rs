@@ -51,8 +51,11 @@ pub enum Kind {
 /// What one case came to.
 #[derive(Debug)]
 enum Verdict {
-    /// Accepted, or refused with an error naming its file.
+    /// Accepted: nothing was found wrong, and nothing went wrong.
     Fine,
+    /// The damage was seen — refused or reported with its file named —
+    /// and nothing went wrong.
+    Caught,
     Unlocated(String),
     Panicked(String),
     /// Killed by a signal (an abort) or an exit code other than 0, 1, 2.
@@ -69,6 +72,8 @@ enum Verdict {
 #[derive(Default, Debug)]
 pub struct Tally {
     pub cases: usize,
+    /// Cases whose damage was seen (refused, reported, healed).
+    pub caught: usize,
     pub unlocated: usize,
     pub panics: usize,
     pub hangs: usize,
@@ -89,6 +94,10 @@ impl Tally {
         self.cases += 1;
         let what = match v {
             Some(Verdict::Fine) => return,
+            Some(Verdict::Caught) => {
+                self.caught += 1;
+                return;
+            }
             None => {
                 self.hangs += 1;
                 "over the deadline".to_string()
@@ -555,6 +564,7 @@ fn read_back(results: &Path, file: &Path) -> Verdict {
     let dir = run::pipeline_dir(results, &p);
     let store = Store::new(&dir);
     let v = store.verify();
+    let mut seen = !(v.problems.is_empty() && v.superseded.is_empty());
     for why in v.problems.iter().chain(&v.superseded) {
         if !names_a_file(why, &dir) {
             return Verdict::Unlocated(format!("verify: {why}"));
@@ -574,6 +584,7 @@ fn read_back(results: &Path, file: &Path) -> Verdict {
             if !names_a_file(&m, &dir) && !m.contains(&format!("`{stage}`")) {
                 return Verdict::Unlocated(format!("show {stage}: {m}"));
             }
+            seen |= names_a_file(&m, &dir);
         }
     }
     match run::run(&p, &opts(results)) {
@@ -593,7 +604,7 @@ fn read_back(results: &Path, file: &Path) -> Verdict {
     if !after.problems.is_empty() {
         return Verdict::Unhealed(format!("verify after the run: {:?}", after.problems));
     }
-    Verdict::Fine
+    if seen { Verdict::Caught } else { Verdict::Fine }
 }
 
 /// A pack (`packs`) or a loose entry's file or a published table damaged.
@@ -626,7 +637,7 @@ fn cache_case(sh: &Shared, dir: &Path, n: u64, packs: bool) -> Verdict {
     };
     std::fs::write(&target, damaged).unwrap();
     match read_back(&results, file) {
-        Verdict::Fine => outside_results(dir).unwrap_or(Verdict::Fine),
+        v @ (Verdict::Fine | Verdict::Caught) => outside_results(dir).unwrap_or(v),
         v => v,
     }
 }
@@ -695,10 +706,12 @@ fn jobs_case(sh: &Shared, dir: &Path, n: u64) -> Verdict {
         let m = format!("{e:#}");
         (!names_a_file(&m, &pdir)).then(|| Verdict::Unlocated(format!("{what}: {m}")))
     };
+    let mut seen = false;
     if let Err(e) = cluster::status(&p, &o, &fake) {
         if let Some(v) = check(e, "status") {
             return v;
         }
+        seen = true;
     }
     let c = cluster::ClusterOptions {
         pipeline_file: sh.sweep.clone(),
@@ -710,8 +723,9 @@ fn jobs_case(sh: &Shared, dir: &Path, n: u64) -> Verdict {
         if let Some(v) = check(e, "coordinator") {
             return v;
         }
+        seen = true;
     }
-    outside_results(dir).unwrap_or(Verdict::Fine)
+    outside_results(dir).unwrap_or(if seen { Verdict::Caught } else { Verdict::Fine })
 }
 
 /// Long option names sbatch knows, ltcal's own first.
@@ -1057,7 +1071,7 @@ fn slurm_case(sh: &Shared, dir: &Path, n: u64) -> Verdict {
         Err(e) => {
             let m = e.to_string();
             return if m.contains("--set") {
-                Verdict::Fine
+                Verdict::Caught
             } else {
                 Verdict::Unlocated(m)
             };
@@ -1075,7 +1089,7 @@ fn slurm_case(sh: &Shared, dir: &Path, n: u64) -> Verdict {
                 .downcast_ref::<ltcal::pipeline::InputError>()
                 .is_some_and(|i| crate::fuzz::located(&i.0));
             return if located || (!sets.is_empty() && m.contains("--set")) {
-                Verdict::Fine
+                Verdict::Caught
             } else {
                 Verdict::Unlocated(m)
             };
@@ -1311,6 +1325,7 @@ fn files_case(sh: &Shared, case: &Path, r: &mut Rng) -> Verdict {
     }
     let label = format!("{what} at {}", rel.display());
     let mut ran = None;
+    let mut seen = false;
     for args in [read, vec!["run", f, "-q"], vec!["verify", f]] {
         let mut full = args.clone();
         full.extend(["--results", res]);
@@ -1324,6 +1339,7 @@ fn files_case(sh: &Shared, case: &Path, r: &mut Rng) -> Verdict {
                 if !names_a_file(&err, case) {
                     return Verdict::Unlocated(format!("{cmd}: {err}"));
                 }
+                seen = true;
             }
             _ => return Verdict::BadExit(format!("{cmd}: {code:?} {err}")),
         }
@@ -1337,7 +1353,7 @@ fn files_case(sh: &Shared, case: &Path, r: &mut Rng) -> Verdict {
     if after != before {
         return Verdict::Outside(format!("{label}: {before:?} → {after:?}"));
     }
-    Verdict::Fine
+    if seen { Verdict::Caught } else { Verdict::Fine }
 }
 
 /// Regression (found by `fuzz_slurm_settings_and_job_script`): sbatch
@@ -1406,11 +1422,15 @@ fn a_slurm_setting_sbatch_would_read_otherwise_is_refused() {
     assert!(s.problems().is_empty());
 }
 
-/// Cases of one kind at CI size, failing with the findings.
+/// Cases of one kind at CI size, failing with the findings; at least a
+/// quarter of them must have been seen damaged (a harness whose damage
+/// nothing notices tests nothing).
 fn ci(kind: Kind, count: u64) {
     let t = fuzz(kind, 1, count);
+    println!("{kind:?}: {} cases, {} seen damaged", t.cases, t.caught);
     assert_eq!(t.cases as u64, count);
     assert!(t.clean(), "{kind:?}: {t:#?}");
+    assert!(4 * t.caught >= t.cases, "{kind:?}: {t:#?}");
 }
 
 #[test]
