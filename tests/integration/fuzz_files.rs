@@ -692,6 +692,17 @@ fn jobs_case(sh: &Shared, dir: &Path, n: u64) -> Verdict {
         _ => damage_json(&sh.jobs, &mut r),
     };
     std::fs::write(&path, damaged).unwrap();
+    // Or not a file at all (a link outside would point at nothing here:
+    // this folder holds only `results`).
+    if r.below(5) == 0 {
+        let what = [
+            "a FIFO",
+            "a link to /dev/zero",
+            "a folder",
+            "a dangling link",
+        ][r.below(4)];
+        plant(&path, what, dir, &mut r);
+    }
     if r.below(3) == 0 {
         for pack in sh.with(|p| p.extension().is_some_and(|x| x == "pack")) {
             std::fs::remove_file(results.join(pack)).unwrap();
@@ -1298,7 +1309,8 @@ fn files_case(sh: &Shared, case: &Path, r: &mut Rng) -> Verdict {
     let sweep = rel.starts_with("fz-sweep");
     let file = if sweep { &sh.sweep } else { &sh.loose };
     let what = PLANTS[r.below(PLANTS.len())];
-    plant(&results.join(&rel), what, case, r);
+    let planted = results.join(&rel);
+    plant(&planted, what, case, r);
     let before = around(case);
     let f = file.to_str().unwrap();
     let res = results.to_str().unwrap();
@@ -1333,6 +1345,8 @@ fn files_case(sh: &Shared, case: &Path, r: &mut Rng) -> Verdict {
             return Verdict::Hung(format!("{label}: `ltcal {}`", args.join(" ")));
         };
         let cmd = format!("{label}: `ltcal {}`", args.join(" "));
+        // Seen: refused, or reported (healed, restored) by its path.
+        seen |= err.contains(planted.to_str().unwrap());
         match code {
             Some(0) => {}
             Some(1 | 2) => {
