@@ -531,13 +531,16 @@ fn fuzz_100k_mutants() {
     assert!(total >= 100_000, "{total}");
 }
 
-/// Finding of `fuzz_100k_mutants` (issue 28, item 7 — the diagnosis, on
-/// branch fix28-e): campaign mutants 31680 (`example-04-encoder-harmonic`)
-/// and 37441 (`example-02-range-scale`), each a `readings.csv` with a
-/// value replaced, load for calibration and their diagnosis exits with
-/// "the base adjustment's normal matrix is singular on a cross-validation
-/// fold", naming no reading. Kept here, ignored, until the diagnosis
-/// handles such a fold; then it passes and the ignore goes.
+/// Finding of `fuzz_100k_mutants` (issue 28, item 7 — the diagnosis):
+/// two gross *range* blunders. Mutant 31680: `example-04-encoder-harmonic`'s
+/// `readings.csv` with `S6,T07`'s `d_mm` 10207.4 → 90 (and one reading
+/// doubled, one dropped); mutant 37441: `example-02-range-scale`'s with
+/// `S4,T10`'s `d_mm` 11079.2 → 2 (and `S5,T11`'s `time_s` → -90). Both load
+/// for calibration, and their diagnosis exits with "the base adjustment's
+/// normal matrix is singular on a cross-validation fold"
+/// (src/diagnose/linear.rs:337), naming no reading. Kept here, ignored,
+/// until the diagnosis handles such a fold; then it passes and the ignore
+/// goes.
 #[test]
 #[ignore = "finding: diagnosis gives up on a fold (issue 28 item 7, src/diagnose)"]
 fn fuzz_finding_mutants_31680_and_37441_diagnose_or_name_a_reading() {
