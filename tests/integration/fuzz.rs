@@ -1,9 +1,11 @@
 //! Fuzzing in the repository (issue 12): arbitrary bytes and structured
 //! mutations of the example campaigns and pipelines, fed to the campaign
-//! reader, the pipeline loader and the diagnosis. Under `cargo test` the
-//! property tests run a bounded number of cases; `fuzz_100k_mutants`
-//! (ignored: `cargo test --release -- --ignored fuzz_100k_mutants
-//! --nocapture`) runs 100 000 and prints what it found.
+//! reader, the pipeline loader and the diagnosis; `fuzz_files.rs` does the
+//! same for what ltcal reads back from the results folder (issue 28). Under
+//! `cargo test` the property tests run a bounded number of cases;
+//! `fuzz_100k_mutants` (ignored: `cargo test --release --test integration
+//! -- --ignored fuzz_100k_mutants --nocapture`) runs 100 000 of all kinds
+//! and prints what it found.
 //!
 //! The property asserted everywhere: no panic, no hang, and every rejection
 //! is an error that names a file (with line and column where there is one).
@@ -18,7 +20,7 @@ use std::time::Duration;
 const CAMPAIGN_FILES: [&str; 4] = ["campaign.toml", "readings.csv", "targets.csv", "gauge.csv"];
 
 /// Values that broke, or might break, a reader or the numerics.
-const VALUES: &[&str] = &[
+pub(crate) const VALUES: &[&str] = &[
     "1e308",
     "-1e308",
     "1.7976931348623157e308",
@@ -85,19 +87,19 @@ fn pipelines() -> Vec<(PathBuf, String)> {
 
 /// A small deterministic generator (xorshift), so mutants are reproducible
 /// from their number.
-struct Rng(u64);
+pub(crate) struct Rng(u64);
 
 impl Rng {
-    fn new(seed: u64) -> Rng {
+    pub(crate) fn new(seed: u64) -> Rng {
         Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1)
     }
-    fn next(&mut self) -> u64 {
+    pub(crate) fn next(&mut self) -> u64 {
         self.0 ^= self.0 << 13;
         self.0 ^= self.0 >> 7;
         self.0 ^= self.0 << 17;
         self.0
     }
-    fn below(&mut self, n: usize) -> usize {
+    pub(crate) fn below(&mut self, n: usize) -> usize {
         (self.next() % n.max(1) as u64) as usize
     }
 }
@@ -105,7 +107,7 @@ impl Rng {
 /// One to three mutations of `text`: a cell (CSV) or value (TOML) replaced
 /// by one of [`VALUES`], a line deleted or duplicated, the text cut, or
 /// random bytes inserted.
-fn mutate(text: &str, r: &mut Rng) -> Vec<u8> {
+pub(crate) fn mutate(text: &str, r: &mut Rng) -> Vec<u8> {
     let mut lines: Vec<String> = text.lines().map(String::from).collect();
     let mut bytes = None;
     for _ in 0..=r.below(3) {
@@ -162,7 +164,7 @@ enum Outcome {
     Panicked(String),
 }
 
-fn located(problems: &[Problem]) -> bool {
+pub(crate) fn located(problems: &[Problem]) -> bool {
     !problems.is_empty()
         && problems.iter().all(|p| match p {
             Problem::At(_) => true,
@@ -371,14 +373,29 @@ fn worker(root: &Path, n: usize) -> Worker {
     Worker { send, recv }
 }
 
-/// The long fuzz run: 100 000 mutants of the example campaigns and
-/// pipelines (every 200th loaded campaign also diagnosed), each with a
-/// 20-second deadline. Prints the counts and fails on any panic, hang or
-/// rejection without a location.
+/// The long fuzz run: 100 000 mutants in all — 50 000 of the example
+/// campaigns and pipelines (every 200th loaded campaign also diagnosed),
+/// each with a 20-second deadline, and the kinds of [`crate::fuzz_files`]
+/// (packs, loose entries, `jobs.json`, Slurm settings, results-folder file
+/// types) at the counts of [`LONG_KINDS`]. Prints the counts per kind and
+/// fails on any panic, abort, hang, rejection without a location, cache
+/// left damaged after a run, or file written outside the results folder.
 #[test]
 #[ignore = "long: run with --release -- --ignored fuzz_100k_mutants --nocapture"]
 fn fuzz_100k_mutants() {
-    const MUTANTS: usize = 100_000;
+    const MUTANTS: usize = 50_000;
+    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let listing = |d: &Path| {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        v.sort();
+        v
+    };
+    let repo_before = (listing(&repo), listing(&repo.join("pipelines")));
+    let t0 = std::time::Instant::now();
     const DEADLINE: Duration = Duration::from_secs(20);
     std::panic::set_hook(Box::new(|_| {}));
     let tmp = tempfile::tempdir().unwrap();
@@ -468,13 +485,90 @@ fn fuzz_100k_mutants() {
             }
         }
     }
-    let _ = std::panic::take_hook();
-    println!("fuzz: {counts:?}");
+    println!(
+        "fuzz: campaigns and pipelines {counts:?} in {:.0} s",
+        t0.elapsed().as_secs_f64()
+    );
     for f in found.iter().take(30) {
         println!("  {f}");
     }
+    let mut total = counts.cases;
+    let mut clean = true;
+    for &(kind, n) in LONG_KINDS {
+        let t = std::time::Instant::now();
+        let tally = crate::fuzz_files::fuzz(kind, 1_000_000, n);
+        println!(
+            "fuzz: {kind:?}: {} cases ({} seen damaged), {} panics, {} hangs, \
+             {} aborts or other exits, {} unlocated errors, {} not healed, \
+             {} writes outside, in {:.0} s",
+            tally.cases,
+            tally.caught,
+            tally.panics,
+            tally.hangs,
+            tally.bad_exits,
+            tally.unlocated,
+            tally.unhealed,
+            tally.outside,
+            t.elapsed().as_secs_f64()
+        );
+        for f in &tally.found {
+            println!("  {f}");
+        }
+        total += tally.cases;
+        clean &= tally.clean();
+    }
+    let _ = std::panic::take_hook();
+    let repo_after = (listing(&repo), listing(&repo.join("pipelines")));
+    println!(
+        "fuzz: {total} mutants in {:.0} s",
+        t0.elapsed().as_secs_f64()
+    );
+    assert_eq!(repo_before, repo_after, "files appeared in the repository");
     assert!(
-        counts.panics == 0 && counts.hangs == 0 && counts.unlocated == 0,
+        counts.panics == 0 && counts.hangs == 0 && counts.unlocated == 0 && clean,
         "{counts:?}"
     );
+    assert!(total >= 100_000, "{total}");
 }
+
+/// Finding of `fuzz_100k_mutants` (issue 28, item 7 — the diagnosis):
+/// two gross *range* blunders. Mutant 31680: `example-04-encoder-harmonic`'s
+/// `readings.csv` with `S6,T07`'s `d_mm` 10207.4 → 90 (and one reading
+/// doubled, one dropped); mutant 37441: `example-02-range-scale`'s with
+/// `S4,T10`'s `d_mm` 11079.2 → 2 (and `S5,T11`'s `time_s` → -90). Both load
+/// for calibration, and their diagnosis exits with "the base adjustment's
+/// normal matrix is singular on a cross-validation fold"
+/// (src/diagnose/linear.rs:337), naming no reading. Kept here, ignored,
+/// until the diagnosis handles such a fold; then it passes and the ignore
+/// goes.
+#[test]
+#[ignore = "finding: diagnosis gives up on a fold (issue 28 item 7, src/diagnose)"]
+fn fuzz_finding_mutants_31680_and_37441_diagnose_or_name_a_reading() {
+    let ex = examples();
+    let tmp = tempfile::tempdir().unwrap();
+    for n in [31680u64, 37441] {
+        let mut r = Rng::new(n + 1);
+        let e = &ex[r.below(ex.len())];
+        let f = CAMPAIGN_FILES[r.below(CAMPAIGN_FILES.len())];
+        let text = std::fs::read_to_string(e.join(f)).unwrap_or_default();
+        let bytes = mutate(&text, &mut r);
+        let dir = tmp.path().join(format!("m{n}"));
+        write_campaign(&dir, e, f, Some(&bytes));
+        let o = guarded(|| read_campaign(&dir, true));
+        assert_eq!(o, Outcome::Accepted, "mutant {n} ({}, {f})", e.display());
+    }
+}
+
+/// The kinds of [`crate::fuzz_files`] in the long run, and their counts:
+/// the in-process readers carry most, the `ltcal` processes (three a case)
+/// a few thousand.
+const LONG_KINDS: &[(crate::fuzz_files::Kind, u64)] = {
+    use crate::fuzz_files::Kind::*;
+    &[
+        (Slurm, 40_000),
+        (Pack, 3_000),
+        (Loose, 2_000),
+        (Jobs, 2_000),
+        (Files, 3_000),
+    ]
+};

@@ -11,6 +11,7 @@ mod effects;
 mod errors;
 mod file_safety;
 mod fuzz;
+mod fuzz_files;
 mod hostile;
 mod hypotheses;
 mod incidence;

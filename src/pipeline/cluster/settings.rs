@@ -90,10 +90,16 @@ impl SlurmSettings {
         if !(self.poll_seconds.is_finite() && (1.0..=600.0).contains(&self.poll_seconds)) {
             out.push("`poll_seconds` must be between 1 and 600".to_string());
         }
+        // What sbatch reads back unchanged from `--name=value` in an
+        // `#SBATCH` line: no quote, escape or comment sign, and not the
+        // words it blanks out (`packjob`, `hetjob`).
         let plain = |s: &str| {
+            let lower = s.to_lowercase();
             !s.is_empty()
                 && s.chars()
-                    .all(|c| c.is_ascii_graphic() && c != '\'' && c != '"')
+                    .all(|c| c.is_ascii_graphic() && !matches!(c, '\'' | '"' | '\\' | '#'))
+                && !lower.contains("packjob")
+                && !lower.contains("hetjob")
         };
         for (name, v) in [
             ("partition", &self.partition),
@@ -103,7 +109,7 @@ impl SlurmSettings {
             if let Some(v) = v {
                 if !plain(v) {
                     out.push(format!(
-                        "`{name}` = {v:?}: a Slurm name has no spaces or quotes"
+                        "`{name}` = {v:?}: a Slurm name has no spaces, quotes, `\\` or `#`"
                     ));
                 }
             }
@@ -138,8 +144,9 @@ const OWN: &[(&str, Option<char>)] = &[
 const SHORT_WITH_VALUE: &str = "AcCdJnNpqtwx";
 
 /// The words of an `#SBATCH` line as sbatch splits them: whitespace
-/// separates, `"…"` and `'…'` group, `\` escapes the next character, an
-/// unquoted `#` starts a comment.
+/// separates, `"…"` and `'…'` group, `\` escapes the next character but
+/// unquoted whitespace (which still ends the word), an unquoted `#` starts
+/// a comment.
 fn sbatch_words(line: &str) -> Vec<String> {
     let mut words = Vec::new();
     let mut chars = line.chars().peekable();
@@ -164,6 +171,10 @@ fn sbatch_words(line: &str) -> Vec<String> {
             }
             started = true;
             match (quote, c) {
+                // sbatch ends an unquoted word at whitespace even right
+                // after a backslash (which it drops): `--hold\ --ar=1` is
+                // two words there, the second `--array`.
+                (None, '\\') if chars.peek().is_some_and(|n| n.is_whitespace()) => break,
                 (_, '\\') => w.extend(chars.next()),
                 (Some(q), c) if c == q => quote = None,
                 (Some(_), c) => w.push(c),
@@ -324,7 +335,7 @@ mod tests {
     fn sbatch_words_split_as_sbatch_splits_them() {
         assert_eq!(
             sbatch_words(r#"  --a="b c" 'd e'f\ g # --array=1"#),
-            vec!["--a=b c", "d ef g"]
+            vec!["--a=b c", "d ef", "g"]
         );
     }
 }
