@@ -121,7 +121,14 @@ fn read_checked(dir: &Path, usage: Use) -> Result<Campaign, CampaignError> {
         },
         None => None,
     };
-    let readings = load(&dir.join("readings.csv"), true, &mut problems)
+    let readings_src = load(&dir.join("readings.csv"), true, &mut problems);
+    // Beyond the station limit, refused before a million rows are parsed.
+    if usage >= Use::Calibration {
+        if let Some(e) = readings_src.as_ref().and_then(station_beyond_limit) {
+            return Err(fail(vec![Problem::At(e)]));
+        }
+    }
+    let readings = readings_src
         .and_then(|s| Csv::parse(s, READINGS_COLUMNS, &mut problems))
         .and_then(|csv| parse_readings(csv, &mut problems));
     let targets = load(&dir.join("targets.csv"), true, &mut problems)
@@ -185,6 +192,58 @@ fn read_checked(dir: &Path, usage: Use) -> Result<Campaign, CampaignError> {
             .map(|(_, _, e)| Problem::At(e))
             .collect(),
     ))
+}
+
+/// The first reading of station [`super::MAX_STATIONS`] + 1, found by a
+/// scan of the station column alone (the same message as
+/// [`Campaign::count_issues`], which checks it again after the full parse).
+/// `None` when the limit holds, or when the file is not plain enough to
+/// scan (quotes): the full parse then decides.
+fn station_beyond_limit(src: &Source) -> Option<SourceError> {
+    let text: &str = &src.text;
+    if text.contains('"') {
+        return None;
+    }
+    let mut lines = text.split_inclusive('\n');
+    let header = lines.next()?;
+    let column = header
+        .trim_end_matches(['\r', '\n'])
+        .trim_start_matches('\u{feff}')
+        .split(',')
+        .position(|h| h.trim() == "station")?;
+    let mut seen = std::collections::HashSet::new();
+    let mut offset = header.len();
+    for line in lines {
+        let start = offset;
+        offset += line.len();
+        let row = line.trim_end_matches(['\r', '\n']);
+        if row.trim().is_empty() {
+            continue;
+        }
+        let mut at = start;
+        let mut field = None;
+        for (k, f) in row.split(',').enumerate() {
+            if k == column {
+                field = Some(f);
+                break;
+            }
+            at += f.len() + 1;
+        }
+        let station = field?.trim();
+        if seen.insert(station) && seen.len() > super::MAX_STATIONS {
+            return Some(src.error(
+                at..at + field?.len().max(1),
+                format!(
+                    "station {station} is station {}: valid per campaign-format.md, but ltcal \
+                     calibrates and diagnoses at most {} stations (campaign::MAX_STATIONS; each \
+                     station's pose is a block of the adjustment's dense part): split the campaign",
+                    super::MAX_STATIONS + 1,
+                    super::MAX_STATIONS
+                ),
+            ));
+        }
+    }
+    None
 }
 
 /// The files of a campaign folder, all the reader ever looks at.

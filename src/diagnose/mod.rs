@@ -45,6 +45,17 @@
 //!    noise alone leaves in the same geometry (Monte Carlo draws of the
 //!    stated noise through the base model's linearised adjustment), before
 //!    and after each member, and for the set as a whole.
+//!
+//! A **gross** blunder (a distance ten times too long, an azimuth off by
+//! 180°: a million σ) is not diagnosed step by step: the linearised tests
+//! and the down-weighting of a member assume the base adjustment is near
+//! the truth, and such a reading drags it far away (the adjustment does not
+//! converge, the next blunders named are its neighbours, a fold cannot be
+//! fitted). So [`diagnose`] first screens gross blunders on all data — a
+//! reading whose worst coordinate's w-test is significant and beyond
+//! [`GROSS_W`], or the worst one when a fold cannot be fitted — removes the
+//! whole reading, and diagnoses the rest; each screened reading is a member
+//! of the set, named with its `readings.csv` line.
 
 pub mod blind;
 pub mod candidates;
@@ -170,6 +181,8 @@ pub struct Diagnosis {
     pub blunder_tests: usize,
     /// Every tracker model fitted to the readings, best (lowest BIC) first.
     pub models: Vec<models::ModelFit>,
+    /// The base model's held-out RMS (µm), before any member of the set.
+    pub base_cv_rms_um: f64,
 }
 
 impl Diagnosis {
@@ -231,8 +244,92 @@ fn station_order(c: &Campaign, stations: &[String]) -> Vec<usize> {
 /// Diagnoses a campaign: the base calibration, then where, which and how
 /// far (see the module doc), step by step, until the explanation set is
 /// complete — on the model that fits, when the base model does not.
+///
+/// Gross blunders are screened out first (see the module doc): while the
+/// diagnosis stops on one ([`GrossBlunder`]), its reading is removed and the
+/// rest diagnosed again; the screened readings are the set's first members.
+/// The readings, residuals and σ of the result are those of the readings
+/// kept. A campaign without a gross blunder is diagnosed once, as it was.
 pub fn diagnose(c: &Campaign, s: &Settings) -> Result<Diagnosis> {
-    explain(c, s, true)
+    let mut kept: Option<Campaign> = None;
+    let mut screened: Vec<Row> = Vec::new();
+    loop {
+        let current = kept.as_ref().unwrap_or(c);
+        let settings = Settings {
+            max_steps: s.max_steps.saturating_sub(screened.len()),
+            ..s.clone()
+        };
+        let e = match explain(current, &settings, true) {
+            Ok(d) => return Ok(with_screened(d, screened)),
+            Err(e) => e,
+        };
+        let Some(g) = e.downcast_ref::<GrossBlunder>() else {
+            return Err(if screened.is_empty() {
+                e
+            } else {
+                let named: Vec<&str> = screened.iter().map(|r| r.detail.as_str()).collect();
+                e.context(format!(
+                    "after the gross blunders {} were taken out",
+                    named.join("; ")
+                ))
+            });
+        };
+        if screened.len() >= MAX_SCREENED {
+            return Err(anyhow!(
+                "more than {MAX_SCREENED} gross blunders: the campaign needs looking at \
+                 (the last found: {})",
+                g.row.detail
+            ));
+        }
+        let mut next = current.clone();
+        next.readings.remove(g.obs);
+        screened.push(g.row.clone());
+        kept = Some(next);
+    }
+}
+
+/// How many gross blunders [`diagnose`] screens out at most before it gives
+/// up on the campaign (each is one more diagnosis of the base model).
+const MAX_SCREENED: usize = 20;
+
+/// A reading coordinate whose w-test on all data exceeds this (units of σ)
+/// is a gross blunder, screened out before the diagnosis. Down-weighted as a
+/// member (σ × [`calibrate::REJECTED_SIGMA_FACTOR`]), a blunder of 1e4 σ
+/// still pulls the adjustment by 1e-2 σ, and one that large takes the base
+/// adjustment out of the range where its linearisation holds; the effects
+/// of `effects.md` leave `|w|` of at most 40 in the examples.
+pub const GROSS_W: f64 = 1e4;
+
+/// The diagnosis stopped on a gross blunder at the base model: reading
+/// `obs` (of the campaign diagnosed) and its row as a member screened on
+/// all data (what the base model leaves without it is filled in by
+/// [`with_screened`]).
+#[derive(Debug, thiserror::Error)]
+#[error("a gross blunder: {}", row.detail)]
+struct GrossBlunder {
+    obs: usize,
+    row: Row,
+}
+
+/// `d` with the gross blunders screened out before it as its first members:
+/// each row's held-out RMS after is the base model's without them (before,
+/// no fold could be trusted: NaN, as its score).
+fn with_screened(mut d: Diagnosis, screened: Vec<Row>) -> Diagnosis {
+    if screened.is_empty() {
+        return d;
+    }
+    let k = screened.len();
+    for r in d.rows.iter_mut() {
+        r.step = r.step.map(|s| s + k);
+    }
+    for (i, mut row) in screened.into_iter().enumerate() {
+        row.step = Some(i + 1);
+        row.rms_after_um = d.base_cv_rms_um;
+        row.gap_after_um = d.base_cv_rms_um - d.noise_floor_um;
+        d.rows.push(row);
+    }
+    rank(&mut d.rows);
+    d
 }
 
 /// The effect id of the row that compares tracker models.
@@ -253,31 +350,13 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         n_folds,
         enabled: &enabled,
     };
-    let (base, screened) = ctx.screened_base()?;
+    let (base, base_tests) = ctx.base()?;
     let floor = noise_floor(&base.lm, s);
-    // The gross blunders screened out before the folds are the set's first
-    // members; every path starts from them.
-    let members: Vec<Member> = screened
-        .iter()
-        .map(|(t, _)| Member::Blunder {
-            obs: t.obs,
-            coordinate: t.coordinate,
-        })
-        .collect();
-    let screened_rows: Vec<MemberRow> = screened
-        .iter()
-        .enumerate()
-        .map(|(k, (t, p))| (ctx.screened_row(&base, t, *p, k + 1, floor), None))
-        .collect();
+    let members: Vec<Member> = Vec::new();
 
     // Where: the base model's residuals, with each coordinate's w-test.
-    let residuals = residual_rows(
-        c,
-        &net0,
-        &base.cal,
-        &base.infos,
-        &base.lm.w_tests(&base.members),
-    );
+    let residuals = residual_rows(c, &net0, &base.cal, &base.infos, &base_tests);
+    let base_cv_rms_um = base.lm.cv_rms_um_base();
     let factor_defs = factors::factors(&residuals);
     let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
@@ -296,7 +375,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     // effect (an effect the base model lacks can make another model fit a
     // little better; only a model that beats every candidate is the
     // answer).
-    let first = ctx.score(&base, &members, members.len() + 1, floor);
+    let first = ctx.score(&base, &members, 1, floor);
     let best_effect_bic = first
         .rows
         .iter()
@@ -317,23 +396,40 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     } else {
         Vec::new()
     };
-    let path = if starts.is_empty() {
-        Path {
-            rows: screened_rows.into_iter().map(|(r, _)| r).collect(),
+    // A path whose first member cannot be fitted is dropped, the reason
+    // kept; with none left, the diagnosis stays at the base model.
+    let results: Vec<(String, Result<Path>)> = starts
+        .into_par_iter()
+        .map(|p| {
+            (
+                format!("{} at {}", p.row.effect, p.row.place),
+                ctx.follow(&base, p, floor),
+            )
+        })
+        .collect();
+    let mut dropped = Vec::new();
+    let mut paths = Vec::new();
+    for (what, r) in results {
+        match r {
+            Ok(p) => paths.push(p),
+            Err(e) => dropped.push(Skipped {
+                effect: what,
+                reason: format!("could not be fitted as the first member: {e:#}"),
+            }),
+        }
+    }
+    // The first of the best: the greedy path wins ties.
+    let path = match paths
+        .into_iter()
+        .min_by(|a, b| a.state.bic().total_cmp(&b.state.bic()))
+    {
+        Some(p) => p,
+        None => Path {
+            rows: Vec::new(),
             state: base,
             scored: first,
             open,
-        }
-    } else {
-        let paths: Vec<Path> = starts
-            .into_par_iter()
-            .map(|p| ctx.follow(&base, (&members, &screened_rows), p, floor))
-            .collect::<Result<_>>()?;
-        // The first of the best: the greedy path wins ties.
-        paths
-            .into_iter()
-            .min_by(|a, b| a.state.bic().total_cmp(&b.state.bic()))
-            .expect("at least one path")
+        },
     };
     let Path {
         rows: set_rows,
@@ -388,6 +484,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         skipped: final_state
             .skipped
             .into_iter()
+            .chain(dropped)
             .chain(skipped_models)
             .collect(),
         chi2,
@@ -400,6 +497,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         tried: scored.tried,
         blunder_tests: scored.blunder_tests,
         models,
+        base_cv_rms_um,
     })
 }
 
@@ -770,36 +868,47 @@ impl StepContext<'_> {
     /// the right place. So the first step's best few candidates each start
     /// a path, and the diagnosis keeps the path whose final model has the
     /// lowest information criterion ([`State::bic`]).
-    fn follow(
-        &self,
-        base: &State,
-        (members, rows): (&[Member], &[MemberRow]),
-        first: Pick,
-        floor: f64,
-    ) -> Result<Path> {
-        let mut members = members.to_vec();
-        let mut rows = rows.to_vec();
+    ///
+    /// A member that cannot be fitted (its refit fails, a fold is singular
+    /// with it) ends the path before it, the reason in `skipped`, and the
+    /// row stays a significant one left out.
+    fn follow(&self, base: &State, first: Pick, floor: f64) -> Result<Path> {
+        let mut members = Vec::new();
+        let mut rows = Vec::new();
         let mut state = self.join(base, &mut members, &mut rows, first, floor)?;
         loop {
             let step = rows.len() + 1;
             let scored = self.score(&state, &members, step, floor);
             let open = step <= self.settings.max_steps;
-            let pick = open.then(|| scored.pick(&state.cands)).flatten();
-            let Some(pick) = pick else {
-                let u = member_u(&state, &members, &rows);
-                for ((row, _), u) in rows.iter_mut().zip(u) {
-                    if let Some(u) = u {
-                        row.magnitude_u = u;
+            if let Some(p) = open.then(|| scored.pick(&state.cands)).flatten() {
+                let what = format!("{} at {}", p.row.effect, p.row.place);
+                let (mut m, mut r) = (members.clone(), rows.clone());
+                match self.join(&state, &mut m, &mut r, p, floor) {
+                    Ok(next) => {
+                        (members, rows) = (m, r);
+                        state = next;
+                        continue;
+                    }
+                    Err(e) => {
+                        state.skipped.push(Skipped {
+                            effect: what,
+                            reason: format!("could not be fitted as member {step}: {e:#}"),
+                        });
                     }
                 }
-                return Ok(Path {
-                    rows: rows.into_iter().map(|(r, _)| r).collect(),
-                    state,
-                    scored,
-                    open,
-                });
-            };
-            state = self.join(&state, &mut members, &mut rows, pick, floor)?;
+            }
+            let u = member_u(&state, &members, &rows);
+            for ((row, _), u) in rows.iter_mut().zip(u) {
+                if let Some(u) = u {
+                    row.magnitude_u = u;
+                }
+            }
+            return Ok(Path {
+                rows: rows.into_iter().map(|(r, _)| r).collect(),
+                state,
+                scored,
+                open,
+            });
         }
     }
 
@@ -923,111 +1032,78 @@ impl StepContext<'_> {
     }
 }
 
-/// How many gross blunders [`StepContext::screened_base`] takes out at
-/// most before it gives up on the campaign (each is one more adjustment).
-const MAX_SCREENED: usize = 20;
-
 impl StepContext<'_> {
-    /// The base model, after the gross blunders that kept it from being
-    /// cross-validated are taken out. A gross blunder (an azimuth off by
-    /// 42°, a million σ) can leave a fold whose training readings do not
-    /// determine the adjustment at that blunder's solution: the base state
-    /// then fails with [`linear::Singular`] before any test could name the
-    /// reading. So, while it does, the worst reading coordinate by its
-    /// w-test on all data (which needs no fold) is rejected — if it is
-    /// significant — and the model built again. A campaign whose every
-    /// fold is fitted (every campaign that diagnosed before) is untouched.
-    /// Returns the base state and the coordinates screened out, in order.
-    fn screened_base(&self) -> Result<(State, Vec<(WTest, f64)>)> {
-        let mut members: Vec<Member> = Vec::new();
-        let mut screened: Vec<(WTest, f64)> = Vec::new();
-        loop {
-            let e = match self.state(&mut members, Vec::new()) {
-                Ok(st) => return Ok((st, screened)),
-                Err(e) => e,
-            };
-            let fold_failed = e.downcast_ref::<linear::Singular>().is_some();
-            let worst = (fold_failed
-                && (self.enabled)("blunder")
-                && screened.len() < MAX_SCREENED.min(self.settings.max_steps))
-            .then(|| self.worst_on_all_data(&members))
-            .flatten();
-            let Some((t, p)) = worst else {
-                let named: Vec<String> =
-                    screened.iter().map(|(t, _)| self.reading_name(t)).collect();
-                return Err(if named.is_empty() {
-                    e
-                } else {
-                    e.context(format!(
-                        "after the gross blunders {} were taken out",
-                        named.join(", ")
-                    ))
-                });
-            };
-            members.push(Member::Blunder {
-                obs: t.obs,
-                coordinate: t.coordinate,
-            });
-            screened.push((t, p));
+    /// The base model and its w-tests, or [`GrossBlunder`] when a gross
+    /// blunder keeps it from being diagnosed (see the module doc): its
+    /// worst coordinate's test is significant and beyond [`GROSS_W`], or a
+    /// fold cannot be fitted and the worst coordinate on all data (a test
+    /// that needs no fold) is significant. Only with `blunder` among the
+    /// effects tried; a campaign without a gross blunder is untouched.
+    fn base(&self) -> Result<(State, Vec<[WTest; 3]>)> {
+        let screen = (self.enabled)("blunder");
+        match self.state(&mut Vec::new(), Vec::new()) {
+            Ok(st) => {
+                let tests = st.lm.w_tests(&st.members);
+                let n = snooping::testable(&tests);
+                if let Some(t) = snooping::worst(&tests).filter(|t| screen && t.w.abs() > GROSS_W) {
+                    let p = (snooping::p_corrected(t.w, n) * 2.0).min(1.0);
+                    if p < self.settings.alpha {
+                        return Err(self.gross(&t, p, st.lm.rows()).into());
+                    }
+                }
+                Ok((st, tests))
+            }
+            Err(e) if screen && e.downcast_ref::<linear::Singular>().is_some() => {
+                match self.worst_on_all_data() {
+                    Some((t, p, rows)) => Err(self.gross(&t, p, rows).into()),
+                    None => Err(e),
+                }
+            }
+            Err(e) => Err(e),
         }
     }
 
-    /// The worst reading coordinate by its w-test on all data, with the
-    /// blunders of `members` down-weighted, when it is significant at the
-    /// first step's level; `None` when there is none or the model cannot be
-    /// solved even on all data. With it, its p-value (Bonferroni over the
-    /// coordinates tested, α spent as at the first step).
-    fn worst_on_all_data(&self, members: &[Member]) -> Option<(WTest, f64)> {
-        let rejected: Vec<(usize, usize)> = members
-            .iter()
-            .filter_map(|m| match m {
-                Member::Blunder { obs, coordinate } => Some((*obs, *coordinate)),
-                Member::Effect { .. } => None,
-            })
-            .collect();
-        let net = self.net0.adjusted(&[], &rejected);
-        let lin = base_calibration(&net, self.settings).ok()?.linearisation?;
+    /// The worst reading coordinate by its w-test on all data, when it is
+    /// significant at the first step's level; `None` when there is none or
+    /// the model cannot be solved even on all data. With it, its p-value
+    /// (Bonferroni over the coordinates tested, α spent as at the first
+    /// step) and the adjustment's number of rows.
+    fn worst_on_all_data(&self) -> Option<(WTest, f64, usize)> {
+        let lin = base_calibration(self.net0, self.settings)
+            .ok()?
+            .linearisation?;
         let full = crate::calibrate::sparse::Normal::assemble(&lin.jacobian, None, |_| true)
             .factor(0.0)?;
         let v = crate::calibrate::sparse::project_out(&lin.jacobian, &full, &lin.residuals);
-        let tests = snooping::w_tests(&lin.jacobian, &full, v.as_slice(), net.obs.len(), None);
+        let tests = snooping::w_tests(
+            &lin.jacobian,
+            &full,
+            v.as_slice(),
+            self.net0.obs.len(),
+            None,
+        );
         let n = snooping::testable(&tests);
         let t = snooping::worst(&tests)?;
         let p = (snooping::p_corrected(t.w, n) * 2.0).min(1.0);
-        (p < self.settings.alpha).then_some((t, p))
+        (p < self.settings.alpha).then_some((t, p, lin.jacobian.nrows()))
     }
 
-    /// `station/target/face` and the readings.csv line of a test's reading.
-    fn reading_name(&self, t: &WTest) -> String {
-        let r = &self.campaign.readings[t.obs];
-        format!(
-            "{}/{}/{} ({}{})",
-            r.station,
-            r.target,
-            r.face.number(),
-            snooping::COORDINATES[t.coordinate],
-            r.line
-                .map(|l| format!(", readings.csv line {l}"))
-                .unwrap_or_else(|| format!(", reading {}", t.obs + 1))
-        )
-    }
-
-    /// The row of a blunder screened out before the folds, at step `step`.
-    /// What the base model left in it is not known (no fold could be fitted
-    /// with it): its held-out residual before, its score and the gap it
-    /// removes are NaN, and its test is the one on all data.
-    fn screened_row(&self, base: &State, t: &WTest, p: f64, step: usize, floor: f64) -> Row {
+    /// The row of a gross blunder screened out on all data. What the base
+    /// model left in it is not known (it dragged the base model, or no
+    /// fold could be fitted with it): its held-out residual before, its
+    /// score and the gap it removes are NaN; after is filled in by
+    /// [`with_screened`]. `rows`: the adjustment's (the BIC's `ln m`).
+    fn gross(&self, t: &WTest, p: f64, rows: usize) -> GrossBlunder {
         let o = &self.net0.obs[t.obs];
         let reading = &self.campaign.readings[t.obs];
         let (scale, unit) = match t.coordinate {
             2 => (o.sigma[2] * 1e3, "µm"),
             c => (o.sigma[c] * 1e6, "µrad"),
         };
-        let rms_after = base.cv_rms_um();
         let delta_chi2 = t.w * t.w;
-        Row {
+        let row = Row {
             rank: 0,
-            step: Some(step),
+            step: None,
             effect: "blunder".into(),
             place: format!(
                 "{}/{}/{}",
@@ -1041,17 +1117,17 @@ impl StepContext<'_> {
             score: f64::NAN,
             significant: true,
             rms_before_um: f64::NAN,
-            rms_after_um: rms_after,
+            rms_after_um: f64::NAN,
             gap_before_um: f64::NAN,
-            gap_after_um: rms_after - floor,
+            gap_after_um: f64::NAN,
             gap_shrink_pct: f64::NAN,
             k: 1,
             delta_chi2,
             p_corrected: p,
-            delta_bic: delta_chi2 - (base.lm.rows() as f64).ln(),
+            delta_bic: delta_chi2 - (rows as f64).ln(),
             detail: format!(
-                "{}, w = {:+.2}, redundancy {:.2}{}; gross: screened on all data before the \
-                 cross-validation, whose folds could not be fitted with it",
+                "{}, w = {:+.3e}, redundancy {:.2}{}; gross: the whole reading screened out \
+                 on all data before the diagnosis",
                 snooping::COORDINATES[t.coordinate],
                 t.w,
                 t.redundancy,
@@ -1060,7 +1136,8 @@ impl StepContext<'_> {
                     .map(|l| format!(", readings.csv line {l}"))
                     .unwrap_or_else(|| format!(", reading {}", t.obs + 1))
             ),
-        }
+        };
+        GrossBlunder { obs: t.obs, row }
     }
 }
 
@@ -1271,6 +1348,45 @@ impl Scored {
     }
 }
 
+/// The smallest robust scale of the w-tests [`w_scales`] applies.
+const MIN_W_SCALE: f64 = 1.5;
+
+/// Each coordinate's (az, el, d) robust scale of the w-tests, `k =
+/// median|w| / 0.6745` (1 for w of the stated noise), kept only when it is
+/// beyond its own sampling spread (`1 + 3·1.166/√n`, the standard error of
+/// a half-normal sample's median scale), else 1.
+///
+/// Baarda's w-test takes the stated σ as true. A structure the model lacks
+/// (an ADM's cyclic error) inflates every residual of a coordinate, and the
+/// largest of them then pass for blunders one after another; a few real
+/// blunders move the median not at all. Testing `w/k` — Pope's τ-test with a
+/// robust variance factor — keeps a gross error gross and a spread-out
+/// structure for the effects and the `none` row to account for.
+fn w_scales(tests: &[[WTest; 3]]) -> [f64; 3] {
+    // Below this the stated noise is taken as right: a catalogue effect
+    // not yet in the set inflates the residuals a little, and a blunder
+    // tested against it must not wait behind it.
+    let mut out = [1.0; 3];
+    for (c, k) in out.iter_mut().enumerate() {
+        let mut a: Vec<f64> = tests
+            .iter()
+            .map(|t| &t[c])
+            .filter(|t| t.testable() && t.w.is_finite())
+            .map(|t| t.w.abs())
+            .collect();
+        if a.len() < 10 {
+            continue;
+        }
+        let mid = a.len() / 2;
+        let (_, m, _) = a.select_nth_unstable_by(mid, f64::total_cmp);
+        let scale = *m / 0.6745;
+        if scale > (1.0 + 3.0 * 1.166 / (a.len() as f64).sqrt()).max(MIN_W_SCALE) {
+            *k = scale;
+        }
+    }
+    out
+}
+
 /// The gap before and after, and how much of it a row's addition removes.
 fn set_gap(row: &mut Row, floor: f64) {
     let (gb, ga) = (row.rms_before_um - floor, row.rms_after_um - floor);
@@ -1409,9 +1525,26 @@ impl StepContext<'_> {
     ) -> (Option<BlunderRow>, usize) {
         let tests = st.lm.w_tests(&st.members);
         let n = snooping::testable(&tests);
-        let Some(t) = snooping::worst(&tests) else {
+        let scales = w_scales(&tests);
+        // The worst by its scaled w (the first of equals, as `snooping::worst`).
+        let Some(t) =
+            tests
+                .iter()
+                .flatten()
+                .filter(|t| t.testable())
+                .fold(None, |best: Option<WTest>, t| match best {
+                    Some(b)
+                        if b.w.abs() / scales[b.coordinate] >= t.w.abs() / scales[t.coordinate] =>
+                    {
+                        Some(b)
+                    }
+                    _ => Some(*t),
+                })
+        else {
             return (None, n);
         };
+        let k = scales[t.coordinate];
+        let w = t.w / k;
         let o = &self.net0.obs[t.obs];
         let reading = &self.campaign.readings[t.obs];
         let (scale, unit) = match t.coordinate {
@@ -1422,7 +1555,11 @@ impl StepContext<'_> {
         let mut column = Signature::new(1);
         column.add(t.obs, t.coordinate, 0, 1.0);
         let rms_after = st.lm.cv_rms_um(&st.joint(&column));
-        let p_corrected = (snooping::p_corrected(t.w, n) * spend).min(1.0);
+        // Significance on w/k; the χ² the coordinate explains, which ranks
+        // it against the effects, is its own: a gross blunder smears its
+        // residual over the whole adjustment and inflates k too, and must
+        // still be taken out first.
+        let p_corrected = (snooping::p_corrected(w, n) * spend).min(1.0);
         let delta_chi2 = t.w * t.w;
         let delta_bic = delta_chi2 - (st.lm.rows() as f64).ln();
         let mut row = Row {
@@ -1451,9 +1588,17 @@ impl StepContext<'_> {
             p_corrected,
             delta_bic,
             detail: format!(
-                "{}, w = {:+.2}, redundancy {:.2}{}",
+                "{}, w = {:+.2}{}, redundancy {:.2}{}",
                 snooping::COORDINATES[t.coordinate],
                 t.w,
+                if k > 1.0 {
+                    format!(
+                        " (tested as w/k = {w:+.2}: the {} residuals are k = {k:.2} times the stated noise throughout)",
+                        snooping::COORDINATES[t.coordinate]
+                    )
+                } else {
+                    String::new()
+                },
                 t.redundancy,
                 reading
                     .line

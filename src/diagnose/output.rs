@@ -232,6 +232,37 @@ pub fn skipped_table(d: &Diagnosis) -> Result<DataFrame> {
 /// Rank 1 in one sentence.
 pub fn verdict(d: &Diagnosis) -> String {
     let b = d.best();
+    // What the set leaves when it is more than the stated noise: no member
+    // is then presented as the whole cause.
+    let left = d
+        .rows
+        .iter()
+        .find(|r| r.effect == "none" && !r.significant)
+        .filter(|_| b.effect != "none");
+    if let Some(rest) = left {
+        let (_, _, shrink) = set_numbers(d);
+        let what = match (
+            b.effect == super::MODEL && b.step.is_some(),
+            d.explanation().count(),
+        ) {
+            (true, _) => format!("the {} model", b.place),
+            (false, 1) => format!(
+                "{} at {}: {:.3}{} {}",
+                b.effect,
+                b.place,
+                b.magnitude,
+                plus_minus(b.magnitude_u),
+                b.unit
+            ),
+            (false, _) => explanation(d),
+        };
+        let rest = rest.place.trim_start_matches("unexplained structure: ");
+        return format!(
+            "partly explained: {what} removes {shrink:.1} % of the gap over the noise floor; \
+             the residual left is not consistent with the stated noise ({rest}) — an effect \
+             outside the catalogue, or a hypothesis of your own (--hypotheses), may explain the rest"
+        );
+    }
     if b.effect == super::MODEL && b.step.is_some() {
         let rest: Vec<String> = d
             .explanation()

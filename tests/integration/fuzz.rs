@@ -538,11 +538,10 @@ fn fuzz_100k_mutants() {
 /// `S4,T10`'s `d_mm` 11079.2 → 2 (and `S5,T11`'s `time_s` → -90). Both load
 /// for calibration, and their diagnosis exits with "the base adjustment's
 /// normal matrix is singular on a cross-validation fold"
-/// (src/diagnose/linear.rs:337), naming no reading. Kept here, ignored,
-/// until the diagnosis handles such a fold; then it passes and the ignore
-/// goes.
+/// (src/diagnose/linear.rs:337), naming no reading. Since gross blunders
+/// are screened out as whole readings before the diagnosis, both are
+/// diagnosed.
 #[test]
-#[ignore = "finding: diagnosis gives up on a fold (issue 28 item 7, src/diagnose)"]
 fn fuzz_finding_mutants_31680_and_37441_diagnose_or_name_a_reading() {
     let ex = examples();
     let tmp = tempfile::tempdir().unwrap();
