@@ -201,7 +201,8 @@ fn parse(text: &str) -> Result<Ex, ExprError> {
 
 impl Expression {
     /// Parses `text`; `params` are the hypothesis's parameter names, in
-    /// their order; `known` says what a covariate name means.
+    /// their order; every other name must be a covariate
+    /// ([`super::covariates::COVARIATES`] or an indicator).
     pub fn parse(text: &str, params: &[String]) -> Result<Expression, ExprError> {
         if text.trim().is_empty() {
             return Err(err(0..text.len(), "the expression is empty"));

@@ -545,9 +545,9 @@ impl Hypothesis {
         v
     }
 
-    /// The reported magnitude from the campaign-wide parameters' fitted
-    /// values `beta` (in parameter order, one per instance: see
-    /// `diagnose::candidates`), or `None` to report the first parameter.
+    /// The file's `magnitude` expression at parameter values `theta` (in
+    /// parameter order; it reads campaign-wide parameters only), or `None`
+    /// when the file gives none (the first parameter is reported then).
     pub fn magnitude_of(&self, theta: &[f64]) -> Option<f64> {
         let m = self.magnitude.as_ref()?;
         let cov = covariates::Covariates::dummy();
