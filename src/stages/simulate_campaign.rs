@@ -15,9 +15,9 @@
 //!                                        # (the incidence effect's max_angle_deg also holds)
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0, sigma_range_ppm = 0.3 }
 //! seed = 1
+//! hypotheses = "hypotheses/adm.toml"     # your own effects (crate::hypothesis), at their `value`s
 //! [stages.corner.effects.incidence]     # any effect of effects.md, by its id
 //! e_axial_um = 5.0
-//! hypotheses = "hypotheses/adm.toml"     # your own effects (crate::hypothesis), at their `value`s
 //! [stages.corner.hypothesis_values.adm-cyclic]
 //! a = 6.0                                # a parameter's value, over the file's (a number, or per instance)
 //! ```
