@@ -28,6 +28,28 @@ pub fn normal(rng: &mut ChaCha8Rng) -> f64 {
     StandardNormal.sample(rng)
 }
 
+/// Uniform in [lo, hi).
+pub fn between(rng: &mut ChaCha8Rng, (lo, hi): (f64, f64)) -> f64 {
+    lo + (hi - lo) * uniform(rng)
+}
+
+/// Log-uniform in [lo, hi] (a magnitude whose order is unknown), with a
+/// random sign when `signed`.
+pub fn log_uniform(rng: &mut ChaCha8Rng, lo: f64, hi: f64, signed: bool) -> f64 {
+    let m = (lo.ln() + (hi.ln() - lo.ln()) * uniform(rng)).exp();
+    if signed && uniform(rng) < 0.5 { -m } else { m }
+}
+
+/// A direction uniform on the unit sphere.
+pub fn direction(rng: &mut ChaCha8Rng) -> nalgebra::Vector3<f64> {
+    nalgebra::Vector3::new(normal(rng), normal(rng), normal(rng)).normalize()
+}
+
+/// One element of a non-empty slice, each equally likely.
+pub fn pick<'a, T>(rng: &mut ChaCha8Rng, v: &'a [T]) -> &'a T {
+    &v[((uniform(rng) * v.len() as f64) as usize).min(v.len() - 1)]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

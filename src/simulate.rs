@@ -9,7 +9,7 @@
 //! drawn from the reading-noise model of [`crate::noise`].
 
 use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Meta, Target, Tracker};
-use crate::effects::{Axis, Effects, RangeScale, incidence_angles, table9_delta_d_um};
+use crate::effects::{Effects, Place, Setup, incidence_angles};
 use crate::error_model::{ErrorParams, InverseError};
 use crate::hypothesis::ActsOn;
 use crate::hypothesis::covariates::Covariates;
@@ -19,7 +19,6 @@ use crate::noise::Noise;
 use crate::random;
 use crate::tracker::TrackerModel;
 use nalgebra::{Rotation3, Vector3};
-use std::collections::BTreeMap;
 use std::f64::consts::PI;
 
 /// The reading of `target` by a tracker with `errors` (none: a perfect one).
@@ -81,8 +80,9 @@ pub struct SimulatedCampaign {
     pub poses: Vec<StationPose>,
     /// True reflector centres before any `target-shift`.
     pub targets: Vec<(String, Vector3<f64>)>,
-    /// `range-scale` per station as used (given or drawn), ppm.
-    pub range_ppm: BTreeMap<String, f64>,
+    /// The effects as injected: prepared ([`crate::effects::Forward::prepare`]),
+    /// so drawn values (`range-scale`'s `sigma_ppm`) are filled in.
+    pub effects: Effects,
     /// Readings beyond the acceptance angle, not taken.
     pub not_taken: usize,
 }
@@ -111,58 +111,25 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
             }
         })
         .collect();
-    let station_index = |id: &str| poses.iter().position(|p| p.id == id);
-    let mut range_ppm = BTreeMap::new();
-    if let Some(rs) = &fx.range_scale {
-        let mut rng = random::stream(spec.seed, "range-scale");
-        for p in &poses {
-            let drawn = rs.sigma_ppm.map(|s| s * random::normal(&mut rng));
-            if let Some(v) = rs.ppm.get(&p.id).copied().or(drawn) {
-                range_ppm.insert(p.id.clone(), v);
-            }
-        }
-        if let Some(unknown) = rs.ppm.keys().find(|s| station_index(s).is_none()) {
-            return Err(format!(
-                "range-scale names station `{unknown}`, which the layout does not have"
-            ));
-        }
-    }
-    let shift_from = match &fx.target_shift {
-        Some(ts) => {
-            if !layout.targets.iter().any(|t| t.0 == ts.target) {
-                return Err(format!(
-                    "target-shift names reflector `{}`, which the layout does not have",
-                    ts.target
-                ));
-            }
-            Some(station_index(&ts.from_station).ok_or_else(|| {
-                format!(
-                    "target-shift names station `{}`, which the layout does not have",
-                    ts.from_station
-                )
-            })?)
-        }
-        None => None,
-    };
-    if let Some(d) = fx.station_drift.as_ref().and_then(|d| d.station.as_ref()) {
-        if station_index(d).is_none() {
-            return Err(format!(
-                "station-drift names station `{d}`, which the layout does not have"
-            ));
-        }
-    }
+    let station_ids: Vec<String> = poses.iter().map(|p| p.id.clone()).collect();
+    let target_ids: Vec<String> = layout.targets.iter().map(|t| t.0.clone()).collect();
+    let fx = fx.prepared(&Setup {
+        stations: &station_ids,
+        targets: &target_ids,
+        seed: spec.seed,
+    })?;
+    let present = fx.present();
     let centroid: Vector3<f64> =
         poses.iter().map(|p| p.position).sum::<Vector3<f64>>() / poses.len().max(1) as f64;
-    // The SMR's acceptance: the campaign's, and with the `incidence` effect
-    // on also the effect's own `max_angle_deg` (effects.md: "a reading with
-    // α over max_angle_deg is not taken") — both limits hold.
-    let max_angle = fx
-        .incidence
-        .as_ref()
-        .map_or(spec.max_angle_deg, |i| {
-            i.max_angle_deg.min(spec.max_angle_deg)
-        })
+    // The SMR's acceptance: the campaign's, and an effect's own (effects.md:
+    // "a reading with α over max_angle_deg is not taken") — every limit holds.
+    let max_angle = present
+        .iter()
+        .filter_map(|(_, e)| e.max_angle_deg())
+        .fold(spec.max_angle_deg, f64::min)
         .to_radians();
+    // The air temperature an effect sets, if one does.
+    let air_c = |time: f64| present.iter().find_map(|(_, e)| e.temperature_c(time));
     let mut noise_rng = random::stream(spec.seed, "noise");
     let mut time_rng = random::stream(spec.seed, "time");
     let mut temp_rng = random::stream(spec.seed, "temperature");
@@ -178,11 +145,18 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
         let mut first_time: Option<f64> = None;
         let mut first = true;
         for (tid, x0) in &layout.targets {
+            let at = Place {
+                station: &pose.id,
+                rank: si,
+                target: tid,
+                stations: &station_ids,
+            };
             let mut x = *x0;
-            if let (Some(ts), Some(from)) = (&fx.target_shift, shift_from) {
-                if *tid == ts.target && si >= from {
-                    x += ts.shift_mm();
-                }
+            for s in present
+                .iter()
+                .filter_map(|(_, e)| e.reflector_shift_mm(&at))
+            {
+                x += s;
             }
             let aim_dir = (centroid - x).normalize();
             for &face in spec.faces {
@@ -191,8 +165,12 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                 }
                 first = false;
                 let mut origin = pose.position;
-                if let Some(d) = fx.station_drift.as_ref().filter(|d| d.applies_to(&pose.id)) {
-                    origin += d.displacement_mm(time - first_time.unwrap_or(time));
+                let since_station_s = time - first_time.unwrap_or(time);
+                for s in present
+                    .iter()
+                    .filter_map(|(_, e)| e.station_shift_mm(&at, since_station_s))
+                {
+                    origin += s;
                 }
                 let place = || format!("{}/{tid}/{}", pose.id, face.number());
                 // Hypotheses on positions: their covariates are those of
@@ -216,8 +194,8 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                         d: r0.d,
                         face: face.number() as f64,
                         time_s: Some(time),
-                        since_station_s: Some(time - first_time.unwrap_or(time)),
-                        temperature_c: fx.air_refraction.as_ref().map(|a| a.temperature_c(time)),
+                        since_station_s: Some(since_station_s),
+                        temperature_c: air_c(time),
                         incidence: Some(incidence_angles(&aim_dir, &(origin - x).normalize())),
                         point: x,
                         station_pos: origin,
@@ -231,43 +209,27 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                         _ => x += s,
                     }
                 }
-                let at = StationPose {
+                let moved = StationPose {
                     position: origin,
                     ..pose.clone()
                 };
                 let angles = incidence_angles(&aim_dir, &(origin - x).normalize());
-                if angles.alpha > max_angle {
+                if angles.alpha > max_angle || !present.iter().all(|(_, e)| e.takes(&angles)) {
                     not_taken += 1;
                     continue;
                 }
-                let table9_um = match fx.incidence_table9 {
-                    Some(_) => match table9_delta_d_um(angles.alpha_v, angles.alpha_h) {
-                        Some(um) => um,
-                        None => {
-                            not_taken += 1;
-                            continue;
-                        }
-                    },
-                    None => 0.0,
-                };
                 first_time.get_or_insert(time);
-                let mut r = read(spec.errors, &at.to_local(&x), face)
+                let mut r = read(spec.errors, &moved.to_local(&x), face)
                     .map_err(|e| format!("station {}, reflector {tid}: {e}", pose.id))?;
-                let mut dd_mm = table9_um * 1e-3;
-                if let Some(i) = &fx.incidence {
-                    dd_mm += i.delta_d_um(&angles) * 1e-3;
+                let temperature =
+                    air_c(time).unwrap_or_else(|| 20.0 + 0.01 * random::normal(&mut temp_rng));
+                let mut dd_mm = 0.0;
+                for dd in present
+                    .iter()
+                    .filter_map(|(_, e)| e.delta_d_mm(&at, &r, &angles, temperature))
+                {
+                    dd_mm += dd;
                 }
-                if let Some(ppm) = range_ppm.get(&pose.id) {
-                    dd_mm += RangeScale::delta_d_mm(*ppm, r.d);
-                }
-                let temperature = match &fx.air_refraction {
-                    Some(a) => {
-                        let t = a.temperature_c(time);
-                        dd_mm += a.delta_d_mm(t, r.d);
-                        t
-                    }
-                    None => 20.0 + 0.01 * random::normal(&mut temp_rng),
-                };
                 let cov = Covariates {
                     az: r.az,
                     el: r.el,
@@ -295,11 +257,8 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
                     r.el += v.y;
                     dd_mm += v.z;
                 }
-                if let Some(e) = &fx.encoder_harmonic {
-                    match e.axis {
-                        Axis::Az => r.az += e.delta_rad(r.az),
-                        Axis::El => r.el += e.delta_rad(r.el),
-                    }
+                for (_, e) in &present {
+                    e.move_angles(&mut r);
                 }
                 r.d += dd_mm;
                 let mut r = spec.noise.apply(r, &mut noise_rng);
@@ -396,7 +355,7 @@ pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, Strin
         campaign,
         poses,
         targets: layout.targets.clone(),
-        range_ppm,
+        effects: fx,
         not_taken,
     })
 }

@@ -25,10 +25,7 @@
 
 use super::{Diagnosis, Settings as DiagnoseSettings, diagnose};
 use crate::campaign::{Aim, Campaign, CampaignReading};
-use crate::effects::{
-    AirRefraction, Axis, Blunder, Coordinate, Effects, EncoderHarmonic, Incidence, IncidenceTable9,
-    RangeScale, StationDrift, TargetShift,
-};
+use crate::effects::{self, Blunder, Coordinate, DrawContext, Effects};
 use crate::error_model::{ErrorModel, ErrorParams};
 use crate::kinematics::Face;
 use crate::layout::{self, Kind, Spec};
@@ -37,7 +34,7 @@ use crate::random;
 use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow};
-use nalgebra::{DVector, Vector3};
+use nalgebra::DVector;
 use rand::rngs::ChaCha8Rng;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -209,118 +206,11 @@ pub struct Case {
     pub set: SetScore,
 }
 
-fn between(rng: &mut ChaCha8Rng, (lo, hi): (f64, f64)) -> f64 {
-    lo + (hi - lo) * random::uniform(rng)
-}
-
-/// Log-uniform in [lo, hi], with a random sign when `signed`.
-fn magnitude(rng: &mut ChaCha8Rng, lo: f64, hi: f64, signed: bool) -> f64 {
-    let m = (lo.ln() + (hi.ln() - lo.ln()) * random::uniform(rng)).exp();
-    if signed && random::uniform(rng) < 0.5 {
-        -m
-    } else {
-        m
-    }
-}
-
-fn direction(rng: &mut ChaCha8Rng) -> Vector3<f64> {
-    Vector3::new(
-        random::normal(rng),
-        random::normal(rng),
-        random::normal(rng),
-    )
-    .normalize()
-}
-
-fn pick<'a, T>(rng: &mut ChaCha8Rng, v: &'a [T]) -> &'a T {
-    &v[((random::uniform(rng) * v.len() as f64) as usize).min(v.len() - 1)]
-}
-
-/// Draws an effect of the given id for a layout into `fx`.
-fn draw_effect(
-    rng: &mut ChaCha8Rng,
-    id: &str,
-    stations: &[String],
-    targets: &[String],
-    fx: &mut Effects,
-) -> Truth {
-    let (place, mag, has_place) = match id {
-        "incidence" => {
-            let e = magnitude(rng, 30.0, 300.0, false);
-            let i = Incidence {
-                e_axial_um: e,
-                e_h_um: 0.2 * e * (2.0 * random::uniform(rng) - 1.0),
-                e_v_um: 0.2 * e * (2.0 * random::uniform(rng) - 1.0),
-                max_angle_deg: crate::effects::DEFAULT_MAX_ANGLE_DEG,
-            };
-            fx.incidence = Some(i);
-            ("all".to_string(), e, false)
-        }
-        "incidence-table9" => {
-            fx.incidence_table9 = Some(IncidenceTable9 {});
-            ("all".to_string(), 1.0, false)
-        }
-        "range-scale" => {
-            let s = pick(rng, stations).clone();
-            let ppm = magnitude(rng, 2.0, 12.0, true);
-            fx.range_scale = Some(RangeScale {
-                ppm: BTreeMap::from([(s.clone(), ppm)]),
-                sigma_ppm: None,
-            });
-            (s, ppm, true)
-        }
-        "air-refraction" => {
-            fx.air_refraction = Some(AirRefraction {
-                t0_c: 20.0,
-                offset_c: 0.0,
-                amplitude_c: magnitude(rng, 0.5, 2.5, false),
-                period_s: between(rng, (600.0, 2400.0)),
-                phase_deg: 360.0 * random::uniform(rng),
-                drift_c_per_h: between(rng, (-1.5, 1.5)),
-            });
-            // The physics fixes the coefficient: −0.93 ppm/K.
-            ("all".to_string(), -0.93, false)
-        }
-        "encoder-harmonic" => {
-            let axis = if random::uniform(rng) < 0.5 {
-                Axis::Az
-            } else {
-                Axis::El
-            };
-            let amp = magnitude(rng, 3.0, 25.0, false);
-            fx.encoder_harmonic = Some(EncoderHarmonic {
-                axis,
-                order: 2 + (random::uniform(rng) * 3.0) as u32 % 3,
-                amplitude_urad: amp,
-                phase_deg: 360.0 * random::uniform(rng),
-            });
-            (
-                if axis == Axis::Az { "az" } else { "el" }.to_string(),
-                amp,
-                true,
-            )
-        }
-        "station-drift" => {
-            let s = pick(rng, stations).clone();
-            let v = direction(rng) * magnitude(rng, 2.0, 15.0, false);
-            fx.station_drift = Some(StationDrift {
-                station: Some(s.clone()),
-                velocity_um_per_min: [v.x, v.y, v.z],
-            });
-            (s, v.norm(), true)
-        }
-        "target-shift" => {
-            let t = pick(rng, targets).clone();
-            let from = pick(rng, &stations[1..]).clone();
-            let s = direction(rng) * magnitude(rng, 30.0, 200.0, false);
-            fx.target_shift = Some(TargetShift {
-                target: t.clone(),
-                from_station: from,
-                shift_um: [s.x, s.y, s.z],
-            });
-            (t, s.norm(), true)
-        }
-        _ => ("all".to_string(), 0.0, false),
+/// Draws the effect `id` of the catalogue into `fx`.
+fn draw_effect(rng: &mut ChaCha8Rng, id: &str, cx: &DrawContext, fx: &mut Effects) -> Truth {
+    let (place, magnitude, has_place) = match effects::kind(id) {
+        Some(kind) => (kind.draw)(rng, cx, fx),
+        None => ("all".to_string(), 0.0, false),
     };
     Truth {
         effect: if fx.ids().is_empty() {
@@ -329,7 +219,7 @@ fn draw_effect(
             id.into()
         },
         place,
-        magnitude: mag,
+        magnitude,
         has_place,
         effects: fx.clone(),
     }
@@ -352,8 +242,8 @@ fn draw_blunders(
         }
         taken.push(i);
         let r = &readings[i];
-        let coordinate = *pick(rng, &[Coordinate::Az, Coordinate::El, Coordinate::D]);
-        let sigmas = magnitude(rng, 6.0, 40.0, true);
+        let coordinate = *random::pick(rng, &[Coordinate::Az, Coordinate::El, Coordinate::D]);
+        let sigmas = random::log_uniform(rng, 6.0, 40.0, true);
         let (size_urad, size_um) = match coordinate {
             Coordinate::D => (None, Some(sigmas * noise.sigma_range_at_um(r.d_mm))),
             _ => (Some(sigmas * noise.sigma_angle_urad), None),
@@ -450,15 +340,15 @@ fn signal_chi2(
 /// Runs one case.
 fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let mut rng = random::stream(plan.seed, &format!("blind-check-{case}"));
-    let layout_kind = *pick(&mut rng, &plan.layouts);
+    let layout_kind = *random::pick(&mut rng, &plan.layouts);
     let n_st = plan.stations.0
         + ((random::uniform(&mut rng) * (plan.stations.1 - plan.stations.0 + 1) as f64) as usize)
             .min(plan.stations.1 - plan.stations.0);
     let mut spec = Spec::new(layout_kind);
     spec.stations = n_st;
     let noise = Noise {
-        sigma_angle_urad: between(&mut rng, plan.noise_angle_urad),
-        sigma_range_um: between(&mut rng, plan.noise_range_um),
+        sigma_angle_urad: random::between(&mut rng, plan.noise_angle_urad),
+        sigma_range_um: random::between(&mut rng, plan.noise_range_um),
         sigma_range_ppm: 0.3,
     };
     let mut errors = ErrorParams::zero(&ErrorModel::of(plan.tracker));
@@ -471,7 +361,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let kind = if random::uniform(&mut rng) < plan.none_fraction || plan.effects.is_empty() {
         CaseKind::None
     } else {
-        *pick(&mut rng, &plan.kinds)
+        *random::pick(&mut rng, &plan.kinds)
     };
     let how = Measuring {
         two_face: kind == CaseKind::TwoFace,
@@ -479,8 +369,8 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     };
     let seed = plan.seed.wrapping_mul(1_000_003).wrapping_add(case as u64);
     // The effects: ids drawn without repeats, from those the file can
-    // carry (no time-based effect without time), and no two incidence
-    // models at once.
+    // carry (none that needs time or temperature without them), and an
+    // effect drawn only alone not beside another.
     let n_effects = match kind {
         CaseKind::None | CaseKind::Blunder | CaseKind::Blunders => 0,
         CaseKind::TwoEffects => 2,
@@ -489,19 +379,24 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let mut fx = Effects::default();
     let mut truths: Vec<Truth> = Vec::new();
     for _ in 0..n_effects {
+        let kind_of = |e: &str| effects::kind(e);
         let allowed: Vec<String> = plan
             .effects
             .iter()
-            .filter(|e| how.timed || !matches!(e.as_str(), "station-drift" | "air-refraction"))
+            .filter(|e| how.timed || !kind_of(e).is_some_and(|k| k.needs.any()))
             .filter(|e| !truths.iter().any(|t| &t.effect == *e))
-            .filter(|e| !(n_effects > 1 && e.as_str() == "incidence-table9"))
+            .filter(|e| !(n_effects > 1 && kind_of(e).is_some_and(|k| k.alone)))
             .cloned()
             .collect();
         if allowed.is_empty() {
             break;
         }
-        let id = pick(&mut rng, &allowed).clone();
-        truths.push(draw_effect(&mut rng, &id, &stations, &targets, &mut fx));
+        let id = random::pick(&mut rng, &allowed).clone();
+        let cx = DrawContext {
+            stations: &stations,
+            targets: &targets,
+        };
+        truths.push(draw_effect(&mut rng, &id, &cx, &mut fx));
     }
     let clean_without = simulate(
         &spec,
@@ -545,7 +440,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     };
     let mut members: Vec<Member> = Vec::new();
     for t in &truths {
-        let one = only(&t.effects, &t.effect);
+        let one = t.effects.only(&t.effect);
         members.push(Member {
             effect: t.effect.clone(),
             place: t.place.clone(),
@@ -602,22 +497,6 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     })
 }
 
-/// `fx` with only the effect `id` (and no blunder).
-fn only(fx: &Effects, id: &str) -> Effects {
-    let mut one = Effects::default();
-    match id {
-        "incidence" => one.incidence = fx.incidence.clone(),
-        "incidence-table9" => one.incidence_table9 = fx.incidence_table9.clone(),
-        "range-scale" => one.range_scale = fx.range_scale.clone(),
-        "air-refraction" => one.air_refraction = fx.air_refraction.clone(),
-        "encoder-harmonic" => one.encoder_harmonic = fx.encoder_harmonic.clone(),
-        "station-drift" => one.station_drift = fx.station_drift.clone(),
-        "target-shift" => one.target_shift = fx.target_shift.clone(),
-        _ => {}
-    }
-    one
-}
-
 /// The explanation set against what was put in: an effect is found when
 /// the set names its id, a blunder when the set names its reading.
 fn score_set(
@@ -663,7 +542,7 @@ fn score_set(
         time_effect_without_time: !timed
             && named
                 .iter()
-                .any(|r| matches!(r.effect.as_str(), "station-drift" | "air-refraction")),
+                .any(|r| effects::kind(&r.effect).is_some_and(|k| k.needs.any())),
         true_set: if members.is_empty() {
             "none".into()
         } else {

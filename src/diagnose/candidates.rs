@@ -1,6 +1,7 @@
-//! The candidate explanations: every effect of `effects.md`, and the
-//! per-station and per-reflector variants of `range-scale`, `station-drift`
-//! and `target-shift`, as signatures on the readings.
+//! The candidate explanations as signatures on the readings: each effect's
+//! own file ([`crate::effects`]) builds its candidates (every place and
+//! variant it can have) from a [`Context`]; this module holds what they
+//! share and iterates the catalogue.
 //!
 //! A signature is how the effect's parameters move each reading, in units
 //! of the reading's σ (see [`super::linear`]): an effect that adds Δ to a
@@ -9,7 +10,7 @@
 //! campaign lacks are skipped, with the reason.
 
 use super::linear::Signature;
-use crate::effects::{IncidenceAngles, incidence_angles, table9_delta_d_um};
+use crate::effects::{IncidenceAngles, incidence_angles};
 use nalgebra::{Matrix3, Vector3};
 use std::sync::Arc;
 
@@ -67,13 +68,16 @@ pub struct Skipped {
     pub reason: String,
 }
 
-fn norm(b: &[f64]) -> f64 {
+/// Magnitudes: the norm of the parameters (a vector, a sine and cosine pair).
+pub fn norm(b: &[f64]) -> f64 {
     b.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
-fn first(b: &[f64]) -> f64 {
+/// … the first parameter (the others are nuisance).
+pub fn first(b: &[f64]) -> f64 {
     b[0]
 }
-fn largest(b: &[f64]) -> f64 {
+/// … the largest in absolute value (one per station).
+pub fn largest(b: &[f64]) -> f64 {
     b.iter().fold(0.0, |m: f64, x| m.max(x.abs()))
 }
 
@@ -82,287 +86,98 @@ fn largest(b: &[f64]) -> f64 {
 pub type Magnitude = Arc<dyn Fn(&[f64]) -> f64 + Send + Sync>;
 
 /// Adds `w_d·value` to reading i's range row of column `col`.
-pub(super) fn put_d(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
+pub fn put_d(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, value_mm: f64) {
     c.add(i, 2, col, value_mm / r.sigma.z);
 }
 
 /// Adds a point displacement `s_mm` (campaign frame, per unit of the
 /// column's parameter) to reading i.
-pub(super) fn put_point(
-    c: &mut Signature,
-    i: usize,
-    r: &ReadingInfo,
-    col: usize,
-    s_mm: Vector3<f64>,
-) {
+pub fn put_point(c: &mut Signature, i: usize, r: &ReadingInfo, col: usize, s_mm: Vector3<f64>) {
     let dq = r.jinv * (r.rotation.transpose() * s_mm);
     for a in 0..3 {
         c.add(i, a, col, dq[a] / r.sigma[a]);
     }
 }
 
-/// Every candidate for these readings. `stations`, `targets`: ids by
-/// index; `station_order`: stations in the order they measured.
-pub fn build(
-    readings: &[ReadingInfo],
-    stations: &[String],
-    targets: &[String],
-    station_order: &[usize],
-    enabled: &dyn Fn(&str) -> bool,
-) -> (Vec<Candidate>, Vec<Skipped>) {
-    let mut out = Vec::new();
-    let mut skipped = Vec::new();
-    let skip = |effect: &str, reason: &str, skipped: &mut Vec<Skipped>| {
-        skipped.push(Skipped {
-            effect: effect.to_string(),
-            reason: reason.to_string(),
-        })
-    };
+/// What an effect's candidates are built from.
+pub struct Context<'a> {
+    pub readings: &'a [ReadingInfo],
+    /// Station and reflector ids by index.
+    pub stations: &'a [String],
+    pub targets: &'a [String],
+    /// Stations in the order they measured.
+    pub station_order: &'a [usize],
+}
 
-    // incidence and incidence-table9: the SMR axes. A reflector whose axis
-    // is not known (no aim point) contributes nothing to these columns: the
-    // effect is fitted on the readings whose incidence is known.
-    let known = readings.iter().filter(|r| r.incidence.is_some()).count();
-    let has_incidence = known > 0;
-    let incidence_detail = if known < readings.len() {
-        format!(
-            "fitted on the {known} of {} readings whose SMR axis is known",
-            readings.len()
-        )
-    } else {
-        String::new()
-    };
-    if enabled("incidence") {
-        if has_incidence {
-            let mut c = Signature::new(3);
-            for (i, r) in readings.iter().enumerate() {
-                let Some(a) = r.incidence else { continue };
-                put_d(&mut c, i, r, 0, 1e-3 * (1.0 - a.alpha.cos()));
-                put_d(&mut c, i, r, 1, 1e-3 * a.alpha_h.sin());
-                put_d(&mut c, i, r, 2, 1e-3 * a.alpha_v.sin());
-            }
-            out.push(Candidate {
-                effect: "incidence".into(),
-                place: "all".into(),
-                columns: c,
-                magnitude: Arc::new(first),
-                unit: "µm".into(),
-                alternatives: 1,
-                detail: incidence_detail.clone(),
-            });
-        } else {
-            skip(
-                "incidence",
-                "the SMR axes are unknown: no aim point usable in this frame and no aim rule",
-                &mut skipped,
-            );
-        }
-    }
-    if enabled("incidence-table9") {
-        if has_incidence {
-            let mut c = Signature::new(1);
-            for (i, r) in readings.iter().enumerate() {
-                let Some(a) = r.incidence else { continue };
-                if let Some(um) = table9_delta_d_um(a.alpha_v, a.alpha_h) {
-                    put_d(&mut c, i, r, 0, 1e-3 * um);
-                }
-            }
-            out.push(Candidate {
-                effect: "incidence-table9".into(),
-                place: "all".into(),
-                columns: c,
-                magnitude: Arc::new(first),
-                unit: "× Table 9".into(),
-                alternatives: 1,
-                detail: incidence_detail.clone(),
-            });
-        } else {
-            skip(
-                "incidence-table9",
-                "the SMR axes are unknown: no aim point usable in this frame and no aim rule",
-                &mut skipped,
-            );
-        }
+impl Context<'_> {
+    /// How many readings know their incidence (their SMR's axis).
+    pub fn incidence_known(&self) -> usize {
+        self.readings
+            .iter()
+            .filter(|r| r.incidence.is_some())
+            .count()
     }
 
-    // range-scale: each station alone, and every station at once.
-    if enabled("range-scale") {
-        // One ppm column per station that `col` maps to a column.
-        let scale = |n: usize, col: &dyn Fn(usize) -> Option<usize>| {
-            let mut c = Signature::new(n);
-            for (i, r) in readings.iter().enumerate() {
-                if let Some(k) = col(r.station) {
-                    put_d(&mut c, i, r, k, 1e-6 * r.d);
-                }
-            }
-            c
-        };
-        for (s, id) in stations.iter().enumerate() {
-            out.push(Candidate {
-                effect: "range-scale".into(),
-                place: id.clone(),
-                columns: scale(1, &|station| (station == s).then_some(0)),
-                magnitude: Arc::new(first),
-                unit: "ppm".into(),
-                alternatives: 1,
-                detail: String::new(),
-            });
+    /// The detail of a candidate fitted on the readings whose incidence
+    /// is known, when that is not all of them.
+    pub fn incidence_detail(&self) -> String {
+        let known = self.incidence_known();
+        if known < self.readings.len() {
+            format!(
+                "fitted on the {known} of {} readings whose SMR axis is known",
+                self.readings.len()
+            )
+        } else {
+            String::new()
         }
-        out.push(Candidate {
-            effect: "range-scale".into(),
-            place: "all".into(),
-            columns: scale(stations.len(), &Some),
-            magnitude: Arc::new(largest),
-            unit: "ppm (largest)".into(),
+    }
+}
+
+/// The candidates built so far, and those that could not be tried.
+#[derive(Default)]
+pub struct Found {
+    pub candidates: Vec<Candidate>,
+    pub skipped: Vec<Skipped>,
+}
+
+impl Found {
+    /// A candidate of one place and one alternative.
+    pub fn push(
+        &mut self,
+        effect: &str,
+        place: &str,
+        columns: Signature,
+        magnitude: Magnitude,
+        unit: &str,
+    ) {
+        self.candidates.push(Candidate {
+            effect: effect.into(),
+            place: place.into(),
+            columns,
+            magnitude,
+            unit: unit.into(),
             alternatives: 1,
             detail: String::new(),
         });
     }
 
-    // air-refraction: a scale that follows the recorded temperature.
-    if enabled("air-refraction") {
-        if readings.iter().all(|r| r.temperature_c.is_some()) {
-            let mean = readings.iter().filter_map(|r| r.temperature_c).sum::<f64>()
-                / readings.len() as f64;
-            let mut c = Signature::new(2);
-            for (i, r) in readings.iter().enumerate() {
-                let t = r.temperature_c.expect("checked");
-                put_d(&mut c, i, r, 0, 1e-6 * (t - mean) * r.d);
-                put_d(&mut c, i, r, 1, 1e-6 * r.d);
-            }
-            out.push(Candidate {
-                effect: "air-refraction".into(),
-                place: "all".into(),
-                columns: c,
-                magnitude: Arc::new(first),
-                unit: "ppm/K".into(),
-                alternatives: 1,
-                detail: String::new(),
-            });
-        } else {
-            skip(
-                "air-refraction",
-                "readings.csv has no temperature_c for every reading",
-                &mut skipped,
-            );
-        }
+    /// `effect` could not be tried, because `reason`.
+    pub fn skip(&mut self, effect: &str, reason: &str) {
+        self.skipped.push(Skipped {
+            effect: effect.into(),
+            reason: reason.into(),
+        });
     }
+}
 
-    // encoder-harmonic: orders 2–4 on each axis; the order is chosen later.
-    if enabled("encoder-harmonic") {
-        for (axis, a) in [("az", 0usize), ("el", 1usize)] {
-            for order in 2..=4u32 {
-                let mut c = Signature::new(2);
-                for (i, r) in readings.iter().enumerate() {
-                    let angle = if a == 0 { r.az } else { r.el };
-                    let k = order as f64 * angle;
-                    c.add(i, a, 0, 1e-6 * k.sin() / r.sigma[a]);
-                    c.add(i, a, 1, 1e-6 * k.cos() / r.sigma[a]);
-                }
-                out.push(Candidate {
-                    effect: "encoder-harmonic".into(),
-                    place: axis.into(),
-                    columns: c,
-                    magnitude: Arc::new(norm),
-                    unit: "µrad".into(),
-                    alternatives: 3,
-                    detail: format!("order {order}"),
-                });
-            }
-        }
+/// Every candidate of the catalogue's effects that `enabled` lets through,
+/// in the catalogue's order.
+pub fn build(cx: &Context, enabled: &dyn Fn(&str) -> bool) -> (Vec<Candidate>, Vec<Skipped>) {
+    let mut found = Found::default();
+    for kind in crate::effects::kinds().iter().filter(|k| enabled(k.id)) {
+        (kind.candidates)(cx, &mut found);
     }
-
-    // station-drift: each station, and one velocity for all.
-    if enabled("station-drift") {
-        if readings.iter().all(|r| r.since_station_s.is_some()) {
-            let drift = |c: &mut Signature, i: usize, r: &ReadingInfo| {
-                let minutes = r.since_station_s.expect("checked") / 60.0;
-                for a in 0..3 {
-                    let mut s = Vector3::zeros();
-                    // The origin moves by v·τ: the reflector seems to move by −v·τ.
-                    s[a] = -1e-3 * minutes;
-                    put_point(c, i, r, a, s);
-                }
-            };
-            for (s, id) in stations.iter().enumerate() {
-                let mut c = Signature::new(3);
-                for (i, r) in readings.iter().enumerate().filter(|(_, r)| r.station == s) {
-                    drift(&mut c, i, r);
-                }
-                out.push(Candidate {
-                    effect: "station-drift".into(),
-                    place: id.clone(),
-                    columns: c,
-                    magnitude: Arc::new(norm),
-                    unit: "µm/min".into(),
-                    alternatives: 1,
-                    detail: String::new(),
-                });
-            }
-            let mut c = Signature::new(3);
-            for (i, r) in readings.iter().enumerate() {
-                drift(&mut c, i, r);
-            }
-            out.push(Candidate {
-                effect: "station-drift".into(),
-                place: "all".into(),
-                columns: c,
-                magnitude: Arc::new(norm),
-                unit: "µm/min".into(),
-                alternatives: 1,
-                detail: String::new(),
-            });
-        } else {
-            skip(
-                "station-drift",
-                "readings.csv has no time_s for every reading",
-                &mut skipped,
-            );
-        }
-    }
-
-    // target-shift: each reflector, from each station but the first.
-    if enabled("target-shift") {
-        let n_from = station_order.len().saturating_sub(1);
-        // Each reflector's readings, ascending: a candidate visits its own.
-        let mut of_target: Vec<Vec<usize>> = vec![Vec::new(); targets.len()];
-        for (i, r) in readings.iter().enumerate() {
-            of_target[r.target].push(i);
-        }
-        // Each station's place in the measuring order.
-        let mut rank = vec![usize::MAX; stations.len()];
-        for (k, &s) in station_order.iter().enumerate() {
-            rank[s] = k;
-        }
-        for (t, id) in targets.iter().enumerate() {
-            if of_target[t].is_empty() {
-                continue;
-            }
-            for k in 1..station_order.len() {
-                let mut c = Signature::new(3);
-                for &i in &of_target[t] {
-                    let r = &readings[i];
-                    if rank[r.station] >= k {
-                        for a in 0..3 {
-                            let mut s = Vector3::zeros();
-                            s[a] = 1e-3;
-                            put_point(&mut c, i, r, a, s);
-                        }
-                    }
-                }
-                out.push(Candidate {
-                    effect: "target-shift".into(),
-                    place: id.clone(),
-                    columns: c,
-                    magnitude: Arc::new(norm),
-                    unit: "µm".into(),
-                    alternatives: n_from,
-                    detail: format!("from station {}", stations[station_order[k]]),
-                });
-            }
-        }
-    }
-    (out, skipped)
+    (found.candidates, found.skipped)
 }
 
 /// The incidence geometry of a reading from estimated positions: `n` the

@@ -970,13 +970,13 @@ impl StepContext<'_> {
                 .clone()
                 .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
             let infos = reading_infos(self.campaign, &net, &cal);
-            let (mut cands, mut skipped) = candidates::build(
-                &infos,
-                &net.stations,
-                &net.targets,
-                &self.order,
-                self.enabled,
-            );
+            let cx = candidates::Context {
+                readings: &infos,
+                stations: &net.stations,
+                targets: &net.targets,
+                station_order: &self.order,
+            };
+            let (mut cands, mut skipped) = candidates::build(&cx, self.enabled);
             let lines: Vec<Option<usize>> = self.campaign.readings.iter().map(|r| r.line).collect();
             let (hyp, hyp_skipped) = hypotheses::build(
                 &self.settings.hypotheses,

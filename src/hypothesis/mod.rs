@@ -199,7 +199,7 @@ fn content_start(src: &str, span: &Range<usize>) -> usize {
 
 /// The catalogue's ids and ltcal's own rows: a hypothesis may not take them.
 fn reserved(name: &str) -> bool {
-    crate::effects::IDS.contains(&name) || matches!(name, "blunder" | "model")
+    crate::effects::is_reserved(name) || name == "model"
 }
 
 fn valid_param_name(name: &str) -> bool {

@@ -111,7 +111,7 @@ fn default_none() -> f64 {
     0.25
 }
 pub(super) fn default_effects() -> Vec<String> {
-    effects::IDS[..7].iter().map(|s| s.to_string()).collect()
+    effects::kinds().iter().map(|k| k.id.to_string()).collect()
 }
 fn default_kinds() -> Vec<CaseKind> {
     CaseKind::ALL.to_vec()
@@ -284,13 +284,13 @@ impl StageKind for BlindCheckStage {
 pub(super) fn invalid_effects(ids: &[String]) -> Vec<Invalid> {
     ids.iter()
         .enumerate()
-        .filter(|(_, e)| !effects::IDS[..7].contains(&e.as_str()))
+        .filter(|(_, e)| effects::kind(e).is_none())
         .map(|(i, e)| {
             Invalid::new(
                 format!("effects.{i}"),
                 format!(
                     "`{e}` is not an effect to hide; one of {}",
-                    effects::IDS[..7].join(", ")
+                    effects::ids_joined()
                 ),
             )
         })

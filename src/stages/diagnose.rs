@@ -319,12 +319,12 @@ impl StageKind for DiagnoseStage {
             ));
         }
         for (i, e) in self.effects.iter().enumerate() {
-            if !(effects::IDS[..7].contains(&e.as_str()) || e == "blunder") {
+            if !(effects::kind(e).is_some() || e == "blunder") {
                 out.push(Invalid::new(
                     format!("effects.{i}"),
                     format!(
                         "`{e}` is not a candidate effect; one of {}, blunder",
-                        effects::IDS[..7].join(", ")
+                        effects::ids_joined()
                     ),
                 ));
             }

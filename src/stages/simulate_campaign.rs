@@ -36,8 +36,7 @@
 use super::measure::Faces;
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::campaign::Aim;
-use crate::effects::Injected;
-use crate::effects::{Coordinate, Effects};
+use crate::effects::{self, Coordinate, Effects, Injected};
 use crate::hypothesis::{Hypothesis, Value};
 use crate::layout::{self, Spec};
 use crate::noise::Noise;
@@ -285,18 +284,28 @@ impl StageKind for SimulateCampaignStage {
         }
         // effects.md: station-drift "needs time_s"; air-refraction's readings
         // "carry the true temperature_c column".
-        if self.effects.station_drift.is_some() && !self.record_time {
-            out.push(Invalid::new(
-                "record_time",
-                "station-drift needs `time_s` in the readings: `record_time` must be true",
-            ));
+        let needing = |what: fn(effects::Needs) -> bool| {
+            let present = self.effects.present().into_iter().map(|(id, _)| id);
+            present.filter(move |id| effects::kind(id).is_some_and(|k| what(k.needs)))
+        };
+        if !self.record_time {
+            for id in needing(|n| n.time) {
+                out.push(Invalid::new(
+                    "record_time",
+                    format!("{id} needs `time_s` in the readings: `record_time` must be true"),
+                ));
+            }
         }
-        if self.effects.air_refraction.is_some() && !self.record_temperature {
-            out.push(Invalid::new(
-                "record_temperature",
-                "air-refraction's readings carry the true `temperature_c`: \
-                 `record_temperature` must be true",
-            ));
+        if !self.record_temperature {
+            for id in needing(|n| n.temperature) {
+                out.push(Invalid::new(
+                    "record_temperature",
+                    format!(
+                        "{id}'s readings carry the true `temperature_c`: \
+                         `record_temperature` must be true"
+                    ),
+                ));
+            }
         }
         out
     }
@@ -350,7 +359,6 @@ fn truth_targets(sim: &SimulatedCampaign) -> Result<DataFrame> {
 /// station or reflector id, or `all`.
 fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Result<DataFrame> {
     let mut rows: Vec<(String, String, String, f64)> = Vec::new();
-    let fx = serde_json::to_value(&stage.effects)?;
     for b in &stage.effects.blunder {
         let (parameter, value) = match b.coordinate {
             Coordinate::Az => ("az_urad", b.size_urad),
@@ -364,45 +372,7 @@ fn truth_effects(stage: &SimulateCampaignStage, sim: &SimulatedCampaign) -> Resu
             value.unwrap_or(f64::NAN),
         ));
     }
-    for (id, params) in fx.as_object().into_iter().flatten() {
-        if id == "blunder" {
-            continue;
-        }
-        let place = params
-            .get("station")
-            .or_else(|| params.get("target"))
-            .and_then(|v| v.as_str())
-            .unwrap_or("all")
-            .to_string();
-        if id == "range-scale" {
-            for (station, ppm) in &sim.range_ppm {
-                rows.push((id.clone(), station.clone(), "ppm".into(), *ppm));
-            }
-            continue;
-        }
-        for (k, v) in params.as_object().into_iter().flatten() {
-            match v {
-                serde_json::Value::Number(n) => rows.push((
-                    id.clone(),
-                    place.clone(),
-                    k.clone(),
-                    n.as_f64().unwrap_or(f64::NAN),
-                )),
-                serde_json::Value::Array(a) => {
-                    for (i, x) in a.iter().enumerate() {
-                        let axis = ["x", "y", "z"].get(i).copied().unwrap_or("?");
-                        rows.push((
-                            id.clone(),
-                            place.clone(),
-                            format!("{k}.{axis}"),
-                            x.as_f64().unwrap_or(f64::NAN),
-                        ));
-                    }
-                }
-                _ => {}
-            }
-        }
-    }
+    rows.extend(sim.effects.truth());
     for h in stage.injected()? {
         for p in &h.params {
             match &p.value {

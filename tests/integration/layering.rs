@@ -160,3 +160,28 @@ fn hypothesis_knows_nothing_of_campaigns_the_simulation_or_the_diagnosis() {
         }
     }
 }
+
+/// ARCHITECTURE.md: only an effect's own file knows the effect — the
+/// simulator, the diagnosis, the blind check and the stages iterate the
+/// catalogue (`effects::kinds()`), so no code outside `src/effects/`
+/// matches a catalogue id.
+#[test]
+fn no_effect_id_is_matched_outside_its_plug_in() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let effects = src.join("effects");
+    let ids: Vec<&str> = ltcal::effects::kinds().iter().map(|k| k.id).collect();
+    assert!(ids.len() >= 7, "{ids:?}");
+    for f in rust_files(&src)
+        .into_iter()
+        .filter(|f| !f.starts_with(&effects))
+    {
+        let code = code(&f);
+        for id in &ids {
+            assert!(
+                !code.contains(&format!("\"{id}\"")),
+                "{} matches the effect id \"{id}\": go through effects::kinds()",
+                f.display()
+            );
+        }
+    }
+}
