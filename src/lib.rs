@@ -23,6 +23,7 @@ pub mod layout;
 pub mod mesh;
 pub mod mirror;
 pub mod noise;
+pub mod open_world;
 pub mod physical;
 pub mod pipeline;
 pub mod plots;
