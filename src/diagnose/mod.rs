@@ -63,6 +63,7 @@ pub mod f_test;
 pub mod factors;
 pub mod hypotheses;
 pub mod linear;
+pub mod localise;
 pub mod models;
 pub mod output;
 
@@ -183,6 +184,9 @@ pub struct Diagnosis {
     pub models: Vec<models::ModelFit>,
     /// The base model's held-out RMS (µm), before any member of the set.
     pub base_cv_rms_um: f64,
+    /// What the explanation set leaves, localised: each factor's best
+    /// smooth basis, most significant first ([`localise`]).
+    pub unexplained: Vec<localise::Localised>,
 }
 
 impl Diagnosis {
@@ -475,6 +479,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         &final_factors,
     ));
     rank(&mut rows);
+    let unexplained = Vec::new();
     Ok(Diagnosis {
         campaign: c.meta.name.clone(),
         rows,
@@ -498,6 +503,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         blunder_tests: scored.blunder_tests,
         models,
         base_cv_rms_um,
+        unexplained,
     })
 }
 
