@@ -380,13 +380,16 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     // little better; only a model that beats every candidate is the
     // answer).
     let first = ctx.score(&base, &members, 1, floor);
+    // … and every structure the effects leave: a wrong model must explain
+    // more than a smooth function of one factor, which an unknown effect
+    // is, or a model that absorbs part of an unknown effect is blamed.
     let best_effect_bic = first
         .rows
         .iter()
         .chain(first.blunder.as_ref().map(|b| &b.row))
         .filter(|r| r.significant)
         .map(|r| r.delta_bic)
-        .fold(f64::NEG_INFINITY, f64::max);
+        .fold(first.structure_bic, f64::max);
     // The model row is a member like any other: none with `max_steps = 0`.
     let model = model_row(&models, s.model.tracker(), floor, best_effect_bic).map(|mut r| {
         r.significant &= open;
@@ -447,7 +450,17 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         if let Some(fits) =
             compare_models(&final_state.net, &final_state, &ctx, &mut skipped_models)
         {
-            let row = model_row(&fits, s.model.tracker(), floor, f64::NEG_INFINITY);
+            let left = localise::structure(
+                &final_state.lm,
+                &final_state.members,
+                final_state.dof(),
+                s.alpha,
+                &final_state.infos,
+                &final_state.net.stations,
+                &final_state.net.targets,
+            );
+            let beat = left.map_or(f64::NEG_INFINITY, |l| l.delta_bic);
+            let row = model_row(&fits, s.model.tracker(), floor, beat);
             if let Some(row) = row.filter(|r| r.significant) {
                 return on_the_model_that_fits(c, s, row, fits);
             }
@@ -468,6 +481,20 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         &factors::factors(&final_residuals),
         s.alpha,
     );
+    let unexplained = localise::localise(
+        &localise::Rest {
+            lm: &final_state.lm,
+            members: &final_state.members,
+            chi2: final_state.lm.chi2() - final_state.members_chi2(),
+            dof: final_state.dof(),
+            cv_rms_um: final_state.cv_rms_um(),
+            floor_um: floor,
+            alpha: s.alpha,
+        },
+        &final_state.infos,
+        &final_state.net.stations,
+        &final_state.net.targets,
+    );
     rows.extend(model);
     rows.push(none_row(
         final_state.lm.chi2() - final_state.members_chi2(),
@@ -477,9 +504,9 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         final_state.cv_rms_um(),
         floor,
         &final_factors,
+        &unexplained,
     ));
     rank(&mut rows);
-    let unexplained = Vec::new();
     Ok(Diagnosis {
         campaign: c.meta.name.clone(),
         rows,
@@ -1267,6 +1294,9 @@ struct Scored {
     blunder_tests: usize,
     /// Members' columns before each candidate's.
     members_k: usize,
+    /// ΔBIC of the dominant smooth structure ([`localise::structure`]),
+    /// −∞ when none is significant.
+    structure_bic: f64,
 }
 
 /// The worst reading coordinate's test as a row.
@@ -1414,15 +1444,73 @@ impl StepContext<'_> {
     /// alternative tried, and α spent as α·2⁻ˢ over the steps so that the
     /// family-wise rate stays under α whatever the number of steps), ΔBIC,
     /// held-out score and gap; and the worst reading's w-test.
+    ///
+    /// When a smooth structure of one factor ([`localise::structure`])
+    /// explains more than every candidate and the worst reading (by ΔBIC),
+    /// the candidates and the readings are tested against the model with
+    /// that structure's columns beside the members, as a nuisance: an
+    /// effect the catalogue lacks is then not blamed on the catalogue
+    /// effect, or the blunders, that mimic part of it, while a catalogue
+    /// effect present beside it keeps its own Δχ².
     fn score(&self, st: &State, members: &[Member], step: usize, floor: f64) -> Scored {
+        let mut plain = self.score_against(st, members, step, floor, None);
+        let Some(structure) = localise::structure(
+            &st.lm,
+            &st.members,
+            st.dof(),
+            self.settings.alpha,
+            &st.infos,
+            &st.net.stations,
+            &st.net.targets,
+        ) else {
+            return plain;
+        };
+        let best = plain
+            .rows
+            .iter()
+            .chain(plain.blunder.as_ref().map(|b| &b.row))
+            .filter(|r| r.significant)
+            .map(|r| r.delta_bic)
+            .fold(f64::NEG_INFINITY, f64::max);
+        plain.structure_bic = structure.delta_bic;
+        if structure.delta_bic <= best {
+            return plain;
+        }
+        let mut against = self.score_against(st, members, step, floor, Some(&structure.columns));
+        against.structure_bic = structure.delta_bic;
+        against
+    }
+
+    /// [`StepContext::score`] against the members and `nuisance`'s columns.
+    fn score_against(
+        &self,
+        st: &State,
+        members: &[Member],
+        step: usize,
+        floor: f64,
+        nuisance: Option<&Signature>,
+    ) -> Scored {
         let lm = &st.lm;
         let alpha = self.settings.alpha;
         let spend = 2f64.powi(step.min(1000) as i32);
         let k_m = st.members.ncols();
-        let members_chi2 = st.members_chi2();
+        let against = match nuisance {
+            Some(n) => st.joint(n),
+            None => st.members.clone(),
+        };
+        let k_a = against.ncols();
+        let members_chi2 = if nuisance.is_some() {
+            lm.fit(&against).delta_chi2
+        } else {
+            st.members_chi2()
+        };
         let chi2 = lm.chi2() - members_chi2;
-        let dof = st.dof();
-        let rms_before = st.cv_rms_um();
+        let dof = st.dof().saturating_sub(k_a - k_m).max(1);
+        let rms_before = if nuisance.is_some() {
+            lm.cv_rms_um(&against)
+        } else {
+            st.cv_rms_um()
+        };
         let used: Vec<&str> = members
             .iter()
             .filter_map(|m| match m {
@@ -1435,7 +1523,7 @@ impl StepContext<'_> {
             .collect();
         let fits: Vec<linear::Fit> = open
             .par_iter()
-            .map(|&i| lm.fit(&st.joint(&st.cands[i].columns)))
+            .map(|&i| lm.fit(&Signature::concat(&against, &st.cands[i].columns)))
             .collect();
         let gain = |f: &linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
         let mut best: Vec<(usize, usize, f64)> = Vec::new();
@@ -1471,19 +1559,19 @@ impl StepContext<'_> {
                 let p = f_test::p_value(k as f64, dof_aug as f64, f_stat);
                 let p_corrected = (p * tried as f64 * spend).min(1.0);
                 let delta_bic = delta_chi2 - k as f64 * m.ln();
-                let rms_after = lm.cv_rms_um(&st.joint(&cand.columns));
+                let rms_after = lm.cv_rms_um(&Signature::concat(&against, &cand.columns));
                 let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
-                let cov = fit.cov.view((k_m, k_m), (k, k)).into_owned();
+                let cov = fit.cov.view((k_a, k_a), (k, k)).into_owned();
                 let var_factor = (rest / dof_aug as f64).max(1.0);
                 let mut row = Row {
                     rank: 0,
                     step: None,
                     effect: cand.effect.to_string(),
                     place: cand.place.clone(),
-                    magnitude: (cand.magnitude)(&fit.beta[k_m..]),
+                    magnitude: (cand.magnitude)(&fit.beta[k_a..]),
                     magnitude_u: magnitude_u(
                         cand.magnitude.as_ref(),
-                        &fit.beta[k_m..],
+                        &fit.beta[k_a..],
                         &cov,
                         var_factor,
                     ),
@@ -1502,12 +1590,15 @@ impl StepContext<'_> {
                     detail: cand.detail.clone(),
                 };
                 set_gap(&mut row, floor);
-                (row, (i, fit.beta.clone()))
+                // The members' increments and the candidate's: a nuisance's
+                // own coefficients are no member's.
+                let beta = [&fit.beta[..k_m], &fit.beta[k_a..]].concat();
+                (row, (i, beta))
             })
             .collect();
         let (rows, fits): (Vec<Row>, Vec<(usize, Vec<f64>)>) = scored.into_iter().unzip();
         let (blunder, blunder_tests) = if (self.enabled)("blunder") {
-            self.worst_reading(st, spend, rms_before, floor)
+            self.worst_reading(st, &against, spend, rms_before, floor)
         } else {
             (None, 0)
         };
@@ -1518,6 +1609,7 @@ impl StepContext<'_> {
             tried,
             blunder_tests,
             members_k: k_m,
+            structure_bic: f64::NEG_INFINITY,
         }
     }
 
@@ -1527,11 +1619,12 @@ impl StepContext<'_> {
     fn worst_reading(
         &self,
         st: &State,
+        against: &Signature,
         spend: f64,
         rms_before: f64,
         floor: f64,
     ) -> (Option<BlunderRow>, usize) {
-        let tests = st.lm.w_tests(&st.members);
+        let tests = st.lm.w_tests(against);
         let n = snooping::testable(&tests);
         let scales = w_scales(&tests);
         // The worst by its scaled w (the first of equals, as `snooping::worst`).
@@ -1562,7 +1655,7 @@ impl StepContext<'_> {
         let size = t.size_sigma * scale;
         let mut column = Signature::new(1);
         column.add(t.obs, t.coordinate, 0, 1.0);
-        let rms_after = st.lm.cv_rms_um(&st.joint(&column));
+        let rms_after = st.lm.cv_rms_um(&Signature::concat(against, &column));
         // Significance on w/k; the χ² the coordinate explains, which ranks
         // it against the effects, is its own: a gross blunder smears its
         // residual over the whole adjustment and inflates k too, and must
@@ -1668,10 +1761,26 @@ fn none_row(
     rms_before: f64,
     floor: f64,
     factor_tests: &[FactorTest],
+    unexplained: &[localise::Localised],
 ) -> Row {
-    let noise_ok = chi2_p >= alpha;
+    // A structure spread thinly over many readings can pass the global χ²
+    // test: the factors' tests decide too.
+    let structure = unexplained.iter().find(|l| l.significant);
+    let noise_ok = chi2_p >= alpha && structure.is_none();
     let place = if noise_ok {
         "all".to_string()
+    } else if let Some(l) = structure {
+        format!(
+            "unexplained structure along {}: {} explains {:.0} % of the χ² left{}",
+            l.factor,
+            l.basis,
+            100.0 * l.share,
+            if l.gap_removed_pct > 0.0 {
+                format!(" and removes {:.0} % of the held-out gap", l.gap_removed_pct)
+            } else {
+                String::new()
+            }
+        )
     } else {
         let top = factor_tests
             .iter()

@@ -111,6 +111,47 @@ pub fn where_table(d: &Diagnosis) -> Result<DataFrame> {
         .build()
 }
 
+/// `unexplained.csv`: what the explanation set leaves, per factor (its best
+/// basis), most significant first.
+pub fn unexplained_table(d: &Diagnosis) -> Result<DataFrame> {
+    let u = &d.unexplained;
+    TableBuilder::new()
+        .str("factor", &u.iter().map(|l| l.factor).collect::<Vec<_>>())
+        .str("basis", &u.iter().map(|l| l.basis.as_str()).collect::<Vec<_>>())
+        .i64("columns", u.iter().map(|l| l.columns as i64).collect())
+        .i64("alternatives", u.iter().map(|l| l.alternatives as i64).collect())
+        .f64("delta_chi2", u.iter().map(|l| l.delta_chi2).collect())
+        .f64("share", u.iter().map(|l| l.share).collect())
+        .f64("f", u.iter().map(|l| l.f).collect())
+        .f64("p", u.iter().map(|l| l.p).collect())
+        .f64("p_corrected", u.iter().map(|l| l.p_adjusted).collect())
+        .bool("significant", u.iter().map(|l| l.significant).collect())
+        .f64("gap_removed_pct", u.iter().map(|l| l.gap_removed_pct).collect())
+        .build()
+}
+
+/// `unexplained-shapes.csv`: each factor's fitted function, point by point.
+pub fn unexplained_shapes_table(d: &Diagnosis) -> Result<DataFrame> {
+    let rows: Vec<(&str, &str, &super::localise::ShapePoint, &str)> = d
+        .unexplained
+        .iter()
+        .flat_map(|l| {
+            l.shape
+                .iter()
+                .map(move |p| (l.factor, l.shape_x.as_str(), p, l.shape_unit.as_str()))
+        })
+        .collect();
+    TableBuilder::new()
+        .str("factor", &rows.iter().map(|r| r.0).collect::<Vec<_>>())
+        .str("along", &rows.iter().map(|r| r.1).collect::<Vec<_>>())
+        .str("at", &rows.iter().map(|r| r.2.at.as_str()).collect::<Vec<_>>())
+        .f64("x", rows.iter().map(|r| r.2.x).collect())
+        .f64("value", rows.iter().map(|r| r.2.value).collect())
+        .f64("value_u", rows.iter().map(|r| r.2.u).collect())
+        .str("unit", &rows.iter().map(|r| r.3).collect::<Vec<_>>())
+        .build()
+}
+
 pub fn residuals_table(d: &Diagnosis) -> Result<DataFrame> {
     let r = &d.residuals;
     let opt =
@@ -426,6 +467,31 @@ pub fn report(d: &Diagnosis) -> String {
                 s,
                 "| {} | {} | {:.3} | {:.2e} | {} | {:+.2} |",
                 t.factor, t.component, t.eta2, t.p, t.worst_group, t.worst_mean_sigma
+            );
+        }
+        s.push('\n');
+    }
+    let _ = writeln!(s, "## What is left\n");
+    let left: Vec<_> = d.unexplained.iter().filter(|l| l.significant).collect();
+    if left.is_empty() {
+        let _ = writeln!(
+            s,
+            "No factor's smooth or periodic function explains a significant part of what the explanation set leaves (each tried as extra columns of the adjustment; `unexplained.csv`).\n"
+        );
+    } else {
+        let _ = writeln!(
+            s,
+            "Each factor's best basis, fitted as extra columns of the adjustment beside the explanation set (`unexplained.csv`; the fitted shapes in `unexplained-shapes.csv`):\n\n| factor | best basis | share of the χ² left | held-out gap it removes | p (corrected) |\n|---|---|---|---|---|"
+        );
+        for l in &left {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {:.0} % | {:.0} % | {:.1e} |",
+                l.factor,
+                l.basis,
+                100.0 * l.share,
+                l.gap_removed_pct,
+                l.p_adjusted
             );
         }
         s.push('\n');

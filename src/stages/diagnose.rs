@@ -207,14 +207,20 @@ pub fn outputs(d: &Diagnosis) -> Result<StageOutput> {
             report.push_str(&format!("- {note}\n"));
         }
     }
+    let unexplained = output::unexplained_table(d)?;
+    let shapes = output::unexplained_shapes_table(d)?;
     let mut out = StageOutput::default()
         .file("diagnosis.csv".into(), output::csv(&table)?)
+        .file("unexplained.csv".into(), output::csv(&unexplained)?)
+        .file("unexplained-shapes.csv".into(), output::csv(&shapes)?)
         .file("report.md".into(), report.into_bytes())
         .table("diagnosis", table)
         .table("where", output::where_table(d)?)
         .table("residuals", output::residuals_table(d)?)
         .table("summary", output::summary_table(d)?)
-        .table("skipped", output::skipped_table(d)?);
+        .table("skipped", output::skipped_table(d)?)
+        .table("unexplained", unexplained)
+        .table("unexplained_shapes", shapes);
     for (name, svg) in figures.files {
         out = out.file(name, svg);
     }
@@ -230,12 +236,33 @@ impl StageKind for DiagnoseStage {
         "the campaign to diagnose (`import_campaign` or `simulate_campaign`)",
         campaign::TABLES,
     )];
-    const OUTPUTS: &'static [&'static str] =
-        &["diagnosis", "where", "residuals", "summary", "skipped"];
+    const OUTPUTS: &'static [&'static str] = &[
+        "diagnosis",
+        "where",
+        "residuals",
+        "summary",
+        "skipped",
+        "unexplained",
+        "unexplained_shapes",
+    ];
 
     fn columns(table: &str) -> Option<&'static [&'static str]> {
         match table {
             "diagnosis" => Some(crate::diagnose::output::DIAGNOSIS_COLUMNS),
+            "unexplained" => Some(&[
+                "factor",
+                "basis",
+                "columns",
+                "alternatives",
+                "delta_chi2",
+                "share",
+                "f",
+                "p",
+                "p_corrected",
+                "significant",
+                "gap_removed_pct",
+            ]),
+            "unexplained_shapes" => Some(&["factor", "along", "at", "x", "value", "value_u", "unit"]),
             "where" => Some(&[
                 "factor",
                 "component",
