@@ -92,19 +92,19 @@ pub struct BlindCheckStage {
     pub mc_draws: usize,
 }
 
-fn default_cases() -> usize {
+pub(super) fn default_cases() -> usize {
     200
 }
-fn default_layouts() -> Vec<Kind> {
+pub(super) fn default_layouts() -> Vec<Kind> {
     vec![Kind::Corner, Kind::Hall, Kind::CmmTable]
 }
-fn default_stations() -> [usize; 2] {
+pub(super) fn default_stations() -> [usize; 2] {
     [4, 6]
 }
-fn default_angle() -> [f64; 2] {
+pub(super) fn default_angle() -> [f64; 2] {
     [0.5, 1.5]
 }
-fn default_range() -> [f64; 2] {
+pub(super) fn default_range() -> [f64; 2] {
     [1.0, 3.0]
 }
 fn default_none() -> f64 {
@@ -116,13 +116,13 @@ pub(super) fn default_effects() -> Vec<String> {
 fn default_kinds() -> Vec<CaseKind> {
     CaseKind::ALL.to_vec()
 }
-fn default_tracker() -> f64 {
+pub(super) fn default_tracker() -> f64 {
     5.0
 }
-fn default_detect() -> f64 {
+pub(super) fn default_detect() -> f64 {
     25.0
 }
-fn default_draws() -> usize {
+pub(super) fn default_draws() -> usize {
     20
 }
 
@@ -216,42 +216,13 @@ impl StageKind for BlindCheckStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = Vec::new();
-        if !(1..=100_000).contains(&self.cases) {
-            out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
-        }
-        if self.first_case > 100_000_000 {
-            out.push(Invalid::new(
-                "first_case",
-                "`first_case` must be 0 … 100000000",
-            ));
-        }
-        if self.layouts.is_empty() {
-            out.push(Invalid::new(
-                "layouts",
-                "`layouts` needs at least one layout",
-            ));
-        }
-        if !(2 <= self.stations[0]
-            && self.stations[0] <= self.stations[1]
-            && self.stations[1] <= 20)
-        {
-            out.push(Invalid::new(
-                "stations",
-                "`stations` must be [lo, hi] with 2 ≤ lo ≤ hi ≤ 20",
-            ));
-        }
-        for (f, r) in [
-            ("noise_angle_urad", self.noise_angle_urad),
-            ("noise_range_um", self.noise_range_um),
-        ] {
-            if !(r[0] > 0.0 && r[0] <= r[1] && r[1].is_finite()) {
-                out.push(Invalid::new(
-                    f,
-                    format!("`{f}` must be [lo, hi] with 0 < lo ≤ hi"),
-                ));
-            }
-        }
+        let mut out = invalid_campaigns(
+            self.cases,
+            self.first_case,
+            &self.layouts,
+            self.stations,
+            [self.noise_angle_urad, self.noise_range_um],
+        );
         if !(0.0..=1.0).contains(&self.none_fraction) {
             out.push(Invalid::new(
                 "none_fraction",
@@ -265,12 +236,7 @@ impl StageKind for BlindCheckStage {
                 "`kinds` needs at least one kind, and not `none` (its share is `none_fraction`)",
             ));
         }
-        if !(self.tracker_sigma >= 0.0 && self.tracker_sigma.is_finite()) {
-            out.push(Invalid::new("tracker_sigma", "`tracker_sigma` must be ≥ 0"));
-        }
-        if self.detect_chi2.is_nan() || self.detect_chi2 <= 0.0 {
-            out.push(Invalid::new("detect_chi2", "`detect_chi2` must be > 0"));
-        }
+        out.extend(invalid_scoring(self.tracker_sigma, self.detect_chi2));
         out
     }
 
@@ -278,6 +244,61 @@ impl StageKind for BlindCheckStage {
         let cases = blind::run(&self.plan())?;
         scored(&cases, &self.effects)
     }
+}
+
+/// The problems of the settings that draw a check's campaigns (shared by
+/// `open_world_check`): the case range, layouts, station range and the
+/// noise ranges `[angle µrad, range µm]`.
+pub(super) fn invalid_campaigns(
+    cases: usize,
+    first_case: usize,
+    layouts: &[Kind],
+    stations: [usize; 2],
+    noise: [[f64; 2]; 2],
+) -> Vec<Invalid> {
+    let mut out = Vec::new();
+    if !(1..=100_000).contains(&cases) {
+        out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
+    }
+    if first_case > 100_000_000 {
+        out.push(Invalid::new(
+            "first_case",
+            "`first_case` must be 0 … 100000000",
+        ));
+    }
+    if layouts.is_empty() {
+        out.push(Invalid::new(
+            "layouts",
+            "`layouts` needs at least one layout",
+        ));
+    }
+    if !(2 <= stations[0] && stations[0] <= stations[1] && stations[1] <= 20) {
+        out.push(Invalid::new(
+            "stations",
+            "`stations` must be [lo, hi] with 2 ≤ lo ≤ hi ≤ 20",
+        ));
+    }
+    for (f, r) in [("noise_angle_urad", noise[0]), ("noise_range_um", noise[1])] {
+        if !(r[0] > 0.0 && r[0] <= r[1] && r[1].is_finite()) {
+            out.push(Invalid::new(
+                f,
+                format!("`{f}` must be [lo, hi] with 0 < lo ≤ hi"),
+            ));
+        }
+    }
+    out
+}
+
+/// The problems of the kinematic errors' σ and the detection threshold.
+pub(super) fn invalid_scoring(tracker_sigma: f64, detect_chi2: f64) -> Vec<Invalid> {
+    let mut out = Vec::new();
+    if !(tracker_sigma >= 0.0 && tracker_sigma.is_finite()) {
+        out.push(Invalid::new("tracker_sigma", "`tracker_sigma` must be ≥ 0"));
+    }
+    if detect_chi2.is_nan() || detect_chi2 <= 0.0 {
+        out.push(Invalid::new("detect_chi2", "`detect_chi2` must be > 0"));
+    }
+    out
 }
 
 /// The effect ids that are not effects a blind check hides, at their place.
