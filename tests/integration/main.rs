@@ -17,6 +17,7 @@ mod hypotheses;
 mod incidence;
 mod layering;
 mod layout_design;
+mod open_world_check;
 mod report;
 mod runner;
 mod sensitivity;
