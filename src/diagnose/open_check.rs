@@ -119,8 +119,10 @@ pub struct Known {
     pub has_place: bool,
     /// True magnitude, in the diagnosis's unit for the effect.
     pub magnitude: f64,
-    /// Δχ² of its unabsorbed signature, alone.
+    /// Δχ² of its unabsorbed signature, alone, and whether that reaches
+    /// the plan's `detect_chi2`.
     pub signal_chi2: f64,
+    pub detectable: bool,
     /// It is a member of the explanation set.
     pub named: bool,
     /// The diagnosis's row for it (the set member when named, else its
@@ -235,17 +237,10 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let readings = &noisy.campaign.readings;
     let signal = blind::signal_chi2(&d, &apply(&clean)?.campaign, &clean.campaign, readings);
     let known = match known {
-        Some((effect, place, magnitude, has_place)) => {
-            let with = sim(Noise::default(), &fx.only(&effect))?;
+        Some(truth) => {
+            let with = sim(Noise::default(), &fx.only(&truth.0))?;
             let signal_chi2 = blind::signal_chi2(&d, &with.campaign, &clean.campaign, readings);
-            Some(score_known(
-                &d,
-                effect,
-                place,
-                magnitude,
-                has_place,
-                signal_chi2,
-            ))
+            Some(score_known(&d, truth, signal_chi2, plan.detect_chi2))
         }
         None => None,
     };
@@ -295,13 +290,12 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
 /// The known effect against the diagnosis: named when a set member has its
 /// id (and its place, when it has one); its magnitude compared as the
 /// catalogue check compares it, on the diagnosis's row for the effect.
+/// `truth` is the effect's id, place, magnitude and whether it has a place.
 fn score_known(
     d: &Diagnosis,
-    effect: String,
-    place: String,
-    magnitude: f64,
-    has_place: bool,
+    (effect, place, magnitude, has_place): (String, String, f64, bool),
     signal_chi2: f64,
+    detect_chi2: f64,
 ) -> Known {
     let same = |r: &&super::Row| r.effect == effect && (!has_place || r.place == place);
     let member = d.explanation().find(same);
@@ -319,6 +313,7 @@ fn score_known(
         has_place,
         magnitude,
         signal_chi2,
+        detectable: signal_chi2 >= detect_chi2,
     }
 }
 
@@ -338,6 +333,10 @@ pub struct Rates {
     /// … those with a known effect, and how many of them name it;
     pub with_known: usize,
     pub known_named: usize,
+    /// … the same where the known effect is detectable on its own (an
+    /// undetectable one is rightly not named);
+    pub with_known_detectable: usize,
+    pub known_detectable_named: usize,
     /// … and of those named, how many within 3 u.
     pub within_3u: usize,
 }
@@ -360,6 +359,8 @@ impl Rates {
             if let Some(k) = &c.known {
                 a.with_known += 1;
                 a.known_named += k.named as usize;
+                a.with_known_detectable += k.detectable as usize;
+                a.known_detectable_named += (k.detectable && k.named) as usize;
                 a.within_3u += (k.within_3u == Some(true)) as usize;
             }
         }
@@ -393,6 +394,10 @@ impl Rates {
     /// Of detectable cases with a known effect.
     pub fn catalogue_named_rate(&self) -> f64 {
         Rates::share(self.known_named, self.with_known)
+    }
+    /// Of detectable cases with a known effect detectable on its own.
+    pub fn catalogue_named_detectable_rate(&self) -> f64 {
+        Rates::share(self.known_detectable_named, self.with_known_detectable)
     }
     /// Of the known effects named.
     pub fn magnitude_within_3u_rate(&self) -> f64 {

@@ -29,7 +29,7 @@
 //! `stations`, `readings`, `sigma_angle_urad`, `sigma_range_um`,
 //! `unknown`, `unknown_factor`, `unknown_description`, `signal_chi2`,
 //! `detectable`; the catalogue effect `known_effect`, `known_where`,
-//! `known_true_magnitude`, `known_signal_chi2`, `known_named`,
+//! `known_true_magnitude`, `known_signal_chi2`, `known_detectable`, `known_named`,
 //! `known_named_magnitude`, `known_magnitude_u`, `known_unit`,
 //! `magnitude_within_3u` (empty or null without one); the diagnosis
 //! `not_explained`, `catalogue_as_cause`, `top_factor`, `factor_correct`,
@@ -40,6 +40,8 @@
 //! `catalogue_as_cause_pct`, `factor_correct_pct`,
 //! `false_blunders_per_1000` clean readings, `spurious_effects_per_case`,
 //! `with_known`, `catalogue_named_pct` of those with a catalogue effect,
+//! `with_known_detectable`, `catalogue_named_detectable_pct` of those whose
+//! catalogue effect is detectable on its own,
 //! `magnitude_within_3u_pct` of those named; NaN where nothing is counted).
 //!
 //! A case is drawn from `seed` and its number alone, as in `blind_check`;
@@ -155,6 +157,7 @@ const CASES: &[&str] = &[
     "known_where",
     "known_true_magnitude",
     "known_signal_chi2",
+    "known_detectable",
     "known_named",
     "known_named_magnitude",
     "known_magnitude_u",
@@ -183,6 +186,8 @@ const SUMMARY: &[&str] = &[
     "spurious_effects_per_case",
     "with_known",
     "catalogue_named_pct",
+    "with_known_detectable",
+    "catalogue_named_detectable_pct",
     "magnitude_within_3u_pct",
 ];
 
@@ -288,6 +293,11 @@ fn summary_table(cases: &[Case]) -> Result<DataFrame> {
         )
         .i64("with_known", n(|r| r.with_known))
         .f64("catalogue_named_pct", pct(Rates::catalogue_named_rate))
+        .i64("with_known_detectable", n(|r| r.with_known_detectable))
+        .f64(
+            "catalogue_named_detectable_pct",
+            pct(Rates::catalogue_named_detectable_rate),
+        )
         .f64(
             "magnitude_within_3u_pct",
             pct(Rates::magnitude_within_3u_rate),
@@ -319,6 +329,12 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
             .map(|c| c.known.as_ref().and_then(f))
             .collect::<Vec<Option<f64>>>()
     };
+    let known_flag = |f: fn(&open_check::Known) -> Option<bool>| {
+        cases
+            .iter()
+            .map(|c| c.known.as_ref().and_then(f))
+            .collect::<Vec<Option<bool>>>()
+    };
     TableBuilder::new()
         .i64("case", n(|c| c.case))
         .str("kind", &s(|c| c.kind.name().to_string()))
@@ -336,23 +352,12 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
         .str("known_where", &known_s(|k| k.place.clone()))
         .f64("known_true_magnitude", known_x(|k| k.magnitude))
         .f64("known_signal_chi2", known_x(|k| k.signal_chi2))
-        .opt_bool(
-            "known_named",
-            cases
-                .iter()
-                .map(|c| c.known.as_ref().map(|k| k.named))
-                .collect(),
-        )
+        .opt_bool("known_detectable", known_flag(|k| Some(k.detectable)))
+        .opt_bool("known_named", known_flag(|k| Some(k.named)))
         .opt_f64("known_named_magnitude", known_opt(|k| k.named_magnitude))
         .opt_f64("known_magnitude_u", known_opt(|k| k.named_magnitude_u))
         .str("known_unit", &known_s(|k| k.unit.clone()))
-        .opt_bool(
-            "magnitude_within_3u",
-            cases
-                .iter()
-                .map(|c| c.known.as_ref().and_then(|k| k.within_3u))
-                .collect(),
-        )
+        .opt_bool("magnitude_within_3u", known_flag(|k| k.within_3u))
         .bool("not_explained", b(|c| c.not_explained))
         .bool("catalogue_as_cause", b(|c| c.catalogue_as_cause))
         .str("top_factor", &s(|c| c.top_factor.clone()))
