@@ -112,26 +112,34 @@ pub struct Plan {
     /// same cases as one check of them all.
     pub first: usize,
     pub seed: u64,
-    pub layouts: Vec<Kind>,
-    /// Station counts, drawn uniformly from this inclusive range.
-    pub stations: (usize, usize),
-    pub noise_angle_urad: (f64, f64),
-    pub noise_range_um: (f64, f64),
+    /// The campaigns' layouts, stations, noise and trackers.
+    pub campaigns: Campaigns,
     /// Share of effect-free campaigns.
     pub none_fraction: f64,
     /// Effect ids to draw from.
     pub effects: Vec<String>,
     /// Kinds of case to draw from (besides `none`).
     pub kinds: Vec<CaseKind>,
+    pub detect_chi2: f64,
+    /// Monte Carlo draws per diagnosis.
+    pub mc_draws: usize,
+}
+
+/// How a check draws each case's campaign (this check's and the
+/// open-world check's, [`super::open_check`]).
+#[derive(Clone, Debug)]
+pub struct Campaigns {
+    pub layouts: Vec<Kind>,
+    /// Station counts, drawn uniformly from this inclusive range.
+    pub stations: (usize, usize),
+    pub noise_angle_urad: (f64, f64),
+    pub noise_range_um: (f64, f64),
     /// The trackers' model, which the diagnosis fits (its default: the
     /// campaign's `[tracker] model`).
     pub tracker: TrackerModel,
     /// Kinematic error parameters of each tracker: Gaussian, this σ in µm
     /// and µrad (a factory-compensated tracker has a few).
     pub tracker_sigma: f64,
-    pub detect_chi2: f64,
-    /// Monte Carlo draws per diagnosis.
-    pub mc_draws: usize,
 }
 
 /// One thing put into a case: an effect or a blunder.
@@ -283,32 +291,20 @@ pub(super) struct Setting {
 }
 
 impl Setting {
-    /// `stations` is an inclusive range; the noise σ are drawn uniformly
-    /// from their ranges; every error parameter of `tracker`'s model is
-    /// Gaussian with σ `tracker_sigma` (µm, µrad).
-    pub(super) fn draw(
-        rng: &mut ChaCha8Rng,
-        layouts: &[Kind],
-        stations: (usize, usize),
-        noise_angle_urad: (f64, f64),
-        noise_range_um: (f64, f64),
-        tracker: TrackerModel,
-        tracker_sigma: f64,
-    ) -> Setting {
-        let layout_kind = *random::pick(rng, layouts);
-        let n_st = stations.0
-            + ((random::uniform(rng) * (stations.1 - stations.0 + 1) as f64) as usize)
-                .min(stations.1 - stations.0);
+    pub(super) fn draw(rng: &mut ChaCha8Rng, how: &Campaigns) -> Setting {
+        let layout_kind = *random::pick(rng, &how.layouts);
+        let (lo, hi) = how.stations;
+        let n_st = lo + ((random::uniform(rng) * (hi - lo + 1) as f64) as usize).min(hi - lo);
         let mut spec = Spec::new(layout_kind);
         spec.stations = n_st;
         let noise = Noise {
-            sigma_angle_urad: random::between(rng, noise_angle_urad),
-            sigma_range_um: random::between(rng, noise_range_um),
+            sigma_angle_urad: random::between(rng, how.noise_angle_urad),
+            sigma_range_um: random::between(rng, how.noise_range_um),
             sigma_range_ppm: 0.3,
         };
-        let mut errors = ErrorParams::zero(&ErrorModel::of(tracker));
+        let mut errors = ErrorParams::zero(&ErrorModel::of(how.tracker));
         for v in errors.values_mut() {
-            *v = tracker_sigma * random::normal(rng);
+            *v = how.tracker_sigma * random::normal(rng);
         }
         let lay = layout::build(&spec);
         Setting {
@@ -425,15 +421,7 @@ pub(super) fn signal_chi2(
 /// Runs one case.
 fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let mut rng = random::stream(plan.seed, &format!("blind-check-{case}"));
-    let setting = Setting::draw(
-        &mut rng,
-        &plan.layouts,
-        plan.stations,
-        plan.noise_angle_urad,
-        plan.noise_range_um,
-        plan.tracker,
-        plan.tracker_sigma,
-    );
+    let setting = Setting::draw(&mut rng, &plan.campaigns);
     let Setting {
         stations: n_st,
         spec,
@@ -501,7 +489,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         noise,
     );
     let noisy = simulate(spec, errors, noise, &fx, seed, how)?;
-    let d = diagnose_blind(&noisy.campaign, plan.tracker, plan.mc_draws, seed)?;
+    let d = diagnose_blind(&noisy.campaign, plan.campaigns.tracker, plan.mc_draws, seed)?;
     // Each member's signal, alone.
     let readings = &noisy.campaign.readings;
     let signal_of = |one: &Effects| -> Result<f64> {

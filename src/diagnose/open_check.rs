@@ -46,14 +46,12 @@
 //! catalogue effect.
 
 use super::Diagnosis;
-use super::blind::{self, Measuring, Setting};
+use super::blind::{self, Campaigns, Measuring, Setting};
 use crate::effects::{self, DrawContext, Effects};
-use crate::layout::Kind as LayoutKind;
 use crate::noise::Noise;
 use crate::open_world::{self, OpenEffect};
 use crate::random;
 use crate::simulate::SimulatedCampaign;
-use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow};
 use rayon::prelude::*;
 
@@ -89,20 +87,14 @@ pub struct Plan {
     /// number)` alone.
     pub first: usize,
     pub seed: u64,
-    pub layouts: Vec<LayoutKind>,
-    /// Station counts, drawn uniformly from this inclusive range.
-    pub stations: (usize, usize),
-    pub noise_angle_urad: (f64, f64),
-    pub noise_range_um: (f64, f64),
+    /// The campaigns' layouts, stations, noise and trackers, drawn as the
+    /// catalogue check draws them.
+    pub campaigns: Campaigns,
     pub kinds: Vec<CaseKind>,
     /// Open-world effects to draw from.
     pub unknowns: Vec<open_world::Kind>,
     /// Catalogue effect ids to draw from in `unknown-and-effect` cases.
     pub effects: Vec<String>,
-    /// The trackers' model, which the diagnosis fits.
-    pub tracker: TrackerModel,
-    /// σ of every kinematic error parameter, µm and µrad.
-    pub tracker_sigma: f64,
     pub detect_chi2: f64,
     /// Monte Carlo draws per diagnosis.
     pub mc_draws: usize,
@@ -186,15 +178,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         ));
     }
     let mut rng = random::stream(plan.seed, &format!("open-world-{case}"));
-    let setting = Setting::draw(
-        &mut rng,
-        &plan.layouts,
-        plan.stations,
-        plan.noise_angle_urad,
-        plan.noise_range_um,
-        plan.tracker,
-        plan.tracker_sigma,
-    );
+    let setting = Setting::draw(&mut rng, &plan.campaigns);
     let kind = *random::pick(&mut rng, &plan.kinds);
     let unknown_kind = *random::pick(&mut rng, &plan.unknowns);
     let how = Measuring {
@@ -233,7 +217,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
             .map_err(|e| anyhow!(e))
     };
     let noisy = apply(&measured)?;
-    let d = blind::diagnose_blind(&noisy.campaign, plan.tracker, plan.mc_draws, seed)?;
+    let d = blind::diagnose_blind(&noisy.campaign, plan.campaigns.tracker, plan.mc_draws, seed)?;
     let readings = &noisy.campaign.readings;
     let signal = blind::signal_chi2(&d, &apply(&clean)?.campaign, &clean.campaign, readings);
     let known = match known {

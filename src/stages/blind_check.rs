@@ -49,7 +49,7 @@
 //! readings, `time_effects_without_time`) and the figure `confusion.svg`.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
-use crate::diagnose::blind::{self, Case, CaseKind, Plan, Score, SetAccuracy};
+use crate::diagnose::blind::{self, Campaigns, Case, CaseKind, Plan, Score, SetAccuracy};
 use crate::effects;
 use crate::layout::Kind;
 use crate::plots;
@@ -127,20 +127,28 @@ pub(super) fn default_draws() -> usize {
 }
 
 impl BlindCheckStage {
+    fn campaign_settings(&self) -> CampaignSettings<'_> {
+        CampaignSettings {
+            cases: self.cases,
+            first_case: self.first_case,
+            layouts: &self.layouts,
+            stations: self.stations,
+            noise_angle_urad: self.noise_angle_urad,
+            noise_range_um: self.noise_range_um,
+            model: self.model,
+            tracker_sigma: self.tracker_sigma,
+        }
+    }
+
     pub fn plan(&self) -> Plan {
         Plan {
             cases: self.cases,
             first: self.first_case,
             seed: self.seed,
-            layouts: self.layouts.clone(),
-            stations: (self.stations[0], self.stations[1]),
-            noise_angle_urad: (self.noise_angle_urad[0], self.noise_angle_urad[1]),
-            noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
+            campaigns: self.campaign_settings().campaigns(),
             none_fraction: self.none_fraction,
             effects: self.effects.clone(),
             kinds: self.kinds.clone(),
-            tracker: self.model,
-            tracker_sigma: self.tracker_sigma,
             detect_chi2: self.detect_chi2,
             mc_draws: self.mc_draws,
         }
@@ -216,13 +224,7 @@ impl StageKind for BlindCheckStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = invalid_campaigns(
-            self.cases,
-            self.first_case,
-            &self.layouts,
-            self.stations,
-            [self.noise_angle_urad, self.noise_range_um],
-        );
+        let mut out = self.campaign_settings().invalid();
         if !(0.0..=1.0).contains(&self.none_fraction) {
             out.push(Invalid::new(
                 "none_fraction",
@@ -246,47 +248,73 @@ impl StageKind for BlindCheckStage {
     }
 }
 
-/// The problems of the settings that draw a check's campaigns (shared by
-/// `open_world_check`): the case range, layouts, station range and the
-/// noise ranges `[angle µrad, range µm]`.
-pub(super) fn invalid_campaigns(
-    cases: usize,
-    first_case: usize,
-    layouts: &[Kind],
-    stations: [usize; 2],
-    noise: [[f64; 2]; 2],
-) -> Vec<Invalid> {
-    let mut out = Vec::new();
-    if !(1..=100_000).contains(&cases) {
-        out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
-    }
-    if first_case > 100_000_000 {
-        out.push(Invalid::new(
-            "first_case",
-            "`first_case` must be 0 … 100000000",
-        ));
-    }
-    if layouts.is_empty() {
-        out.push(Invalid::new(
-            "layouts",
-            "`layouts` needs at least one layout",
-        ));
-    }
-    if !(2 <= stations[0] && stations[0] <= stations[1] && stations[1] <= 20) {
-        out.push(Invalid::new(
-            "stations",
-            "`stations` must be [lo, hi] with 2 ≤ lo ≤ hi ≤ 20",
-        ));
-    }
-    for (f, r) in [("noise_angle_urad", noise[0]), ("noise_range_um", noise[1])] {
-        if !(r[0] > 0.0 && r[0] <= r[1] && r[1].is_finite()) {
+/// The settings a check draws its campaigns with, as `blind_check` and
+/// `open_world_check` both write them: one checking and one conversion for
+/// both.
+pub(super) struct CampaignSettings<'a> {
+    pub cases: usize,
+    pub first_case: usize,
+    pub layouts: &'a [Kind],
+    pub stations: [usize; 2],
+    pub noise_angle_urad: [f64; 2],
+    pub noise_range_um: [f64; 2],
+    pub model: TrackerModel,
+    pub tracker_sigma: f64,
+}
+
+impl CampaignSettings<'_> {
+    /// The problems of the case range, layouts, station range and noise
+    /// ranges (`tracker_sigma`'s: [`invalid_scoring`]).
+    pub(super) fn invalid(&self) -> Vec<Invalid> {
+        let mut out = Vec::new();
+        if !(1..=100_000).contains(&self.cases) {
+            out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
+        }
+        if self.first_case > 100_000_000 {
             out.push(Invalid::new(
-                f,
-                format!("`{f}` must be [lo, hi] with 0 < lo ≤ hi"),
+                "first_case",
+                "`first_case` must be 0 … 100000000",
             ));
         }
+        if self.layouts.is_empty() {
+            out.push(Invalid::new(
+                "layouts",
+                "`layouts` needs at least one layout",
+            ));
+        }
+        if !(2 <= self.stations[0]
+            && self.stations[0] <= self.stations[1]
+            && self.stations[1] <= 20)
+        {
+            out.push(Invalid::new(
+                "stations",
+                "`stations` must be [lo, hi] with 2 ≤ lo ≤ hi ≤ 20",
+            ));
+        }
+        for (f, r) in [
+            ("noise_angle_urad", self.noise_angle_urad),
+            ("noise_range_um", self.noise_range_um),
+        ] {
+            if !(r[0] > 0.0 && r[0] <= r[1] && r[1].is_finite()) {
+                out.push(Invalid::new(
+                    f,
+                    format!("`{f}` must be [lo, hi] with 0 < lo ≤ hi"),
+                ));
+            }
+        }
+        out
     }
-    out
+
+    pub(super) fn campaigns(&self) -> Campaigns {
+        Campaigns {
+            layouts: self.layouts.to_vec(),
+            stations: (self.stations[0], self.stations[1]),
+            noise_angle_urad: (self.noise_angle_urad[0], self.noise_angle_urad[1]),
+            noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
+            tracker: self.model,
+            tracker_sigma: self.tracker_sigma,
+        }
+    }
 }
 
 /// The problems of the kinematic errors' σ and the detection threshold.

@@ -51,8 +51,8 @@
 // The same defaults and checks as `blind_check`'s, so that the two checks
 // draw comparable campaigns.
 use super::blind_check::{
-    default_angle, default_cases, default_detect, default_draws, default_layouts, default_range,
-    default_stations, default_tracker, invalid_campaigns, invalid_effects, invalid_scoring,
+    CampaignSettings, default_angle, default_cases, default_detect, default_draws, default_layouts,
+    default_range, default_stations, default_tracker, invalid_effects, invalid_scoring,
 };
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::diagnose::open_check::{self, Case, CaseKind, Plan, Rates};
@@ -114,6 +114,19 @@ fn default_effects() -> Vec<String> {
         .collect()
 }
 impl OpenWorldCheckStage {
+    fn campaign_settings(&self) -> CampaignSettings<'_> {
+        CampaignSettings {
+            cases: self.cases,
+            first_case: self.first_case,
+            layouts: &self.layouts,
+            stations: self.stations,
+            noise_angle_urad: self.noise_angle_urad,
+            noise_range_um: self.noise_range_um,
+            model: self.model,
+            tracker_sigma: self.tracker_sigma,
+        }
+    }
+
     /// The plan of the settings (after [`StageKind::validate`]: every
     /// unknown id parses).
     pub fn plan(&self) -> Plan {
@@ -121,10 +134,7 @@ impl OpenWorldCheckStage {
             cases: self.cases,
             first: self.first_case,
             seed: self.seed,
-            layouts: self.layouts.clone(),
-            stations: (self.stations[0], self.stations[1]),
-            noise_angle_urad: (self.noise_angle_urad[0], self.noise_angle_urad[1]),
-            noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
+            campaigns: self.campaign_settings().campaigns(),
             kinds: self.kinds.clone(),
             unknowns: self
                 .unknowns
@@ -132,8 +142,6 @@ impl OpenWorldCheckStage {
                 .filter_map(|u| open_world::parse(u))
                 .collect(),
             effects: self.effects.clone(),
-            tracker: self.model,
-            tracker_sigma: self.tracker_sigma,
             detect_chi2: self.detect_chi2,
             mc_draws: self.mc_draws,
         }
@@ -207,13 +215,7 @@ impl StageKind for OpenWorldCheckStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
-        let mut out = invalid_campaigns(
-            self.cases,
-            self.first_case,
-            &self.layouts,
-            self.stations,
-            [self.noise_angle_urad, self.noise_range_um],
-        );
+        let mut out = self.campaign_settings().invalid();
         if self.kinds.is_empty() {
             out.push(Invalid::new("kinds", "`kinds` needs at least one kind"));
         }
