@@ -112,26 +112,34 @@ pub struct Plan {
     /// same cases as one check of them all.
     pub first: usize,
     pub seed: u64,
-    pub layouts: Vec<Kind>,
-    /// Station counts, drawn uniformly from this inclusive range.
-    pub stations: (usize, usize),
-    pub noise_angle_urad: (f64, f64),
-    pub noise_range_um: (f64, f64),
+    /// The campaigns' layouts, stations, noise and trackers.
+    pub campaigns: Campaigns,
     /// Share of effect-free campaigns.
     pub none_fraction: f64,
     /// Effect ids to draw from.
     pub effects: Vec<String>,
     /// Kinds of case to draw from (besides `none`).
     pub kinds: Vec<CaseKind>,
+    pub detect_chi2: f64,
+    /// Monte Carlo draws per diagnosis.
+    pub mc_draws: usize,
+}
+
+/// How a check draws each case's campaign (this check's and the
+/// open-world check's, [`super::open_check`]).
+#[derive(Clone, Debug)]
+pub struct Campaigns {
+    pub layouts: Vec<Kind>,
+    /// Station counts, drawn uniformly from this inclusive range.
+    pub stations: (usize, usize),
+    pub noise_angle_urad: (f64, f64),
+    pub noise_range_um: (f64, f64),
     /// The trackers' model, which the diagnosis fits (its default: the
     /// campaign's `[tracker] model`).
     pub tracker: TrackerModel,
     /// Kinematic error parameters of each tracker: Gaussian, this σ in µm
     /// and µrad (a factory-compensated tracker has a few).
     pub tracker_sigma: f64,
-    pub detect_chi2: f64,
-    /// Monte Carlo draws per diagnosis.
-    pub mc_draws: usize,
 }
 
 /// One thing put into a case: an effect or a blunder.
@@ -262,12 +270,85 @@ fn draw_blunders(
 
 /// How a case's campaign is measured.
 #[derive(Clone, Copy)]
-struct Measuring {
-    two_face: bool,
-    timed: bool,
+pub(super) struct Measuring {
+    pub two_face: bool,
+    pub timed: bool,
 }
 
-fn simulate(
+/// What every case of a check draws first, in this order from its stream:
+/// the layout, the station count, the noise and the tracker's kinematic
+/// errors. Shared with the open-world check ([`super::open_check`]) so
+/// that both checks draw their campaigns alike.
+pub(super) struct Setting {
+    pub layout: Kind,
+    pub stations: usize,
+    pub spec: Spec,
+    pub noise: Noise,
+    pub errors: ErrorParams,
+    /// Station and reflector ids of the layout, for the effects' draws.
+    pub station_ids: Vec<String>,
+    pub target_ids: Vec<String>,
+}
+
+impl Setting {
+    pub(super) fn draw(rng: &mut ChaCha8Rng, how: &Campaigns) -> Setting {
+        let layout_kind = *random::pick(rng, &how.layouts);
+        let (lo, hi) = how.stations;
+        let n_st = lo + ((random::uniform(rng) * (hi - lo + 1) as f64) as usize).min(hi - lo);
+        let mut spec = Spec::new(layout_kind);
+        spec.stations = n_st;
+        let noise = Noise {
+            sigma_angle_urad: random::between(rng, how.noise_angle_urad),
+            sigma_range_um: random::between(rng, how.noise_range_um),
+            sigma_range_ppm: 0.3,
+        };
+        let mut errors = ErrorParams::zero(&ErrorModel::of(how.tracker));
+        for v in errors.values_mut() {
+            *v = how.tracker_sigma * random::normal(rng);
+        }
+        let lay = layout::build(&spec);
+        Setting {
+            layout: layout_kind,
+            stations: n_st,
+            spec,
+            noise,
+            errors,
+            station_ids: lay.stations.iter().map(|s| s.0.clone()).collect(),
+            target_ids: lay.targets.iter().map(|t| t.0.clone()).collect(),
+        }
+    }
+
+    /// The layout's name as tables write it.
+    pub(super) fn layout_name(&self) -> String {
+        format!("{:?}", self.layout).to_lowercase()
+    }
+}
+
+/// The seed of case `case`'s simulation and diagnosis.
+pub(super) fn case_seed(seed: u64, case: usize) -> u64 {
+    seed.wrapping_mul(1_000_003).wrapping_add(case as u64)
+}
+
+/// A case's campaign diagnosed blind: the default settings but the
+/// trackers' model, the Monte Carlo draws and the seed.
+pub(super) fn diagnose_blind(
+    c: &Campaign,
+    tracker: TrackerModel,
+    mc_draws: usize,
+    seed: u64,
+) -> Result<Diagnosis> {
+    diagnose(
+        c,
+        &DiagnoseSettings {
+            model: ErrorModel::of(tracker),
+            mc_draws,
+            seed,
+            ..DiagnoseSettings::default()
+        },
+    )
+}
+
+pub(super) fn simulate(
     spec: &Spec,
     errors: &ErrorParams,
     noise: Noise,
@@ -309,7 +390,7 @@ fn key(r: &CampaignReading) -> Key {
 /// The effect's Δχ² on the readings once the base adjustment has absorbed
 /// what it can: `‖P⊥·W·Δ‖²` with Δ the noise-free difference of the
 /// readings with and without the effect.
-fn signal_chi2(
+pub(super) fn signal_chi2(
     d: &Diagnosis,
     with: &Campaign,
     without: &Campaign,
@@ -340,24 +421,17 @@ fn signal_chi2(
 /// Runs one case.
 fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let mut rng = random::stream(plan.seed, &format!("blind-check-{case}"));
-    let layout_kind = *random::pick(&mut rng, &plan.layouts);
-    let n_st = plan.stations.0
-        + ((random::uniform(&mut rng) * (plan.stations.1 - plan.stations.0 + 1) as f64) as usize)
-            .min(plan.stations.1 - plan.stations.0);
-    let mut spec = Spec::new(layout_kind);
-    spec.stations = n_st;
-    let noise = Noise {
-        sigma_angle_urad: random::between(&mut rng, plan.noise_angle_urad),
-        sigma_range_um: random::between(&mut rng, plan.noise_range_um),
-        sigma_range_ppm: 0.3,
-    };
-    let mut errors = ErrorParams::zero(&ErrorModel::of(plan.tracker));
-    for v in errors.values_mut() {
-        *v = plan.tracker_sigma * random::normal(&mut rng);
-    }
-    let lay = layout::build(&spec);
-    let stations: Vec<String> = lay.stations.iter().map(|s| s.0.clone()).collect();
-    let targets: Vec<String> = lay.targets.iter().map(|t| t.0.clone()).collect();
+    let setting = Setting::draw(&mut rng, &plan.campaigns);
+    let Setting {
+        stations: n_st,
+        spec,
+        noise,
+        errors,
+        station_ids: stations,
+        target_ids: targets,
+        ..
+    } = &setting;
+    let (n_st, noise) = (*n_st, *noise);
     let kind = if random::uniform(&mut rng) < plan.none_fraction || plan.effects.is_empty() {
         CaseKind::None
     } else {
@@ -367,7 +441,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         two_face: kind == CaseKind::TwoFace,
         timed: kind != CaseKind::NoTime,
     };
-    let seed = plan.seed.wrapping_mul(1_000_003).wrapping_add(case as u64);
+    let seed = case_seed(plan.seed, case);
     // The effects: ids drawn without repeats, from those the file can
     // carry (none that needs time or temperature without them), and an
     // effect drawn only alone not beside another.
@@ -392,15 +466,12 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
             break;
         }
         let id = random::pick(&mut rng, &allowed).clone();
-        let cx = DrawContext {
-            stations: &stations,
-            targets: &targets,
-        };
+        let cx = DrawContext { stations, targets };
         truths.push(draw_effect(&mut rng, &id, &cx, &mut fx));
     }
     let clean_without = simulate(
-        &spec,
-        &errors,
+        spec,
+        errors,
         Noise::default(),
         &Effects::default(),
         seed,
@@ -417,20 +488,12 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         &clean_without.campaign.readings,
         noise,
     );
-    let noisy = simulate(&spec, &errors, noise, &fx, seed, how)?;
-    let d = diagnose(
-        &noisy.campaign,
-        &DiagnoseSettings {
-            model: ErrorModel::of(plan.tracker),
-            mc_draws: plan.mc_draws,
-            seed,
-            ..DiagnoseSettings::default()
-        },
-    )?;
+    let noisy = simulate(spec, errors, noise, &fx, seed, how)?;
+    let d = diagnose_blind(&noisy.campaign, plan.campaigns.tracker, plan.mc_draws, seed)?;
     // Each member's signal, alone.
     let readings = &noisy.campaign.readings;
     let signal_of = |one: &Effects| -> Result<f64> {
-        let with = simulate(&spec, &errors, Noise::default(), one, seed, how)?;
+        let with = simulate(spec, errors, Noise::default(), one, seed, how)?;
         Ok(signal_chi2(
             &d,
             &with.campaign,
@@ -479,7 +542,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     Ok(Case {
         case,
         kind,
-        layout: format!("{layout_kind:?}").to_lowercase(),
+        layout: setting.layout_name(),
         stations: n_st,
         readings: readings.len(),
         sigma_angle_urad: noise.sigma_angle_urad,

@@ -65,6 +65,7 @@ pub mod hypotheses;
 pub mod linear;
 pub mod localise;
 pub mod models;
+pub mod open_check;
 pub mod output;
 
 use crate::calibrate::snooping::{self, WTest};

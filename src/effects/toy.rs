@@ -57,7 +57,7 @@ impl Effect for ToyRange {
 #[cfg(test)]
 mod tests {
     use crate::campaign::Aim;
-    use crate::diagnose::blind::{self, CaseKind, Plan};
+    use crate::diagnose::blind::{self, Campaigns, CaseKind, Plan};
     use crate::diagnose::{self, Settings};
     use crate::effects::Effects;
     use crate::kinematics::Face;
@@ -130,15 +130,17 @@ mod tests {
             cases: 6,
             first: 0,
             seed: 11,
-            layouts: vec![Kind::Corner],
-            stations: (4, 5),
-            noise_angle_urad: (0.5, 1.0),
-            noise_range_um: (1.0, 2.0),
+            campaigns: Campaigns {
+                layouts: vec![Kind::Corner],
+                stations: (4, 5),
+                noise_angle_urad: (0.5, 1.0),
+                noise_range_um: (1.0, 2.0),
+                tracker: TrackerModel::ApiTracker3,
+                tracker_sigma: 5.0,
+            },
             none_fraction: 0.0,
             effects: vec!["toy-range".into()],
             kinds: vec![CaseKind::Single],
-            tracker: TrackerModel::ApiTracker3,
-            tracker_sigma: 5.0,
             detect_chi2: 25.0,
             mc_draws: 0,
         };

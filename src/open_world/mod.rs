@@ -467,7 +467,7 @@ mod tests {
             assert_eq!(parse(id), Some(*k));
             assert!(FACTORS.contains(&k.factor()), "{id}");
         }
-        assert_eq!(parse("incidence"), None);
+        assert_eq!(parse("blunder"), None);
         assert_eq!(Kind::TripodKnock.factor(), "station × time");
         assert_eq!(Kind::AdmCyclic.factor(), "range");
         assert_eq!(Kind::PartExpansion.factor(), "time");

@@ -49,7 +49,7 @@
 //! readings, `time_effects_without_time`) and the figure `confusion.svg`.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
-use crate::diagnose::blind::{self, Case, CaseKind, Plan, Score, SetAccuracy};
+use crate::diagnose::blind::{self, Campaigns, Case, CaseKind, Plan, Score, SetAccuracy};
 use crate::effects;
 use crate::layout::Kind;
 use crate::plots;
@@ -92,19 +92,19 @@ pub struct BlindCheckStage {
     pub mc_draws: usize,
 }
 
-fn default_cases() -> usize {
+pub(super) fn default_cases() -> usize {
     200
 }
-fn default_layouts() -> Vec<Kind> {
+pub(super) fn default_layouts() -> Vec<Kind> {
     vec![Kind::Corner, Kind::Hall, Kind::CmmTable]
 }
-fn default_stations() -> [usize; 2] {
+pub(super) fn default_stations() -> [usize; 2] {
     [4, 6]
 }
-fn default_angle() -> [f64; 2] {
+pub(super) fn default_angle() -> [f64; 2] {
     [0.5, 1.5]
 }
-fn default_range() -> [f64; 2] {
+pub(super) fn default_range() -> [f64; 2] {
     [1.0, 3.0]
 }
 fn default_none() -> f64 {
@@ -116,31 +116,39 @@ pub(super) fn default_effects() -> Vec<String> {
 fn default_kinds() -> Vec<CaseKind> {
     CaseKind::ALL.to_vec()
 }
-fn default_tracker() -> f64 {
+pub(super) fn default_tracker() -> f64 {
     5.0
 }
-fn default_detect() -> f64 {
+pub(super) fn default_detect() -> f64 {
     25.0
 }
-fn default_draws() -> usize {
+pub(super) fn default_draws() -> usize {
     20
 }
 
 impl BlindCheckStage {
+    fn campaign_settings(&self) -> CampaignSettings<'_> {
+        CampaignSettings {
+            cases: self.cases,
+            first_case: self.first_case,
+            layouts: &self.layouts,
+            stations: self.stations,
+            noise_angle_urad: self.noise_angle_urad,
+            noise_range_um: self.noise_range_um,
+            model: self.model,
+            tracker_sigma: self.tracker_sigma,
+        }
+    }
+
     pub fn plan(&self) -> Plan {
         Plan {
             cases: self.cases,
             first: self.first_case,
             seed: self.seed,
-            layouts: self.layouts.clone(),
-            stations: (self.stations[0], self.stations[1]),
-            noise_angle_urad: (self.noise_angle_urad[0], self.noise_angle_urad[1]),
-            noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
+            campaigns: self.campaign_settings().campaigns(),
             none_fraction: self.none_fraction,
             effects: self.effects.clone(),
             kinds: self.kinds.clone(),
-            tracker: self.model,
-            tracker_sigma: self.tracker_sigma,
             detect_chi2: self.detect_chi2,
             mc_draws: self.mc_draws,
         }
@@ -216,6 +224,48 @@ impl StageKind for BlindCheckStage {
     }
 
     fn validate(&self) -> Vec<Invalid> {
+        let mut out = self.campaign_settings().invalid();
+        if !(0.0..=1.0).contains(&self.none_fraction) {
+            out.push(Invalid::new(
+                "none_fraction",
+                "`none_fraction` must lie in [0, 1]",
+            ));
+        }
+        out.extend(invalid_effects(&self.effects));
+        if self.kinds.is_empty() || self.kinds.contains(&CaseKind::None) {
+            out.push(Invalid::new(
+                "kinds",
+                "`kinds` needs at least one kind, and not `none` (its share is `none_fraction`)",
+            ));
+        }
+        out.extend(invalid_scoring(self.tracker_sigma, self.detect_chi2));
+        out
+    }
+
+    fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
+        let cases = blind::run(&self.plan())?;
+        scored(&cases, &self.effects)
+    }
+}
+
+/// The settings a check draws its campaigns with, as `blind_check` and
+/// `open_world_check` both write them: one checking and one conversion for
+/// both.
+pub(super) struct CampaignSettings<'a> {
+    pub cases: usize,
+    pub first_case: usize,
+    pub layouts: &'a [Kind],
+    pub stations: [usize; 2],
+    pub noise_angle_urad: [f64; 2],
+    pub noise_range_um: [f64; 2],
+    pub model: TrackerModel,
+    pub tracker_sigma: f64,
+}
+
+impl CampaignSettings<'_> {
+    /// The problems of the case range, layouts, station range and noise
+    /// ranges (`tracker_sigma`'s: [`invalid_scoring`]).
+    pub(super) fn invalid(&self) -> Vec<Invalid> {
         let mut out = Vec::new();
         if !(1..=100_000).contains(&self.cases) {
             out.push(Invalid::new("cases", "`cases` must be 1 … 100000"));
@@ -252,32 +302,31 @@ impl StageKind for BlindCheckStage {
                 ));
             }
         }
-        if !(0.0..=1.0).contains(&self.none_fraction) {
-            out.push(Invalid::new(
-                "none_fraction",
-                "`none_fraction` must lie in [0, 1]",
-            ));
-        }
-        out.extend(invalid_effects(&self.effects));
-        if self.kinds.is_empty() || self.kinds.contains(&CaseKind::None) {
-            out.push(Invalid::new(
-                "kinds",
-                "`kinds` needs at least one kind, and not `none` (its share is `none_fraction`)",
-            ));
-        }
-        if !(self.tracker_sigma >= 0.0 && self.tracker_sigma.is_finite()) {
-            out.push(Invalid::new("tracker_sigma", "`tracker_sigma` must be ≥ 0"));
-        }
-        if self.detect_chi2.is_nan() || self.detect_chi2 <= 0.0 {
-            out.push(Invalid::new("detect_chi2", "`detect_chi2` must be > 0"));
-        }
         out
     }
 
-    fn run(&self, _: &Context, _: &StageInputs) -> Result<StageOutput> {
-        let cases = blind::run(&self.plan())?;
-        scored(&cases, &self.effects)
+    pub(super) fn campaigns(&self) -> Campaigns {
+        Campaigns {
+            layouts: self.layouts.to_vec(),
+            stations: (self.stations[0], self.stations[1]),
+            noise_angle_urad: (self.noise_angle_urad[0], self.noise_angle_urad[1]),
+            noise_range_um: (self.noise_range_um[0], self.noise_range_um[1]),
+            tracker: self.model,
+            tracker_sigma: self.tracker_sigma,
+        }
     }
+}
+
+/// The problems of the kinematic errors' σ and the detection threshold.
+pub(super) fn invalid_scoring(tracker_sigma: f64, detect_chi2: f64) -> Vec<Invalid> {
+    let mut out = Vec::new();
+    if !(tracker_sigma >= 0.0 && tracker_sigma.is_finite()) {
+        out.push(Invalid::new("tracker_sigma", "`tracker_sigma` must be ≥ 0"));
+    }
+    if detect_chi2.is_nan() || detect_chi2 <= 0.0 {
+        out.push(Invalid::new("detect_chi2", "`detect_chi2` must be > 0"));
+    }
+    out
 }
 
 /// The effect ids that are not effects a blind check hides, at their place.

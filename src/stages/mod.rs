@@ -29,6 +29,7 @@ pub mod measurement_uncertainty;
 pub mod mesh;
 pub mod model_blind_check;
 pub mod monte_carlo;
+pub mod open_world_check;
 pub mod paper_gap;
 pub mod plot;
 pub mod sensitivity;
@@ -355,4 +356,5 @@ stage_kinds! {
     B89Tests => b89_tests::B89TestsStage,
     CompareModels => compare_models::CompareModelsStage,
     ModelBlindCheck => model_blind_check::ModelBlindCheckStage,
+    OpenWorldCheck => open_world_check::OpenWorldCheckStage,
 }

@@ -18,6 +18,7 @@ mod incidence;
 mod layering;
 mod layout_design;
 mod open_world;
+mod open_world_check;
 mod report;
 mod runner;
 mod sensitivity;

@@ -1,0 +1,390 @@
+//! The open-world blind check (issue 30, item 3): campaigns carrying an
+//! effect *outside* the catalogue, diagnosed blind, and the diagnosis
+//! scored on its honesty rather than on naming the effect.
+//!
+//! # Why a check of its own
+//!
+//! The catalogue blind check ([`super::blind`]) only ever hides effects
+//! the diagnosis has a candidate for, so it cannot tell a diagnosis that
+//! finds causes from one that always finds *some* cause. A real campaign
+//! can carry physics no one has written down; then the right answer is not
+//! an effect's name but "something is left, and it lies along this
+//! factor". Here every case carries one effect of [`crate::open_world`] —
+//! a generator that shares no code with the catalogue or the diagnosis —
+//! and, in `unknown-and-effect` cases, one catalogue effect beside it. The
+//! diagnosis cannot name the unknown effect; what is scored is whether it
+//! says so:
+//!
+//! - `not_explained` — the residual the explanation set leaves is declared
+//!   inconsistent with the stated noise (the right answer on a detectable
+//!   case);
+//! - `catalogue_as_cause` — catalogue effects presented as the whole
+//!   explanation (a non-blunder member, and the rest consistent with noise):
+//!   the dishonest answer, in both kinds, since the unknown effect remains;
+//! - `factor_correct` — the first significant entry of
+//!   [`super::Diagnosis::unexplained`] lies along the unknown effect's
+//!   factor ([`crate::open_world::OpenEffect::factor`]);
+//! - false blunders and spurious catalogue effects, which an unknown
+//!   effect tempts the diagnosis into;
+//! - in `unknown-and-effect` cases, whether the known effect is still
+//!   named, and its magnitude within 3 standard uncertainties of the truth.
+//!
+//! # Detectable
+//!
+//! As in the catalogue check: the unknown effect's signature — the
+//! noise-free campaign with it applied, minus without — left after
+//! projecting off what the base adjustment absorbs, amounts to
+//! Δχ² ≥ `detect_chi2` in units of the stated noise
+//! ([`super::blind::signal_chi2`]). Rates are reported on detectable cases;
+//! below the threshold "consistent with noise" is a fair answer.
+//!
+//! Cases draw their layout, stations, noise and kinematic errors as the
+//! catalogue check does ([`super::blind::Setting`]), each from its own
+//! stream (`open-world-<case>`), so the result does not depend on the number
+//! of threads or on how the cases are split. Campaigns always record time
+//! and temperature: three of the unknown effects need time, and so may the
+//! catalogue effect.
+
+use super::Diagnosis;
+use super::blind::{self, Campaigns, Measuring, Setting};
+use crate::effects::{self, DrawContext, Effects};
+use crate::noise::Noise;
+use crate::open_world::{self, OpenEffect};
+use crate::random;
+use crate::simulate::SimulatedCampaign;
+use anyhow::{Result, anyhow};
+use rayon::prelude::*;
+
+/// What a case holds besides the campaign's setting.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum CaseKind {
+    /// One open-world effect, no catalogue effect.
+    Unknown,
+    /// One open-world effect and one catalogue effect.
+    UnknownAndEffect,
+}
+
+impl CaseKind {
+    pub const ALL: [CaseKind; 2] = [CaseKind::Unknown, CaseKind::UnknownAndEffect];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            CaseKind::Unknown => "unknown",
+            CaseKind::UnknownAndEffect => "unknown-and-effect",
+        }
+    }
+}
+
+/// How the cases are drawn (the catalogue check's plan, less what does not
+/// apply: no effect-free share, no blunders, always timed, one face).
+#[derive(Clone, Debug)]
+pub struct Plan {
+    pub cases: usize,
+    /// The number of the first case: each case is drawn from `(seed, its
+    /// number)` alone.
+    pub first: usize,
+    pub seed: u64,
+    /// The campaigns' layouts, stations, noise and trackers, drawn as the
+    /// catalogue check draws them.
+    pub campaigns: Campaigns,
+    pub kinds: Vec<CaseKind>,
+    /// Open-world effects to draw from.
+    pub unknowns: Vec<open_world::Kind>,
+    /// Catalogue effect ids to draw from in `unknown-and-effect` cases.
+    pub effects: Vec<String>,
+    pub detect_chi2: f64,
+    /// Monte Carlo draws per diagnosis.
+    pub mc_draws: usize,
+}
+
+/// The catalogue effect put into an `unknown-and-effect` case, and what the
+/// diagnosis made of it.
+#[derive(Clone, Debug)]
+pub struct Known {
+    pub effect: String,
+    /// As the diagnosis names it: a station or reflector id, an axis, `all`.
+    pub place: String,
+    /// Whether `place` must match too (a single station, reflector or axis).
+    pub has_place: bool,
+    /// True magnitude, in the diagnosis's unit for the effect.
+    pub magnitude: f64,
+    /// Δχ² of its unabsorbed signature, alone, and whether that reaches
+    /// the plan's `detect_chi2`.
+    pub signal_chi2: f64,
+    pub detectable: bool,
+    /// It is a member of the explanation set.
+    pub named: bool,
+    /// The diagnosis's row for it (the set member when named, else its
+    /// best-ranked row): magnitude, standard uncertainty and unit.
+    pub named_magnitude: Option<f64>,
+    pub named_magnitude_u: Option<f64>,
+    pub unit: String,
+    /// Named, and |named − true| ≤ 3·u; `None` when not named.
+    pub within_3u: Option<bool>,
+}
+
+/// One case, scored.
+#[derive(Clone, Debug)]
+pub struct Case {
+    pub case: usize,
+    pub kind: CaseKind,
+    pub layout: String,
+    pub stations: usize,
+    pub readings: usize,
+    pub sigma_angle_urad: f64,
+    pub sigma_range_um: f64,
+    /// The open-world effect: id, factor, and its drawn values in words.
+    pub unknown: &'static str,
+    pub unknown_factor: &'static str,
+    pub unknown_description: String,
+    /// Δχ² of the unknown effect's unabsorbed signature.
+    pub signal_chi2: f64,
+    pub detectable: bool,
+    pub known: Option<Known>,
+    pub not_explained: bool,
+    pub catalogue_as_cause: bool,
+    /// The first significant entry of `unexplained` (empty: none).
+    pub top_factor: String,
+    pub factor_correct: bool,
+    /// Blunders in the explanation set (none were put in).
+    pub false_blunders: usize,
+    /// Readings of the campaign: none carries a blunder.
+    pub clean_readings: usize,
+    /// Non-blunder members of the set other than the known effect.
+    pub spurious_effects: usize,
+    pub named_set: String,
+    pub verdict: String,
+}
+
+/// Runs every case (in parallel; each case has its own random stream, so
+/// the result does not depend on the number of threads).
+pub fn run(plan: &Plan) -> Result<Vec<Case>> {
+    (plan.first..plan.first + plan.cases)
+        .into_par_iter()
+        .map(|k| run_case(plan, k))
+        .collect()
+}
+
+/// Runs one case.
+fn run_case(plan: &Plan, case: usize) -> Result<Case> {
+    let needs_effects = plan.kinds.contains(&CaseKind::UnknownAndEffect);
+    if plan.kinds.is_empty() || plan.unknowns.is_empty() || needs_effects && plan.effects.is_empty()
+    {
+        return Err(anyhow!(
+            "an open-world check needs kinds, unknowns and (for unknown-and-effect) effects"
+        ));
+    }
+    let mut rng = random::stream(plan.seed, &format!("open-world-{case}"));
+    let setting = Setting::draw(&mut rng, &plan.campaigns);
+    let kind = *random::pick(&mut rng, &plan.kinds);
+    let unknown_kind = *random::pick(&mut rng, &plan.unknowns);
+    let how = Measuring {
+        two_face: false,
+        timed: true,
+    };
+    let seed = blind::case_seed(plan.seed, case);
+    // The catalogue effect, drawn through its plug-in as the catalogue
+    // check draws it.
+    let mut fx = Effects::default();
+    let mut known = None;
+    if kind == CaseKind::UnknownAndEffect {
+        let id = random::pick(&mut rng, &plan.effects).clone();
+        let draw = effects::kind(&id)
+            .ok_or_else(|| anyhow!("`{id}` is not an effect of the catalogue"))?
+            .draw;
+        let cx = DrawContext {
+            stations: &setting.station_ids,
+            targets: &setting.target_ids,
+        };
+        let (place, magnitude, has_place) = draw(&mut rng, &cx, &mut fx);
+        known = Some((id, place, magnitude, has_place));
+    }
+    let sim = |noise: Noise, fx: &Effects| {
+        blind::simulate(&setting.spec, &setting.errors, noise, fx, seed, how)
+    };
+    let clean = sim(Noise::default(), &Effects::default())?;
+    let measured = sim(setting.noise, &fx)?;
+    // The unknown effect, placed in the campaign as measured and applied
+    // through the tracker's kinematic errors.
+    let unknown = OpenEffect::draw(unknown_kind, &mut rng, &open_world::Context::of(&measured))
+        .map_err(|e| anyhow!(e))?;
+    let apply = |c: &SimulatedCampaign| {
+        unknown
+            .apply(c, Some(&setting.errors))
+            .map_err(|e| anyhow!(e))
+    };
+    let noisy = apply(&measured)?;
+    let d = blind::diagnose_blind(&noisy.campaign, plan.campaigns.tracker, plan.mc_draws, seed)?;
+    let readings = &noisy.campaign.readings;
+    let signal = blind::signal_chi2(&d, &apply(&clean)?.campaign, &clean.campaign, readings);
+    let known = match known {
+        Some(truth) => {
+            let with = sim(Noise::default(), &fx.only(&truth.0))?;
+            let signal_chi2 = blind::signal_chi2(&d, &with.campaign, &clean.campaign, readings);
+            Some(score_known(&d, truth, signal_chi2, plan.detect_chi2))
+        }
+        None => None,
+    };
+    let named: Vec<&super::Row> = d.explanation().collect();
+    let not_explained = d.rows.iter().any(|r| r.effect == "none" && !r.significant);
+    let noise_consistent = d.rows.iter().any(|r| r.effect == "none" && r.significant);
+    let is_known = |r: &super::Row| {
+        known
+            .as_ref()
+            .is_some_and(|k| r.effect == k.effect && (!k.has_place || r.place == k.place))
+    };
+    let effects_named = named.iter().filter(|r| r.effect != "blunder").count();
+    let top_factor = d
+        .unexplained
+        .iter()
+        .find(|l| l.significant)
+        .map_or(String::new(), |l| l.factor.to_string());
+    Ok(Case {
+        case,
+        kind,
+        layout: setting.layout_name(),
+        stations: setting.stations,
+        readings: readings.len(),
+        sigma_angle_urad: setting.noise.sigma_angle_urad,
+        sigma_range_um: setting.noise.sigma_range_um,
+        unknown: unknown.id(),
+        unknown_factor: unknown.factor(),
+        unknown_description: unknown.describe(),
+        signal_chi2: signal,
+        detectable: signal >= plan.detect_chi2,
+        not_explained,
+        catalogue_as_cause: effects_named > 0 && noise_consistent,
+        factor_correct: top_factor == unknown.factor(),
+        top_factor,
+        false_blunders: named.iter().filter(|r| r.effect == "blunder").count(),
+        clean_readings: readings.len(),
+        spurious_effects: named
+            .iter()
+            .filter(|r| r.effect != "blunder" && !is_known(r))
+            .count(),
+        named_set: super::output::explanation(&d),
+        verdict: super::output::verdict(&d),
+        known,
+    })
+}
+
+/// The known effect against the diagnosis: named when a set member has its
+/// id (and its place, when it has one); its magnitude compared as the
+/// catalogue check compares it, on the diagnosis's row for the effect.
+/// `truth` is the effect's id, place, magnitude and whether it has a place.
+fn score_known(
+    d: &Diagnosis,
+    (effect, place, magnitude, has_place): (String, String, f64, bool),
+    signal_chi2: f64,
+    detect_chi2: f64,
+) -> Known {
+    let same = |r: &&super::Row| r.effect == effect && (!has_place || r.place == place);
+    let member = d.explanation().find(same);
+    // Not named: its best-ranked row, for the table (rows are in rank order).
+    let row = member.or_else(|| d.rows.iter().find(same));
+    let within_3u = member.map(|r| (r.magnitude - magnitude).abs() <= 3.0 * r.magnitude_u);
+    Known {
+        named: member.is_some(),
+        named_magnitude: row.map(|r| r.magnitude),
+        named_magnitude_u: row.map(|r| r.magnitude_u),
+        unit: row.map_or(String::new(), |r| r.unit.clone()),
+        within_3u,
+        effect,
+        place,
+        has_place,
+        magnitude,
+        signal_chi2,
+        detectable: signal_chi2 >= detect_chi2,
+    }
+}
+
+/// The honesty figures of a group of cases: counts over every case, rates
+/// over the detectable ones.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Rates {
+    pub cases: usize,
+    pub detectable_cases: usize,
+    /// Of the detectable cases: …
+    pub not_explained: usize,
+    pub catalogue_as_cause: usize,
+    pub factor_correct: usize,
+    pub false_blunders: usize,
+    pub clean_readings: usize,
+    pub spurious_effects: usize,
+    /// … those with a known effect, and how many of them name it;
+    pub with_known: usize,
+    pub known_named: usize,
+    /// … the same where the known effect is detectable on its own (an
+    /// undetectable one is rightly not named);
+    pub with_known_detectable: usize,
+    pub known_detectable_named: usize,
+    /// … and of those named, how many within 3 u.
+    pub within_3u: usize,
+}
+
+impl Rates {
+    pub fn of<'a>(cases: impl Iterator<Item = &'a Case>) -> Rates {
+        let mut a = Rates::default();
+        for c in cases {
+            a.cases += 1;
+            if !c.detectable {
+                continue;
+            }
+            a.detectable_cases += 1;
+            a.not_explained += c.not_explained as usize;
+            a.catalogue_as_cause += c.catalogue_as_cause as usize;
+            a.factor_correct += c.factor_correct as usize;
+            a.false_blunders += c.false_blunders;
+            a.clean_readings += c.clean_readings;
+            a.spurious_effects += c.spurious_effects;
+            if let Some(k) = &c.known {
+                a.with_known += 1;
+                a.known_named += k.named as usize;
+                a.with_known_detectable += k.detectable as usize;
+                a.known_detectable_named += (k.detectable && k.named) as usize;
+                a.within_3u += (k.within_3u == Some(true)) as usize;
+            }
+        }
+        a
+    }
+
+    /// `n / of`, NaN when there is nothing to divide.
+    fn share(n: usize, of: usize) -> f64 {
+        if of == 0 {
+            f64::NAN
+        } else {
+            n as f64 / of as f64
+        }
+    }
+    pub fn not_explained_rate(&self) -> f64 {
+        Rates::share(self.not_explained, self.detectable_cases)
+    }
+    pub fn catalogue_as_cause_rate(&self) -> f64 {
+        Rates::share(self.catalogue_as_cause, self.detectable_cases)
+    }
+    pub fn factor_correct_rate(&self) -> f64 {
+        Rates::share(self.factor_correct, self.detectable_cases)
+    }
+    /// False blunders per 1 000 clean readings.
+    pub fn false_blunders_per_1000(&self) -> f64 {
+        1000.0 * Rates::share(self.false_blunders, self.clean_readings)
+    }
+    pub fn spurious_effects_per_case(&self) -> f64 {
+        Rates::share(self.spurious_effects, self.detectable_cases)
+    }
+    /// Of detectable cases with a known effect.
+    pub fn catalogue_named_rate(&self) -> f64 {
+        Rates::share(self.known_named, self.with_known)
+    }
+    /// Of detectable cases with a known effect detectable on its own.
+    pub fn catalogue_named_detectable_rate(&self) -> f64 {
+        Rates::share(self.known_detectable_named, self.with_known_detectable)
+    }
+    /// Of the known effects named.
+    pub fn magnitude_within_3u_rate(&self) -> f64 {
+        Rates::share(self.within_3u, self.known_named)
+    }
+}
