@@ -482,6 +482,7 @@ fn diagnose_command(
     // empty): `--out .` must not delete the user's files.
     crate::fs::check_replaceable(out, "a diagnosis", "diagnosis.csv", |name| {
         name == "report.md"
+            || name == "discovered.toml"
             || [".csv", ".parquet", ".svg"]
                 .iter()
                 .any(|ext| name.ends_with(ext))

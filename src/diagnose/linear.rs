@@ -226,10 +226,15 @@ fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signatu
     let (gram, _) = pr.projected_gram(full);
     let (beta, cov) = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
     let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
+    // 1 − R² of each column on the others: `1 / (G⁻¹)ⱼⱼ / Gⱼⱼ`.
+    let independence = (0..gram.nrows())
+        .map(|j| 1.0 / (cov[(j, j)] * gram[(j, j)]))
+        .collect();
     Fit {
         beta: beta.iter().copied().collect(),
         delta_chi2,
         cov,
+        independence,
     }
 }
 
@@ -315,6 +320,10 @@ pub struct Fit {
     /// Covariance of `beta` for unit-variance (whitened) readings:
     /// `(CᵀP⊥C)⁻¹`, ridged as the fit is.
     pub cov: DMatrix<f64>,
+    /// Per column, the share of it (after what the base model absorbs)
+    /// that the other columns do not reproduce, `1 − R²`: near 0 for a
+    /// column collinear with the others (NaN where the fit is singular).
+    pub independence: Vec<f64>,
 }
 
 /// The model was not determined enough to test anything.

@@ -21,12 +21,12 @@
 //!
 //! | factor | basis |
 //! |---|---|
-//! | `range` | a cubic B-spline in d on each coordinate; sine and cosine of `2π·d/P` on d for periods P from 0.2 m to 5 m (the best period counted as alternatives) |
-//! | `az`, `el` | a Fourier series in az (orders 2–4) / a cubic B-spline in el, on each coordinate |
-//! | `time` | a cubic B-spline in `time_s` on each coordinate, and a growth of the reflector field about its centroid |
+//! | `range` | a piecewise-linear function (8 knots) in d on each coordinate; sine and cosine of `2π·d/P` on d for periods P from 0.2 m to 5 m (the best period counted as alternatives) |
+//! | `az`, `el` | a Fourier series in az (orders 2–4) / a piecewise-linear function (8 knots) in el, on each coordinate |
+//! | `time` | a piecewise-linear function (8 knots) in `time_s` on each coordinate, and a growth of the reflector field about its centroid |
 //! | `station × time` | a step of one station's pose (translation, rotation) and of its range after a time, at times on a grid (station and time counted as alternatives) |
 //! | `station`, `reflector`, `face` | a range offset per station / per reflector, a face-2 offset on each coordinate |
-//! | `incidence`, `temperature` | a cubic B-spline on d |
+//! | `incidence angle`, `temperature` | a piecewise-linear function (8 knots) on d |
 //!
 //! Each factor is reported with its best basis: its share of what is left
 //! (Δχ² over the set's χ²), its p-value, the held-out gap a smooth function
@@ -36,7 +36,7 @@
 #[derive(Clone, Debug)]
 pub struct Localised {
     /// `range`, `az`, `el`, `time`, `station × time`, `station`,
-    /// `reflector`, `face`, `incidence`, `temperature`.
+    /// `reflector`, `face`, `incidence angle`, `temperature`.
     pub factor: &'static str,
     /// The best basis of the factor, in words (`periodic in d, period
     /// 812 mm`, `step of S3's pose after 1 840 s`, …).
@@ -61,6 +61,10 @@ pub struct Localised {
     pub shape: Vec<ShapePoint>,
     pub shape_x: String,
     pub shape_unit: String,
+    /// The fitted basis as a hypothesis file's entry (TOML), to edit, name
+    /// and test on the next campaign with `--hypotheses`; `None` for a
+    /// basis the expression language does not state.
+    pub hypothesis: Option<String>,
 }
 
 use super::candidates::{ReadingInfo, put_point};
@@ -114,6 +118,29 @@ enum Shape {
     Labels(Vec<String>),
 }
 
+/// How a basis is written as a hypothesis ([`crate::hypothesis`]), so
+/// that a structure found here can be named, edited and tested on the next
+/// campaign.
+#[derive(Clone)]
+enum Template {
+    /// Piecewise-linear in `var` (a hypothesis expression of the
+    /// covariates, in the knots' unit) on coordinate `comp`.
+    Smooth { var: &'static str, comp: usize },
+    /// `a·sin(2π·d/P) + b·cos(2π·d/P)` on d.
+    Periodic,
+    /// A Fourier series of orders 1–4 in az on coordinate `comp`.
+    Fourier { comp: usize },
+    /// An offset on d per station or reflector (`scope`).
+    Offsets { scope: &'static str },
+    /// An offset of face 2 on coordinate `comp`.
+    Face { comp: usize },
+    /// A step of a station's origin and range `t0_s` after its first reading.
+    Step { station: String, t0_s: f64 },
+    /// Not written (the field's growth: a shape the expression language
+    /// states only clumsily).
+    None,
+}
+
 /// One basis of a factor.
 #[derive(Clone)]
 struct Basis {
@@ -122,29 +149,40 @@ struct Basis {
     columns: Signature,
     shape: Shape,
     unit: &'static str,
+    template: Template,
 }
 
-/// Evenly spaced knots over the values present, and each value's weights
-/// on them (at most two non-zero).
-fn hats(values: &[Option<f64>]) -> Option<(Vec<f64>, impl Fn(f64) -> [(usize, f64); 2])> {
-    let (lo, hi) = values
-        .iter()
-        .flatten()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
-            (l.min(v), h.max(v))
-        });
-    if !(hi - lo > 1e-9 * hi.abs().max(1.0)) || !(hi - lo).is_finite() {
-        return None;
+/// Evenly spaced knots over the values present.
+struct Hats {
+    knots: Vec<f64>,
+    lo: f64,
+    h: f64,
+}
+
+impl Hats {
+    fn over(values: &[Option<f64>]) -> Option<Hats> {
+        let (lo, hi) = values
+            .iter()
+            .flatten()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                (l.min(v), h.max(v))
+            });
+        let span = hi - lo;
+        if !span.is_finite() || span <= 1e-9 * hi.abs().max(1.0) {
+            return None;
+        }
+        let h = span / (KNOTS - 1) as f64;
+        let knots = (0..KNOTS).map(|k| lo + h * k as f64).collect();
+        Some(Hats { knots, lo, h })
     }
-    let h = (hi - lo) / (KNOTS - 1) as f64;
-    let knots: Vec<f64> = (0..KNOTS).map(|k| lo + h * k as f64).collect();
-    let weights = move |v: f64| {
-        let f = ((v - lo) / h).clamp(0.0, (KNOTS - 1) as f64);
+
+    /// A value's weights on the knots (at most two non-zero).
+    fn weights(&self, v: f64) -> [(usize, f64); 2] {
+        let f = ((v - self.lo) / self.h).clamp(0.0, (KNOTS - 1) as f64);
         let k = (f.floor() as usize).min(KNOTS - 2);
         let t = f - k as f64;
         [(k, 1.0 - t), (k + 1, t)]
-    };
-    Some((knots, weights))
+    }
 }
 
 /// A smooth function of `values` on reading coordinate `comp`.
@@ -153,13 +191,13 @@ fn smooth(
     values: &[Option<f64>],
     comp: usize,
     factor: &'static str,
-    x_name: &'static str,
+    (x_name, var): (&'static str, &'static str),
 ) -> Option<Basis> {
-    let (knots, weights) = hats(values)?;
+    let hats = Hats::over(values)?;
     let mut c = Signature::new(KNOTS);
     for (i, (r, v)) in infos.iter().zip(values).enumerate() {
         let Some(v) = v else { continue };
-        for (k, w) in weights(*v) {
+        for (k, w) in hats.weights(*v) {
             c.add(i, comp, k, w * PER_UNIT[comp] / r.sigma[comp]);
         }
     }
@@ -167,8 +205,12 @@ fn smooth(
         factor,
         what: format!("a smooth function of {x_name} on {}", COMPONENT[comp]),
         columns: c,
-        shape: Shape::Knots { x: knots, x_name },
+        shape: Shape::Knots {
+            x: hats.knots,
+            x_name,
+        },
         unit: COMPONENT_UNIT[comp],
+        template: Template::Smooth { var, comp },
     })
 }
 
@@ -182,27 +224,13 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
     let el = of(&|r| Some(r.el.to_degrees()));
     let time = of(&|r| r.time_s);
     for comp in 0..3 {
-        out.extend(smooth(infos, &d, comp, "range", "d (mm)"));
-        out.extend(smooth(infos, &el, comp, "el", "el (°)"));
-        out.extend(smooth(infos, &time, comp, "time", "time_s (s)"));
+        out.extend(smooth(infos, &d, comp, "range", ("d (mm)", "d")));
+        out.extend(smooth(infos, &el, comp, "el", ("el (°)", "el*180/PI")));
+        out.extend(smooth(infos, &time, comp, "time", ("time_s (s)", "time_s")));
     }
     // range: a cyclic error of the distance meter, whatever its period.
     for p in 0..PERIODS {
-        let period_mm = PERIOD_MIN_MM
-            * (PERIOD_MAX_MM / PERIOD_MIN_MM).powf(p as f64 / (PERIODS - 1) as f64);
-        let mut c = Signature::new(2);
-        for (i, r) in infos.iter().enumerate() {
-            let phase = 2.0 * std::f64::consts::PI * r.d / period_mm;
-            c.add(i, 2, 0, 1e-3 * phase.sin() / r.sigma.z);
-            c.add(i, 2, 1, 1e-3 * phase.cos() / r.sigma.z);
-        }
-        out.push(Basis {
-            factor: "range",
-            what: format!("periodic in d, period {period_mm:.0} mm"),
-            columns: c,
-            shape: Shape::Periodic { period_mm },
-            unit: "µm",
-        });
+        out.push(periodic(infos, period_of(p as f64)));
     }
     // az: a Fourier series (the tracker turns full circles).
     for comp in 0..3 {
@@ -224,17 +252,18 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
             columns: c,
             shape: Shape::Labels(labels),
             unit: COMPONENT_UNIT[comp],
+            template: Template::Fourier { comp },
         });
     }
     // time: the reflectors' field growing about its centroid (a part
     // warming), `s = (x − c)·g(t)` in ppm.
-    if let Some((knots, weights)) = hats(&time) {
+    if let Some(hats) = Hats::over(&time) {
         let centroid =
             infos.iter().map(|r| r.point).sum::<Vector3<f64>>() / infos.len().max(1) as f64;
         let mut c = Signature::new(KNOTS);
         for (i, (r, t)) in infos.iter().zip(&time).enumerate() {
             let Some(t) = t else { continue };
-            for (k, w) in weights(*t) {
+            for (k, w) in hats.weights(*t) {
                 put_point(&mut c, i, r, k, (r.point - centroid) * (1e-6 * w));
             }
         }
@@ -243,10 +272,11 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
             what: "the reflectors' field growing about its centroid with time".into(),
             columns: c,
             shape: Shape::Knots {
-                x: knots,
+                x: hats.knots,
                 x_name: "time_s (s)",
             },
             unit: "ppm",
+            template: Template::None,
         });
     }
     out.extend(station_steps(infos, stations));
@@ -262,6 +292,7 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
             columns: c,
             shape: Shape::Labels(stations.to_vec()),
             unit: "µm",
+            template: Template::Offsets { scope: "station" },
         });
     }
     // reflector: a range offset per reflector (two kinds of SMR).
@@ -276,6 +307,7 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
             columns: c,
             shape: Shape::Labels(targets.to_vec()),
             unit: "µm",
+            template: Template::Offsets { scope: "reflector" },
         });
     }
     // face: an offset of the back face's readings.
@@ -291,14 +323,79 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
                 columns: c,
                 shape: Shape::Labels(vec!["face 2".into()]),
                 unit: COMPONENT_UNIT[comp],
+                template: Template::Face { comp },
             });
         }
     }
     let incidence = of(&|r| r.incidence.map(|a| a.alpha.to_degrees()));
-    out.extend(smooth(infos, &incidence, 2, "incidence", "α (°)"));
+    out.extend(smooth(
+        infos,
+        &incidence,
+        2,
+        "incidence angle",
+        ("α (°)", "alpha*180/PI"),
+    ));
     let temperature = of(&|r| r.temperature_c);
-    out.extend(smooth(infos, &temperature, 2, "temperature", "temperature_c (°C)"));
+    out.extend(smooth(
+        infos,
+        &temperature,
+        2,
+        "temperature",
+        ("temperature_c (°C)", "temperature_c"),
+    ));
     out
+}
+
+/// The `p`-th period of the log-spaced grid (fractional `p` between).
+fn period_of(p: f64) -> f64 {
+    PERIOD_MIN_MM * (PERIOD_MAX_MM / PERIOD_MIN_MM).powf(p / (PERIODS - 1) as f64)
+}
+
+/// A cyclic error of the distance meter of period `period_mm`.
+fn periodic(infos: &[ReadingInfo], period_mm: f64) -> Basis {
+    let mut c = Signature::new(2);
+    for (i, r) in infos.iter().enumerate() {
+        let phase = 2.0 * std::f64::consts::PI * r.d / period_mm;
+        c.add(i, 2, 0, 1e-3 * phase.sin() / r.sigma.z);
+        c.add(i, 2, 1, 1e-3 * phase.cos() / r.sigma.z);
+    }
+    Basis {
+        factor: "range",
+        what: format!("periodic in d, period {period_mm:.0} mm"),
+        columns: c,
+        shape: Shape::Periodic { period_mm },
+        unit: "µm",
+        template: Template::Periodic,
+    }
+}
+
+/// The grid's best period refined between its neighbours: over a few
+/// metres of range a period 4 % off (half a grid step) loses the phase.
+fn refine_period(
+    lm: &LinearModel,
+    members: &Signature,
+    infos: &[ReadingInfo],
+    best: (Basis, super::linear::Fit),
+) -> (Basis, super::linear::Fit) {
+    let Shape::Periodic { period_mm } = best.0.shape else {
+        return best;
+    };
+    let p = (PERIODS - 1) as f64 * (period_mm / PERIOD_MIN_MM).ln()
+        / (PERIOD_MAX_MM / PERIOD_MIN_MM).ln();
+    (-8..=8)
+        .filter(|&j| j != 0)
+        .map(|j| periodic(infos, period_of(p + j as f64 / 8.0)))
+        .map(|b| {
+            let f = lm.fit(&Signature::concat(members, &b.columns));
+            (b, f)
+        })
+        .fold(best, |a, b| {
+            if b.1.delta_chi2 > a.1.delta_chi2 {
+                b
+            } else {
+                a
+            }
+        })
 }
 
 /// `station × time`: one station's pose (translation, rotation) and range
@@ -338,13 +435,19 @@ fn station_steps(infos: &[ReadingInfo], stations: &[String]) -> Vec<Basis> {
                 }
                 c.add(i, 2, 6, 1e-3 / r.sigma.z);
             }
-            let labels = ["x_um", "y_um", "z_um", "rx_urad", "ry_urad", "rz_urad", "d_um"];
+            let labels = [
+                "x_um", "y_um", "z_um", "rx_urad", "ry_urad", "rz_urad", "d_um",
+            ];
             out.push(Basis {
                 factor: "station × time",
                 what: format!("a step of {id}'s pose and range {t0:.0} s after its first reading"),
                 columns: c,
                 shape: Shape::Labels(labels.iter().map(|l| l.to_string()).collect()),
                 unit: "µm, µrad",
+                template: Template::Step {
+                    station: id.clone(),
+                    t0_s: t0,
+                },
             });
         }
     }
@@ -367,11 +470,7 @@ pub(super) struct Rest<'a> {
 
 /// Every basis fitted beside `members`: the χ² the members explain, and
 /// each basis's fit.
-fn fits(
-    lm: &LinearModel,
-    members: &Signature,
-    all: &[Basis],
-) -> (f64, Vec<super::linear::Fit>) {
+fn fits(lm: &LinearModel, members: &Signature, all: &[Basis]) -> (f64, Vec<super::linear::Fit>) {
     let members_chi2 = if members.ncols() == 0 {
         0.0
     } else {
@@ -397,6 +496,26 @@ fn f_test(delta: f64, k: usize, chi2: f64, dof: usize) -> (f64, f64) {
 pub(super) struct Structure {
     pub columns: Signature,
     pub delta_bic: f64,
+    /// Bases it was chosen from (the correction's factor), and α.
+    tried: usize,
+    alpha: f64,
+}
+
+impl Structure {
+    /// Whether the structure is still significant, and gains by BIC,
+    /// beside the columns `against` (the members and a candidate; `dof`
+    /// the model's with them): if not, that candidate explains it.
+    pub fn stands_beside(&self, lm: &LinearModel, against: &Signature, dof: usize) -> bool {
+        let base = lm.fit(against).delta_chi2;
+        let joint = lm
+            .fit(&Signature::concat(against, &self.columns))
+            .delta_chi2;
+        let delta = (joint - base).max(0.0);
+        let k = self.columns.ncols();
+        let (_, p) = f_test(delta, k, lm.chi2() - base, dof);
+        (p * self.tried as f64).min(1.0) < self.alpha
+            && delta - k as f64 * (lm.rows() as f64).ln() > 0.0
+    }
 }
 
 /// The basis, of any factor, that explains most of what `members` leave
@@ -432,9 +551,13 @@ pub(super) fn structure(
             (significant && delta_bic > 0.0).then_some((i, delta_bic))
         })
         .max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let (b, f) = refine_period(lm, members, infos, (all[best].clone(), fits[best].clone()));
+    let k = b.columns.ncols() as f64;
     Some(Structure {
-        columns: all[best].columns.clone(),
-        delta_bic,
+        delta_bic: delta_bic.max(f.delta_chi2 - members_chi2 - k * ln_m),
+        columns: b.columns,
+        tried: all.len(),
+        alpha,
     })
 }
 
@@ -451,17 +574,30 @@ pub(super) fn localise(
     let gain = |f: &super::linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
     let tried = all.len();
     let rounding = rest.chi2 / (rest.dof.max(1) as f64) < ROUNDING_CHI2_PER_DOF;
-    let mut factors: Vec<&'static str> = all.iter().map(|b| b.factor).collect();
-    factors.dedup();
+    // Each factor once, in the order its first basis was built.
+    let mut factors: Vec<&'static str> = Vec::new();
+    for b in &all {
+        if !factors.contains(&b.factor) {
+            factors.push(b.factor);
+        }
+    }
     let mut out: Vec<Localised> = factors
         .par_iter()
         .map(|&factor| {
-            let of: Vec<usize> = (0..all.len()).filter(|&i| all[i].factor == factor).collect();
+            let of: Vec<usize> = (0..all.len())
+                .filter(|&i| all[i].factor == factor)
+                .collect();
             let best = *of
                 .iter()
                 .max_by(|&&a, &&b| gain(&fits[a]).total_cmp(&gain(&fits[b])))
                 .expect("a factor has a basis");
-            let (b, fit) = (&all[best], &fits[best]);
+            let (b, fit) = refine_period(
+                rest.lm,
+                rest.members,
+                infos,
+                (all[best].clone(), fits[best].clone()),
+            );
+            let (b, fit) = (&b, &fit);
             let k = b.columns.ncols();
             let delta = gain(fit);
             let (f, p) = f_test(delta, k, rest.chi2, rest.dof);
@@ -477,6 +613,7 @@ pub(super) fn localise(
                 .map(|c| (fit.cov[(k_m + c, k_m + c)] * var_factor).sqrt())
                 .collect();
             let (shape, shape_x) = shape(b, beta, &u, &fit.cov, k_m, var_factor);
+            let hypothesis = hypothesis(b, beta);
             Localised {
                 factor,
                 basis: b.what.clone(),
@@ -496,6 +633,7 @@ pub(super) fn localise(
                 shape,
                 shape_x,
                 shape_unit: b.unit.to_string(),
+                hypothesis,
             }
         })
         .collect();
@@ -566,4 +704,138 @@ fn shape(
             "column".into(),
         ),
     }
+}
+
+/// The hypothesis file entry of a fitted basis: its expression, its
+/// parameters at the fitted values (`value`, what a simulation injects).
+fn hypothesis(b: &Basis, beta: &[f64]) -> Option<String> {
+    let name = format!(
+        "discovered-{}",
+        b.factor.replace(" × ", "-").replace(' ', "-")
+    );
+    let acts = |comp: usize| (COMPONENT[comp], ["urad", "urad", "um"][comp]);
+    let params = |names: &[String], unit: &str| -> String {
+        names
+            .iter()
+            .zip(beta)
+            .map(|(n, v)| format!("{n} = {{ unit = \"{unit}\", value = {v:.6} }}\n"))
+            .collect()
+    };
+    let rms = |names: &[String]| {
+        let squares: Vec<String> = names.iter().map(|n| format!("{n}^2")).collect();
+        format!("sqrt(({})/{})", squares.join(" + "), names.len())
+    };
+    let entry = |acts_on: &str, unit: &str, expr: &str, magnitude: &str, params: &str| {
+        format!(
+            "[{name}]\ndoc = \"{}, found by ltcal diagnose\"\nacts_on = \"{acts_on}\"\nunit = \"{unit}\"\n\
+             expr = \"{expr}\"\nmagnitude = \"{magnitude}\"\n\n[{name}.params]\n{params}",
+            b.what
+        )
+    };
+    match (&b.template, &b.shape) {
+        (Template::Smooth { var, comp }, Shape::Knots { x, .. }) => {
+            let h = x[1] - x[0];
+            let names: Vec<String> = (0..x.len()).map(|k| format!("v{k}")).collect();
+            let terms: Vec<String> = x
+                .iter()
+                .zip(&names)
+                .map(|(xk, n)| {
+                    let hat = format!("(1 - abs({var} - ({xk:.6}))/{h:.6})");
+                    format!("{n}*step{hat}*{hat}")
+                })
+                .collect();
+            let (acts_on, unit) = acts(*comp);
+            Some(entry(
+                acts_on,
+                unit,
+                &terms.join(" + "),
+                &rms(&names),
+                &params(&names, COMPONENT_UNIT[*comp]),
+            ))
+        }
+        (Template::Periodic, Shape::Periodic { period_mm }) => {
+            let names = vec!["a".to_string(), "b".to_string()];
+            Some(entry(
+                "d",
+                "um",
+                &format!("a*sin(2*PI*d/{period_mm:.3}) + b*cos(2*PI*d/{period_mm:.3})"),
+                "sqrt(a^2 + b^2)",
+                &params(&names, "µm"),
+            ))
+        }
+        (Template::Fourier { comp }, _) => {
+            let names: Vec<String> = (1..=4)
+                .flat_map(|o| [format!("a{o}"), format!("b{o}")])
+                .collect();
+            let terms: Vec<String> = (1..=4)
+                .map(|o| format!("a{o}*sin({o}*az) + b{o}*cos({o}*az)"))
+                .collect();
+            let (acts_on, unit) = acts(*comp);
+            Some(entry(
+                acts_on,
+                unit,
+                &terms.join(" + "),
+                &rms(&names),
+                &params(&names, COMPONENT_UNIT[*comp]),
+            ))
+        }
+        (Template::Offsets { scope }, Shape::Labels(labels)) => {
+            let values: Vec<String> = labels
+                .iter()
+                .zip(beta)
+                .map(|(l, v)| format!("\"{l}\" = {v:.6}"))
+                .collect();
+            let params = format!(
+                "c = {{ unit = \"µm\", scope = \"{scope}\", value = {{ {} }} }}\n",
+                values.join(", ")
+            );
+            Some(entry("d", "um", "c", "c", &params))
+        }
+        (Template::Face { comp }, _) => {
+            let (acts_on, unit) = acts(*comp);
+            let names = vec!["c".to_string()];
+            Some(entry(
+                acts_on,
+                unit,
+                "c*(face - 1)",
+                "c",
+                &params(&names, COMPONENT_UNIT[*comp]),
+            ))
+        }
+        (Template::Step { station, t0_s }, _) => {
+            // The origin's translation and the range step; the station's
+            // small turn (columns 3–5) is left out: a hypothesis moves a
+            // position or one coordinate.
+            let on = format!("{{station={station}}}*step(since_station_s - {t0_s:.1})");
+            let shift = format!(
+                "[{name}]\ndoc = \"{}: its origin, found by ltcal diagnose\"\nacts_on = \"station\"\nunit = \"um\"\n\
+                 shift = {{ x = \"dx*{on}\", y = \"dy*{on}\", z = \"dz*{on}\" }}\nmagnitude = \"sqrt(dx^2 + dy^2 + dz^2)\"\n\n\
+                 [{name}.params]\n{}",
+                b.what,
+                params(&["dx".into(), "dy".into(), "dz".into()], "µm")
+            );
+            let range = format!(
+                "\n[{name}-range]\ndoc = \"{}: its range, found by ltcal diagnose\"\nacts_on = \"d\"\nunit = \"um\"\n\
+                 expr = \"c*{on}\"\nmagnitude = \"c\"\n\n[{name}-range.params]\nc = {{ unit = \"µm\", value = {:.6} }}\n",
+                b.what, beta[6]
+            );
+            Some(shift + &range)
+        }
+        _ => None,
+    }
+}
+
+/// `discovered.toml`: the most significant structure's hypothesis, to
+/// test on the next campaign (`ltcal diagnose --hypotheses discovered.toml`).
+pub fn discovered(campaign: &str, unexplained: &[Localised]) -> Option<String> {
+    let l = unexplained.iter().find(|l| l.significant)?;
+    let entry = l.hypothesis.as_ref()?;
+    Some(format!(
+        "# What the explanation set left in `{campaign}`, along {}: {} ({:.0} % of the χ² left).\n\
+         # Written by ltcal diagnose as a hypothesis (README, \"Your own effects\"): rename it,\n\
+         # edit it, and test it on the next campaign with `ltcal diagnose --hypotheses`.\n\n{entry}",
+        l.factor,
+        l.basis,
+        100.0 * l.share
+    ))
 }

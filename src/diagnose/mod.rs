@@ -504,8 +504,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         s.alpha,
         final_state.cv_rms_um(),
         floor,
-        &final_factors,
-        &unexplained,
+        (&final_factors, &unexplained),
     ));
     rank(&mut rows);
     Ok(Diagnosis {
@@ -1393,6 +1392,15 @@ impl Scored {
 /// 4 200 readings).
 const MIN_W_SCALE: f64 = 2.0;
 
+/// The gross readings a structure must stand beside to be tested as one:
+/// as many as a campaign plausibly has blunders (the catalogue blind
+/// check puts in up to four).
+const MAX_OUTLIERS: usize = 5;
+
+/// A candidate column whose `1 − R²` on the set's columns is below this is
+/// collinear with the set ([`linear::Fit::independence`]).
+const MIN_INDEPENDENCE: f64 = 1e-8;
+
 /// Each coordinate's (az, el, d) robust scale of the w-tests, `k =
 /// median|w| / 0.6745` (1 for w of the stated noise), kept only when it is
 /// beyond its own sampling spread (`1 + 3·1.166/√n`, the standard error of
@@ -1466,15 +1474,35 @@ impl StepContext<'_> {
         ) else {
             return plain;
         };
-        let best = plain
+        // The best significant row's columns: an effect's, or the worst
+        // reading's coordinate.
+        let best_effect = plain
             .rows
             .iter()
-            .chain(plain.blunder.as_ref().map(|b| &b.row))
-            .filter(|r| r.significant)
-            .map(|r| r.delta_bic)
-            .fold(f64::NEG_INFINITY, f64::max);
+            .zip(&plain.fits)
+            .filter(|(r, _)| r.significant)
+            .max_by(|a, b| a.0.delta_bic.total_cmp(&b.0.delta_bic));
+        let blunder = plain.blunder.as_ref().filter(|b| b.row.significant);
+        let best = match (best_effect, blunder) {
+            (Some((r, (i, _))), b) if b.is_none_or(|b| r.delta_bic >= b.row.delta_bic) => {
+                st.cands[*i].columns.clone()
+            }
+            (_, Some(b)) => {
+                let mut column = Signature::new(1);
+                column.add(b.obs, b.coordinate, 0, 1.0);
+                column
+            }
+            _ => return plain,
+        };
         plain.structure_bic = structure.delta_bic;
-        if structure.delta_bic <= best {
+        // A row that explains the structure (it is no longer significant
+        // beside it) is the answer; so are a few gross readings (several
+        // blunders are no smooth structure, though a step may fit them).
+        // Otherwise the structure is more than they are, and every row is
+        // tested beside it.
+        let best = Signature::concat(&best, &self.outliers(st));
+        let dof = st.dof().saturating_sub(best.ncols()).max(1);
+        if !structure.stands_beside(&st.lm, &st.joint(&best), dof) {
             return plain;
         }
         let mut against = self.score_against(st, members, step, floor, Some(&structure.columns));
@@ -1563,6 +1591,14 @@ impl StepContext<'_> {
                 let rms_after = lm.cv_rms_um(&Signature::concat(&against, &cand.columns));
                 let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
                 let cov = fit.cov.view((k_a, k_a), (k, k)).into_owned();
+                // A candidate the set (or the base model) already spans in
+                // part — air-refraction's constant scale beside range-scale
+                // at every station — is not added beside it: the set stays
+                // identifiable and every magnitude_u meaningful.
+                let collinear = k_a > 0
+                    && fit.independence[k_a..]
+                        .iter()
+                        .any(|&x| x.is_nan() || x < MIN_INDEPENDENCE);
                 let var_factor = (rest / dof_aug as f64).max(1.0);
                 let mut row = Row {
                     rank: 0,
@@ -1578,7 +1614,10 @@ impl StepContext<'_> {
                     ),
                     unit: cand.unit.to_string(),
                     score,
-                    significant: p_corrected < alpha && delta_bic > 0.0 && score > 0.0,
+                    significant: p_corrected < alpha
+                        && delta_bic > 0.0
+                        && score > 0.0
+                        && !collinear,
                     rms_before_um: rms_before,
                     rms_after_um: rms_after,
                     gap_before_um: 0.0,
@@ -1588,7 +1627,15 @@ impl StepContext<'_> {
                     delta_chi2,
                     p_corrected,
                     delta_bic,
-                    detail: cand.detail.clone(),
+                    detail: if collinear {
+                        let with = if cand.detail.is_empty() { "" } else { "; " };
+                        format!(
+                            "{}{with}collinear with the set: not added beside it",
+                            cand.detail
+                        )
+                    } else {
+                        cand.detail.clone()
+                    },
                 };
                 set_gap(&mut row, floor);
                 // The members' increments and the candidate's: a nuisance's
@@ -1612,6 +1659,33 @@ impl StepContext<'_> {
             members_k: k_m,
             structure_bic: f64::NEG_INFINITY,
         }
+    }
+
+    /// The most significant reading coordinates by the w-test against the
+    /// members (scaled as [`w_scales`] does), at most [`MAX_OUTLIERS`],
+    /// one column each.
+    fn outliers(&self, st: &State) -> Signature {
+        let tests = st.lm.w_tests(&st.members);
+        let n = snooping::testable(&tests);
+        let scales = w_scales(&tests);
+        let mut flagged: Vec<WTest> = tests
+            .iter()
+            .flatten()
+            .filter(|t| t.testable())
+            .filter(|t| snooping::p_corrected(t.w / scales[t.coordinate], n) < self.settings.alpha)
+            .copied()
+            .collect();
+        flagged.sort_by(|a, b| {
+            (b.w.abs() / scales[b.coordinate]).total_cmp(&(a.w.abs() / scales[a.coordinate]))
+        });
+        flagged.truncate(MAX_OUTLIERS);
+        // In reading order, as a signature wants them.
+        flagged.sort_by_key(|t| (t.obs, t.coordinate));
+        let mut c = Signature::new(flagged.len());
+        for (col, t) in flagged.iter().enumerate() {
+            c.add(t.obs, t.coordinate, col, 1.0);
+        }
+        c
     }
 
     /// The worst reading coordinate by Baarda's w-test against the model
@@ -1761,8 +1835,7 @@ fn none_row(
     alpha: f64,
     rms_before: f64,
     floor: f64,
-    factor_tests: &[FactorTest],
-    unexplained: &[localise::Localised],
+    (factor_tests, unexplained): (&[FactorTest], &[localise::Localised]),
 ) -> Row {
     // A structure spread thinly over many readings can pass the global χ²
     // test: the factors' tests decide too.
@@ -1777,7 +1850,10 @@ fn none_row(
             l.basis,
             100.0 * l.share,
             if l.gap_removed_pct > 0.0 {
-                format!(" and removes {:.0} % of the held-out gap", l.gap_removed_pct)
+                format!(
+                    " and removes {:.0} % of the held-out gap",
+                    l.gap_removed_pct
+                )
             } else {
                 String::new()
             }

@@ -117,16 +117,25 @@ pub fn unexplained_table(d: &Diagnosis) -> Result<DataFrame> {
     let u = &d.unexplained;
     TableBuilder::new()
         .str("factor", &u.iter().map(|l| l.factor).collect::<Vec<_>>())
-        .str("basis", &u.iter().map(|l| l.basis.as_str()).collect::<Vec<_>>())
+        .str(
+            "basis",
+            &u.iter().map(|l| l.basis.as_str()).collect::<Vec<_>>(),
+        )
         .i64("columns", u.iter().map(|l| l.columns as i64).collect())
-        .i64("alternatives", u.iter().map(|l| l.alternatives as i64).collect())
+        .i64(
+            "alternatives",
+            u.iter().map(|l| l.alternatives as i64).collect(),
+        )
         .f64("delta_chi2", u.iter().map(|l| l.delta_chi2).collect())
         .f64("share", u.iter().map(|l| l.share).collect())
         .f64("f", u.iter().map(|l| l.f).collect())
         .f64("p", u.iter().map(|l| l.p).collect())
         .f64("p_corrected", u.iter().map(|l| l.p_adjusted).collect())
         .bool("significant", u.iter().map(|l| l.significant).collect())
-        .f64("gap_removed_pct", u.iter().map(|l| l.gap_removed_pct).collect())
+        .f64(
+            "gap_removed_pct",
+            u.iter().map(|l| l.gap_removed_pct).collect(),
+        )
         .build()
 }
 
@@ -144,7 +153,10 @@ pub fn unexplained_shapes_table(d: &Diagnosis) -> Result<DataFrame> {
     TableBuilder::new()
         .str("factor", &rows.iter().map(|r| r.0).collect::<Vec<_>>())
         .str("along", &rows.iter().map(|r| r.1).collect::<Vec<_>>())
-        .str("at", &rows.iter().map(|r| r.2.at.as_str()).collect::<Vec<_>>())
+        .str(
+            "at",
+            &rows.iter().map(|r| r.2.at.as_str()).collect::<Vec<_>>(),
+        )
         .f64("x", rows.iter().map(|r| r.2.x).collect())
         .f64("value", rows.iter().map(|r| r.2.value).collect())
         .f64("value_u", rows.iter().map(|r| r.2.u).collect())
@@ -492,6 +504,12 @@ pub fn report(d: &Diagnosis) -> String {
                 100.0 * l.share,
                 l.gap_removed_pct,
                 l.p_adjusted
+            );
+        }
+        if left[0].hypothesis.is_some() {
+            let _ = writeln!(
+                s,
+                "\nThe first is written as a hypothesis in `discovered.toml`: rename it, edit it, and test it on the next campaign with `ltcal diagnose --hypotheses discovered.toml`."
             );
         }
         s.push('\n');

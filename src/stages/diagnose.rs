@@ -224,6 +224,9 @@ pub fn outputs(d: &Diagnosis) -> Result<StageOutput> {
     for (name, svg) in figures.files {
         out = out.file(name, svg);
     }
+    if let Some(text) = crate::diagnose::localise::discovered(&d.campaign, &d.unexplained) {
+        out = out.file("discovered.toml".into(), text.into_bytes());
+    }
     Ok(out)
 }
 
@@ -262,7 +265,9 @@ impl StageKind for DiagnoseStage {
                 "significant",
                 "gap_removed_pct",
             ]),
-            "unexplained_shapes" => Some(&["factor", "along", "at", "x", "value", "value_u", "unit"]),
+            "unexplained_shapes" => {
+                Some(&["factor", "along", "at", "x", "value", "value_u", "unit"])
+            }
             "where" => Some(&[
                 "factor",
                 "component",

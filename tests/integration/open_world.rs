@@ -1,19 +1,24 @@
 //! The diagnosis on effects outside its catalogue (`ltcal::open_world`):
-//! honest that the residual is not explained, and pointing at the factor
-//! the structure lies along.
+//! honest that the residual is not explained, pointing at the factor the
+//! structure lies along, and writing it as a hypothesis to test next.
 
 use ltcal::campaign::Aim;
+use ltcal::diagnose::localise;
+use ltcal::diagnose::open_check::{self, Rates};
 use ltcal::diagnose::{self, Settings};
+use ltcal::diagnostics::Source;
 use ltcal::effects::Effects;
 use ltcal::error_model::{ErrorModel, ErrorParams};
+use ltcal::hypothesis::{self, Hypothesis};
 use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind as Layout, Spec};
 use ltcal::noise::Noise;
-use ltcal::open_world::{Context, Kind, OpenEffect};
+use ltcal::open_world::{AdmCyclic, OpenEffect};
 use ltcal::random;
 use ltcal::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
+use ltcal::stages::open_world_check::OpenWorldCheckStage;
 use ltcal::tracker::TrackerModel;
-use rayon::prelude::*;
+use std::sync::Arc;
 
 fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
     let layout = layout::build(&Spec::new(Layout::Corner));
@@ -41,53 +46,185 @@ fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
     .unwrap()
 }
 
-/// One campaign carrying `kind`, diagnosed: (top significant factor,
-/// not explained, verdict).
-fn case(kind: Kind, seed: u64) -> (String, bool, String, String) {
-    let mut rng = random::stream(seed, "open-world-test");
+/// The tracker of every campaign here: a few µm and µrad of kinematic errors.
+fn tracker(seed: u64) -> ErrorParams {
+    let mut rng = random::stream(seed, "open-world-tracker");
     let mut errors = ErrorParams::zero(&ErrorModel::of(TrackerModel::ApiTracker3));
     for v in errors.values_mut() {
         *v = 5.0 * random::normal(&mut rng);
     }
-    let sim = simulate(seed, &errors);
-    let effect = OpenEffect::draw(kind, &mut rng, &Context::of(&sim)).unwrap();
-    let sim = effect.apply(&sim, Some(&errors)).unwrap();
-    let d = diagnose::diagnose(
-        &sim.campaign,
-        &Settings {
-            seed,
-            ..Settings::default()
-        },
-    )
-    .unwrap();
-    let top = d
-        .unexplained
-        .iter()
-        .find(|l| l.significant)
-        .map(|l| format!("{} ({}, {:.0} %)", l.factor, l.basis, 100.0 * l.share))
-        .unwrap_or_default();
-    let none = d.rows.iter().find(|r| r.effect == "none").unwrap();
-    (
-        top,
-        !none.significant,
-        diagnose::output::verdict(&d),
-        effect.describe(),
-    )
+    errors
 }
 
+/// A campaign with the ADM's cyclic error of `OpenEffect::AdmCyclic`.
+fn cyclic(seed: u64, phase_deg: f64) -> SimulatedCampaign {
+    let errors = tracker(1);
+    let sim = simulate(seed, &errors);
+    OpenEffect::AdmCyclic(AdmCyclic {
+        amplitude_um: 12.0,
+        period_m: 0.9,
+        phase_deg,
+    })
+    .apply(&sim, Some(&errors))
+    .unwrap()
+}
+
+fn settings(seed: u64, hypotheses: Vec<Hypothesis>) -> Settings {
+    Settings {
+        seed,
+        hypotheses: Arc::new(hypotheses),
+        ..Settings::default()
+    }
+}
+
+/// Issue 30, item 4: the structure the diagnosis finds is written as a
+/// hypothesis (`discovered.toml`) which, fed back on a fresh campaign of
+/// the same effect, removes it.
 #[test]
-#[ignore = "exploration"]
-fn explore_open_world() {
-    let cases: Vec<(Kind, u64)> = Kind::ALL
+fn a_discovered_cyclic_error_written_as_a_hypothesis_removes_it_on_a_fresh_campaign() {
+    let found = diagnose::diagnose(&cyclic(1, 40.0).campaign, &settings(1, Vec::new())).unwrap();
+    let top = found.unexplained.iter().find(|l| l.significant).unwrap();
+    assert_eq!(top.factor, "range", "{:?}", found.unexplained.first());
+    assert!(top.basis.starts_with("periodic in d"), "{}", top.basis);
+    let period: f64 = top
+        .basis
+        .rsplit("period ")
+        .next()
+        .unwrap()
+        .trim_end_matches(" mm")
+        .parse()
+        .unwrap();
+    assert!((period - 900.0).abs() < 0.05 * 900.0, "{period}");
+    let text = localise::discovered(&found.campaign, &found.unexplained).unwrap();
+    let hyps = hypothesis::parse(Source::new("discovered.toml", text.as_str())).unwrap();
+    assert_eq!(hyps.len(), 1);
+    // A fresh campaign: other noise, another phase.
+    let fresh = cyclic(2, 200.0);
+    let without = diagnose::diagnose(&fresh.campaign, &settings(2, Vec::new())).unwrap();
+    let structure = without
+        .unexplained
         .iter()
-        .flat_map(|&k| (1..=4).map(move |s| (k, s)))
-        .collect();
-    let out: Vec<_> = cases.par_iter().map(|&(k, s)| (k, case(k, s))).collect();
-    for (k, (top, not_explained, verdict, what)) in out {
+        .find(|l| l.factor == "range")
+        .unwrap();
+    assert!(structure.significant);
+    let with = diagnose::diagnose(&fresh.campaign, &settings(2, hyps)).unwrap();
+    let row = with
+        .rows
+        .iter()
+        .find(|r| r.effect == "discovered-range")
+        .unwrap();
+    let removed = row.delta_chi2 / structure.delta_chi2;
+    eprintln!(
+        "discovered: {}; on a fresh campaign the hypothesis takes Δχ² {:.0} of the structure's {:.0} ({:.0} %), magnitude {:.2} ± {:.2} µm (true 12)",
+        top.basis,
+        row.delta_chi2,
+        structure.delta_chi2,
+        100.0 * removed,
+        row.magnitude,
+        row.magnitude_u
+    );
+    assert!(row.step.is_some(), "{row:?}");
+    assert!(removed >= 0.8, "{removed}");
+    assert!((row.magnitude - 12.0).abs() <= 3.0 * row.magnitude_u + 0.5);
+    let none = with.rows.iter().find(|r| r.effect == "none").unwrap();
+    assert!(none.significant, "{}", none.place);
+}
+
+/// Issue 30's measures, on the open-world blind check's campaigns: the
+/// residual declared not explained, the structure's factor named, no false
+/// blunders, and a catalogue effect beside the unknown one at its
+/// magnitude. `part-expansion` and `beam-bending` are left out of the
+/// rates that need the structure: a warming part mimics a range scale per
+/// station (stations measure one after another), and a bent beam is
+/// rarely detectable at all — both are reported, not hidden, by
+/// `pipelines/open-world-check.toml`.
+#[test]
+fn an_effect_outside_the_catalogue_is_declared_not_explained_and_localised() {
+    let stage = OpenWorldCheckStage {
+        cases: 120,
+        seed: 7,
+        mc_draws: 5,
+        ..toml::from_str("").unwrap()
+    };
+    let cases = open_check::run(&stage.plan()).unwrap();
+    let separable = |c: &&open_check::Case| {
+        c.detectable && !matches!(c.unknown, "part-expansion" | "beam-bending")
+    };
+    let r = Rates::of(cases.iter().filter(separable));
+    let all = Rates::of(cases.iter());
+    eprintln!(
+        "{} separable detectable cases: not explained {:.1} %, catalogue as cause {:.1} %, factor right {:.1} %, \
+         false blunders {:.2}/1000; all: false blunders {:.2}/1000, catalogue named {:.1} % (detectable alone), within 3u {:.1} %",
+        r.detectable_cases,
+        100.0 * r.not_explained_rate(),
+        100.0 * r.catalogue_as_cause_rate(),
+        100.0 * r.factor_correct_rate(),
+        r.false_blunders_per_1000(),
+        all.false_blunders_per_1000(),
+        100.0 * all.catalogue_named_detectable_rate(),
+        100.0 * all.magnitude_within_3u_rate(),
+    );
+    assert!(r.detectable_cases >= 50, "{}", r.detectable_cases);
+    assert!(r.not_explained_rate() >= 0.9);
+    assert!(r.catalogue_as_cause_rate() <= 0.1);
+    assert!(r.factor_correct_rate() >= 0.8);
+    assert!(all.false_blunders_per_1000() <= 3.0);
+    assert!(all.magnitude_within_3u_rate() >= 0.85);
+}
+
+/// Issue 30: air-refraction's constant scale is the sum of range-scale's
+/// per-station columns; side by side in the set they made `magnitude_u`
+/// 981 ppm for an 8 ppm scale. A candidate collinear with the set is not
+/// added beside it.
+#[test]
+fn collinear_candidates_are_not_added_side_by_side() {
+    let fx: Effects = toml::from_str(
+        "[range-scale]\nsigma_ppm = 8.0\n[air-refraction]\namplitude_c = 1.5\nperiod_s = 1800.0\ndrift_c_per_h = 1.0\n",
+    )
+    .unwrap();
+    let layout = layout::build(&Spec::new(Layout::Hall));
+    for seed in 1..=6 {
+        let sim = simulate_campaign(&CampaignSpec {
+            name: "collinear".into(),
+            layout: &layout,
+            errors: Some(&tracker(seed)),
+            faces: &[Face::Front],
+            aim: Aim::StationsCentroid,
+            max_angle_deg: 30.0,
+            noise: Noise {
+                sigma_angle_urad: 1.0,
+                sigma_range_um: 2.0,
+                sigma_range_ppm: 0.3,
+            },
+            effects: &fx,
+            gauge_u_mm: 0.0005,
+            reference_u_mm: 0.002,
+            level_urad: 1000.0,
+            interval_s: 20.0,
+            record_time: true,
+            record_temperature: true,
+            seed,
+        })
+        .unwrap();
+        let d = diagnose::diagnose(&sim.campaign, &settings(seed, Vec::new())).unwrap();
+        let set: Vec<&diagnose::Row> = d.explanation().collect();
         eprintln!(
-            "{} [{}] | top: {top} | not explained: {not_explained}\n   {what}\n   {verdict}",
-            k.id(),
-            k.factor()
+            "seed {seed}: {}",
+            set.iter()
+                .map(|r| format!(
+                    "{} at {}: {:.2} ± {:.2} {}",
+                    r.effect, r.place, r.magnitude, r.magnitude_u, r.unit
+                ))
+                .collect::<Vec<_>>()
+                .join(" + ")
         );
+        let has = |e: &str, p: &str| set.iter().any(|r| r.effect == e && r.place == p);
+        assert!(!(has("range-scale", "all") && has("air-refraction", "all")));
+        for r in &set {
+            assert!(
+                r.magnitude_u.is_finite() && r.magnitude_u < r.magnitude.abs().max(1.0),
+                "{r:?}"
+            );
+        }
     }
 }
