@@ -188,6 +188,9 @@ pub struct Diagnosis {
     /// What the explanation set leaves, localised: each factor's best
     /// smooth basis, most significant first ([`localise`]).
     pub unexplained: Vec<localise::Localised>,
+    /// The final model's BIC with its explanation set, up to the model's
+    /// own rank: `χ² + k·ln m`, k the set's parameters.
+    pub final_bic: f64,
 }
 
 impl Diagnosis {
@@ -482,6 +485,53 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         &factors::factors(&final_residuals),
         s.alpha,
     );
+    // A large effect can hide a wrong model (the model row above must beat
+    // it on the raw readings): while the set leaves the residual
+    // unexplained, every other model gets its own explanation set, and a
+    // model that with its set explains the readings, by a lower BIC, is
+    // the answer.
+    let left_chi2_p = final_state.chi2_p();
+    if compare && open && left_chi2_p < s.alpha {
+        let ln_m = (final_state.lm.rows() as f64).ln();
+        let rank_of = |m: crate::tracker::TrackerModel| {
+            models.iter().find(|f| f.model == m).map(|f| f.rank as f64)
+        };
+        let base_rank = rank_of(s.model.tracker());
+        for other in models.iter().filter(|f| f.model != s.model.tracker()) {
+            let (Some(base_rank), Some(row)) = (
+                base_rank,
+                model_row(&models, s.model.tracker(), floor, f64::NEG_INFINITY),
+            ) else {
+                continue;
+            };
+            let settings = Settings {
+                model: ErrorModel::of(other.model),
+                fixed: Vec::new(),
+                max_steps: s.max_steps.saturating_sub(1),
+                ..s.clone()
+            };
+            let Ok(alt) = explain(c, &settings, false) else {
+                continue;
+            };
+            let base_bic = final_state.bic() + base_rank * ln_m;
+            let alt_bic = alt.final_bic + other.rank as f64 * ln_m + ln_m;
+            // Only a model that, with its set, explains the readings: an
+            // unknown effect also fits another model a little better.
+            let explained = alt.rows.iter().any(|r| r.effect == "none" && r.significant);
+            if explained && base_bic - alt_bic >= models::MISMATCH_BIC {
+                let joint = Row {
+                    significant: true,
+                    delta_bic: base_bic - alt_bic,
+                    detail: format!(
+                        "{}; compared with each model's own explanation set: BIC {:.1} against {:.1}",
+                        row.detail, alt_bic, base_bic
+                    ),
+                    ..row
+                };
+                return Ok(with_model_row(alt, joint, models));
+            }
+        }
+    }
     let unexplained = localise::localise(
         &localise::Rest {
             lm: &final_state.lm,
@@ -507,6 +557,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         (&final_factors, &unexplained),
     ));
     rank(&mut rows);
+    let final_bic = final_state.bic();
     Ok(Diagnosis {
         campaign: c.meta.name.clone(),
         rows,
@@ -531,6 +582,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         models,
         base_cv_rms_um,
         unexplained,
+        final_bic,
     })
 }
 
@@ -549,7 +601,12 @@ fn on_the_model_that_fits(
         max_steps: s.max_steps - 1,
         ..s.clone()
     };
-    let mut d = explain(c, &settings, false)?;
+    Ok(with_model_row(explain(c, &settings, false)?, row, fits))
+}
+
+/// `d`, the diagnosis on another model, with the model row as its first
+/// member and every model's fit.
+fn with_model_row(mut d: Diagnosis, row: Row, fits: Vec<models::ModelFit>) -> Diagnosis {
     for r in d.rows.iter_mut() {
         r.step = r.step.map(|k| k + 1);
     }
@@ -559,7 +616,7 @@ fn on_the_model_that_fits(
     });
     rank(&mut d.rows);
     d.models = fits;
-    Ok(d)
+    d
 }
 
 /// Every tracker model on the campaign, best first: the base model's fit is

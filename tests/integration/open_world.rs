@@ -18,6 +18,7 @@ use ltcal::random;
 use ltcal::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use ltcal::stages::open_world_check::OpenWorldCheckStage;
 use ltcal::tracker::TrackerModel;
+use rayon::prelude::*;
 use std::sync::Arc;
 
 fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
@@ -227,4 +228,85 @@ fn collinear_candidates_are_not_added_side_by_side() {
             );
         }
     }
+}
+
+/// Issue 30, item 2: a mirror tracker declared `api-tracker3`, with a range
+/// scale at one station of 2–4 times the blind check's size: the model
+/// mismatch is named, and the scale beside it at its magnitude.
+#[test]
+fn a_wrong_model_under_a_large_effect_is_named() {
+    const CASES: u64 = 24;
+    let layout = layout::build(&Spec::new(Layout::Corner));
+    let out: Vec<(bool, bool, usize, usize, String)> = (1..=CASES)
+        .into_par_iter()
+        .map(|seed| {
+            let mut rng = random::stream(seed, "wrong-model");
+            let mut errors = ErrorParams::zero(&ErrorModel::of(TrackerModel::MirrorTracker));
+            for v in errors.values_mut() {
+                *v = 5.0 * random::normal(&mut rng);
+            }
+            let stations: Vec<String> = layout.stations.iter().map(|s| s.0.clone()).collect();
+            let station = random::pick(&mut rng, &stations).clone();
+            let ppm = random::log_uniform(&mut rng, 8.0, 40.0, true);
+            let fx: Effects =
+                toml::from_str(&format!("[range-scale]\nppm = {{ {station} = {ppm} }}\n")).unwrap();
+            let mut sim = simulate_campaign(&CampaignSpec {
+                name: "wrong-model".into(),
+                layout: &layout,
+                errors: Some(&errors),
+                faces: &[Face::Front, Face::Back],
+                aim: Aim::StationsCentroid,
+                max_angle_deg: 30.0,
+                noise: Noise {
+                    sigma_angle_urad: 1.0,
+                    sigma_range_um: 2.0,
+                    sigma_range_ppm: 0.3,
+                },
+                effects: &fx,
+                gauge_u_mm: 0.0005,
+                reference_u_mm: 0.002,
+                level_urad: 1000.0,
+                interval_s: 20.0,
+                record_time: true,
+                record_temperature: true,
+                seed,
+            })
+            .unwrap();
+            sim.campaign.meta.tracker.model = TrackerModel::ApiTracker3.id().into();
+            let d = diagnose::diagnose(&sim.campaign, &settings(seed, Vec::new())).unwrap();
+            let set: Vec<&diagnose::Row> = d.explanation().collect();
+            let mismatch = set
+                .iter()
+                .any(|r| r.effect == diagnose::MODEL && r.place == "mirror-tracker");
+            let scale = set
+                .iter()
+                .find(|r| r.effect == "range-scale" && r.place == station);
+            let within = scale.is_some_and(|r| (r.magnitude - ppm).abs() <= 3.0 * r.magnitude_u);
+            let blunders = set.iter().filter(|r| r.effect == "blunder").count();
+            (
+                mismatch,
+                within,
+                blunders,
+                sim.campaign.readings.len(),
+                format!(
+                    "{ppm:.1} ppm at {station}: {}",
+                    diagnose::output::verdict(&d)
+                ),
+            )
+        })
+        .collect();
+    for o in out.iter().filter(|o| !o.0) {
+        eprintln!("missed: {}", o.4);
+    }
+    let named = out.iter().filter(|o| o.0).count();
+    let within = out.iter().filter(|o| o.1).count();
+    let blunders: usize = out.iter().map(|o| o.2).sum();
+    let readings: usize = out.iter().map(|o| o.3).sum();
+    eprintln!(
+        "mismatch named {named}/{CASES}, the scale within 3 u {within}/{CASES}, \
+         {blunders} blunders in {readings} clean readings"
+    );
+    assert!(named as f64 >= 0.9 * CASES as f64);
+    assert!(within as f64 >= 0.8 * CASES as f64);
+    assert!(1000.0 * blunders as f64 / readings as f64 <= 1.0);
 }
