@@ -1511,10 +1511,11 @@ impl StepContext<'_> {
     /// family-wise rate stays under α whatever the number of steps), ΔBIC,
     /// held-out score and gap; and the worst reading's w-test.
     ///
-    /// When a smooth structure of one factor ([`localise::structure`])
-    /// explains more than every candidate and the worst reading (by ΔBIC),
-    /// the candidates and the readings are tested against the model with
-    /// that structure's columns beside the members, as a nuisance: an
+    /// When a smooth structure of one factor ([`localise::structure`]) is
+    /// still significant beside the best row and the [`MAX_OUTLIERS`] worst
+    /// readings (so they do not explain it), the candidates and the
+    /// readings are tested against the model with that structure's columns
+    /// beside the members, as a nuisance: an
     /// effect the catalogue lacks is then not blamed on the catalogue
     /// effect, or the blunders, that mimic part of it, while a catalogue
     /// effect present beside it keeps its own Δχ².
