@@ -280,35 +280,13 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
         });
     }
     out.extend(station_steps(infos, stations));
-    // station: a range offset per station.
+    // station: a range offset per station; reflector: one per reflector
+    // (two kinds of SMR).
     if stations.len() > 1 {
-        let mut c = Signature::new(stations.len());
-        for (i, r) in infos.iter().enumerate() {
-            c.add(i, 2, r.station, 1e-3 / r.sigma.z);
-        }
-        out.push(Basis {
-            factor: "station",
-            what: "a range offset per station".into(),
-            columns: c,
-            shape: Shape::Labels(stations.to_vec()),
-            unit: "µm",
-            template: Template::Offsets { scope: "station" },
-        });
+        out.push(offsets(infos, stations, |r| r.station, "station"));
     }
-    // reflector: a range offset per reflector (two kinds of SMR).
     if targets.len() > 1 && targets.len() <= MAX_REFLECTOR_OFFSETS {
-        let mut c = Signature::new(targets.len());
-        for (i, r) in infos.iter().enumerate() {
-            c.add(i, 2, r.target, 1e-3 / r.sigma.z);
-        }
-        out.push(Basis {
-            factor: "reflector",
-            what: "a range offset per reflector".into(),
-            columns: c,
-            shape: Shape::Labels(targets.to_vec()),
-            unit: "µm",
-            template: Template::Offsets { scope: "reflector" },
-        });
+        out.push(offsets(infos, targets, |r| r.target, "reflector"));
     }
     // face: an offset of the back face's readings.
     if infos.iter().any(|r| r.face == 2.0) && infos.iter().any(|r| r.face == 1.0) {
@@ -396,6 +374,28 @@ fn refine_period(
                 a
             }
         })
+}
+
+/// A range offset per station or reflector (`scope`), `of` a reading's
+/// index among `labels`.
+fn offsets(
+    infos: &[ReadingInfo],
+    labels: &[String],
+    of: fn(&ReadingInfo) -> usize,
+    scope: &'static str,
+) -> Basis {
+    let mut c = Signature::new(labels.len());
+    for (i, r) in infos.iter().enumerate() {
+        c.add(i, 2, of(r), 1e-3 / r.sigma.z);
+    }
+    Basis {
+        factor: scope,
+        what: format!("a range offset per {scope}"),
+        columns: c,
+        shape: Shape::Labels(labels.to_vec()),
+        unit: "µm",
+        template: Template::Offsets { scope },
+    }
 }
 
 /// `station × time`: one station's pose (translation, rotation) and range

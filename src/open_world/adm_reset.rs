@@ -73,13 +73,7 @@ mod tests {
     fn ranges_step_by_c_from_t0_on_one_station() {
         let sim = fixture::campaign(true);
         let station = sim.poses[2].id.clone();
-        let times: Vec<f64> = sim
-            .campaign
-            .readings
-            .iter()
-            .filter(|r| r.station == station)
-            .map(|r| r.time_s.unwrap())
-            .collect();
+        let times = fixture::times_of(&sim, &station);
         let t0 = times[times.len() / 3];
         let e = AdmReset {
             station: station.clone(),

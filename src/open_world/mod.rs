@@ -415,6 +415,15 @@ pub(crate) mod fixture {
     use crate::noise::Noise;
     use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 
+    /// The `time_s` of `station`'s readings, in reading order.
+    pub fn times_of(sim: &SimulatedCampaign, station: &str) -> Vec<f64> {
+        let readings = sim.campaign.readings.iter();
+        readings
+            .filter(|r| r.station == station)
+            .map(|r| r.time_s.unwrap())
+            .collect()
+    }
+
     /// The tracker: Table 2's errors, every parameter 10 µm or 10 µrad.
     pub fn errors() -> ErrorParams {
         ErrorParams::table2()
@@ -484,13 +493,7 @@ mod tests {
         assert_eq!(ctx.sessions.len(), 3);
         assert_eq!(ctx.targets.len(), sim.targets.len());
         let (a, b) = ctx.sessions[1].times_s.unwrap();
-        let times: Vec<f64> = sim
-            .campaign
-            .readings
-            .iter()
-            .filter(|r| r.station == ctx.sessions[1].station)
-            .map(|r| r.time_s.unwrap())
-            .collect();
+        let times = fixture::times_of(&sim, &ctx.sessions[1].station);
         assert_eq!(a, times[0]);
         assert_eq!(b, *times.last().unwrap());
         // The first reading taken (the first attempts may lie beyond the

@@ -125,13 +125,7 @@ mod tests {
         let sim = fixture::campaign(true);
         let errors = fixture::errors();
         let station = sim.poses[1].id.clone();
-        let times: Vec<f64> = sim
-            .campaign
-            .readings
-            .iter()
-            .filter(|r| r.station == station)
-            .map(|r| r.time_s.unwrap())
-            .collect();
+        let times = fixture::times_of(&sim, &station);
         let t0 = times[times.len() / 2];
         let k = knock(&station, t0);
         let out = OpenEffect::TripodKnock(k.clone())

@@ -21,13 +21,20 @@ use ltcal::tracker::TrackerModel;
 use rayon::prelude::*;
 use std::sync::Arc;
 
-fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
-    let layout = layout::build(&Spec::new(Layout::Corner));
+/// A campaign of `layout` by a tracker with `errors`, carrying `effects`:
+/// time and temperature recorded, 1 µrad and 2 µm of noise.
+fn campaign(
+    layout: &layout::Layout,
+    errors: &ErrorParams,
+    faces: &[Face],
+    effects: &Effects,
+    seed: u64,
+) -> SimulatedCampaign {
     simulate_campaign(&CampaignSpec {
         name: "open-world".into(),
-        layout: &layout,
+        layout,
         errors: Some(errors),
-        faces: &[Face::Front],
+        faces,
         aim: Aim::StationsCentroid,
         max_angle_deg: 30.0,
         noise: Noise {
@@ -35,7 +42,7 @@ fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
             sigma_range_um: 2.0,
             sigma_range_ppm: 0.3,
         },
-        effects: &Effects::default(),
+        effects,
         gauge_u_mm: 0.0005,
         reference_u_mm: 0.002,
         level_urad: 1000.0,
@@ -45,6 +52,11 @@ fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
         seed,
     })
     .unwrap()
+}
+
+fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
+    let layout = layout::build(&Spec::new(Layout::Corner));
+    campaign(&layout, errors, &[Face::Front], &Effects::default(), seed)
 }
 
 /// The tracker of every campaign here: a few µm and µrad of kinematic errors.
@@ -185,28 +197,7 @@ fn collinear_candidates_are_not_added_side_by_side() {
     .unwrap();
     let layout = layout::build(&Spec::new(Layout::Hall));
     for seed in 1..=6 {
-        let sim = simulate_campaign(&CampaignSpec {
-            name: "collinear".into(),
-            layout: &layout,
-            errors: Some(&tracker(seed)),
-            faces: &[Face::Front],
-            aim: Aim::StationsCentroid,
-            max_angle_deg: 30.0,
-            noise: Noise {
-                sigma_angle_urad: 1.0,
-                sigma_range_um: 2.0,
-                sigma_range_ppm: 0.3,
-            },
-            effects: &fx,
-            gauge_u_mm: 0.0005,
-            reference_u_mm: 0.002,
-            level_urad: 1000.0,
-            interval_s: 20.0,
-            record_time: true,
-            record_temperature: true,
-            seed,
-        })
-        .unwrap();
+        let sim = campaign(&layout, &tracker(seed), &[Face::Front], &fx, seed);
         let d = diagnose::diagnose(&sim.campaign, &settings(seed, Vec::new())).unwrap();
         let set: Vec<&diagnose::Row> = d.explanation().collect();
         eprintln!(
@@ -250,28 +241,8 @@ fn a_wrong_model_under_a_large_effect_is_named() {
             let ppm = random::log_uniform(&mut rng, 8.0, 40.0, true);
             let fx: Effects =
                 toml::from_str(&format!("[range-scale]\nppm = {{ {station} = {ppm} }}\n")).unwrap();
-            let mut sim = simulate_campaign(&CampaignSpec {
-                name: "wrong-model".into(),
-                layout: &layout,
-                errors: Some(&errors),
-                faces: &[Face::Front, Face::Back],
-                aim: Aim::StationsCentroid,
-                max_angle_deg: 30.0,
-                noise: Noise {
-                    sigma_angle_urad: 1.0,
-                    sigma_range_um: 2.0,
-                    sigma_range_ppm: 0.3,
-                },
-                effects: &fx,
-                gauge_u_mm: 0.0005,
-                reference_u_mm: 0.002,
-                level_urad: 1000.0,
-                interval_s: 20.0,
-                record_time: true,
-                record_temperature: true,
-                seed,
-            })
-            .unwrap();
+            let faces = [Face::Front, Face::Back];
+            let mut sim = campaign(&layout, &errors, &faces, &fx, seed);
             sim.campaign.meta.tracker.model = TrackerModel::ApiTracker3.id().into();
             let d = diagnose::diagnose(&sim.campaign, &settings(seed, Vec::new())).unwrap();
             let set: Vec<&diagnose::Row> = d.explanation().collect();
