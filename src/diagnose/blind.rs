@@ -173,6 +173,10 @@ pub struct SetScore {
     /// `station-drift` or `air-refraction` named in a file without the
     /// columns they need.
     pub time_effect_without_time: bool,
+    /// The verdict says the readings are not (fully) explained
+    /// ([`Diagnosis::explained`]): a false flag, when every effect put in
+    /// is in the catalogue.
+    pub not_explained: bool,
     pub true_set: String,
     pub named_set: String,
 }
@@ -606,6 +610,7 @@ fn score_set(
             && named
                 .iter()
                 .any(|r| effects::kind(&r.effect).is_some_and(|k| k.needs.any())),
+        not_explained: !d.explained(),
         true_set: if members.is_empty() {
             "none".into()
         } else {
@@ -658,6 +663,8 @@ pub struct SetAccuracy {
     pub clean_readings: usize,
     /// Cases without time columns where a time-based effect was named.
     pub time_effects_without_time: usize,
+    /// Cases declared not (fully) explained.
+    pub not_explained: usize,
 }
 
 impl SetAccuracy {
@@ -676,6 +683,7 @@ impl SetAccuracy {
             a.false_blunders += s.false_blunders;
             a.clean_readings += s.clean_readings;
             a.time_effects_without_time += s.time_effect_without_time as usize;
+            a.not_explained += s.not_explained as usize;
         }
         a
     }
@@ -693,6 +701,10 @@ impl SetAccuracy {
     /// False blunders per 1 000 clean readings.
     pub fn false_blunders_per_1000(&self) -> f64 {
         1000.0 * self.false_blunders as f64 / self.clean_readings.max(1) as f64
+    }
+    /// Share of cases declared not (fully) explained.
+    pub fn not_explained_rate(&self) -> f64 {
+        self.not_explained as f64 / self.cases.max(1) as f64
     }
 }
 

@@ -203,6 +203,19 @@ impl Diagnosis {
     pub fn explanation(&self) -> impl Iterator<Item = &Row> {
         self.rows.iter().filter(|r| r.step.is_some())
     }
+
+    /// The `none` row: what the explanation set leaves, and whether that is
+    /// consistent with the stated noise (its `significant`).
+    pub fn rest(&self) -> Option<&Row> {
+        self.rows.iter().find(|r| r.effect == "none")
+    }
+
+    /// Whether the readings are declared explained: what the set leaves is
+    /// consistent with the stated noise and no factor localises structure in
+    /// it. `false` is the verdict's "not (fully) explained".
+    pub fn explained(&self) -> bool {
+        self.rest().is_some_and(|r| r.significant)
+    }
 }
 
 /// Each station's earliest `time_s`, when its readings carry one.
@@ -517,8 +530,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             let alt_bic = alt.final_bic + other.rank as f64 * ln_m + ln_m;
             // Only a model that, with its set, explains the readings: an
             // unknown effect also fits another model a little better.
-            let explained = alt.rows.iter().any(|r| r.effect == "none" && r.significant);
-            if explained && base_bic - alt_bic >= models::MISMATCH_BIC {
+            if alt.explained() && base_bic - alt_bic >= models::MISMATCH_BIC {
                 let joint = Row {
                     significant: true,
                     delta_bic: base_bic - alt_bic,

@@ -229,8 +229,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         None => None,
     };
     let named: Vec<&super::Row> = d.explanation().collect();
-    let not_explained = d.rows.iter().any(|r| r.effect == "none" && !r.significant);
-    let noise_consistent = d.rows.iter().any(|r| r.effect == "none" && r.significant);
+    let not_explained = !d.explained();
     let is_known = |r: &super::Row| {
         known
             .as_ref()
@@ -256,7 +255,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         signal_chi2: signal,
         detectable: signal >= plan.detect_chi2,
         not_explained,
-        catalogue_as_cause: effects_named > 0 && noise_consistent,
+        catalogue_as_cause: effects_named > 0 && d.explained(),
         factor_correct: top_factor == unknown.factor(),
         top_factor,
         false_blunders: named.iter().filter(|r| r.effect == "blunder").count(),

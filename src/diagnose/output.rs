@@ -288,10 +288,8 @@ pub fn verdict(d: &Diagnosis) -> String {
     // What the set leaves when it is more than the stated noise: no member
     // is then presented as the whole cause.
     let left = d
-        .rows
-        .iter()
-        .find(|r| r.effect == "none" && !r.significant)
-        .filter(|_| b.effect != "none");
+        .rest()
+        .filter(|r| !r.significant && b.effect != "none");
     if let Some(rest) = left {
         let (_, _, shrink) = set_numbers(d);
         let what = match (

@@ -37,7 +37,9 @@
 //! `where_correct`, `magnitude_ratio`, and the case as a set: `true_set`,
 //! `named_set`, `members`, `members_detectable`, `members_found`,
 //! `spurious`, `blunders`, `blunders_found`, `false_blunders`,
-//! `time_effect_without_time`, `detectable_blunders`, `clean_readings`), `confusion` (single-effect kinds; `subset`
+//! `time_effect_without_time`, `detectable_blunders`, `clean_readings`,
+//! `not_explained` — the verdict declares the readings not (fully)
+//! explained, a false flag on these campaigns of catalogue effects), `confusion` (single-effect kinds; `subset`
 //! = all or detectable, `true_effect`, `named_effect`, `count`), `summary`
 //! (single-effect kinds: `subset`, `cases`, `effect_accuracy_pct` over
 //! campaigns with an effect, `where_accuracy_pct` over those with a station
@@ -46,7 +48,7 @@
 //! `cases`, `detectable_cases`, `all_found_pct` — every member of a fully
 //! detectable case in the explanation set — `spurious_free_pct`,
 //! `detectable_blunders`, `blunders_found_pct`, `false_blunders_per_1000` clean
-//! readings, `time_effects_without_time`) and the figure `confusion.svg`.
+//! readings, `time_effects_without_time`, `not_explained_pct`) and the figure `confusion.svg`.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::diagnose::blind::{self, Campaigns, Case, CaseKind, Plan, Score, SetAccuracy};
@@ -195,6 +197,7 @@ impl StageKind for BlindCheckStage {
                 "time_effect_without_time",
                 "detectable_blunders",
                 "clean_readings",
+                "not_explained",
             ]),
             "kinds" => Some(&[
                 "kind",
@@ -206,6 +209,7 @@ impl StageKind for BlindCheckStage {
                 "blunders_found_pct",
                 "false_blunders_per_1000",
                 "time_effects_without_time",
+                "not_explained_pct",
             ]),
             "confusion" => Some(&["subset", "true_effect", "named_effect", "count"]),
             "summary" => Some(&[
@@ -434,6 +438,7 @@ fn kinds_table(cases: &[Case]) -> Result<DataFrame> {
                 .map(|r| r.1.time_effects_without_time as i64)
                 .collect(),
         )
+        .f64("not_explained_pct", pct(SetAccuracy::not_explained_rate))
         .build()
 }
 
@@ -537,6 +542,10 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
         )
         .i64("detectable_blunders", n(|c| c.set.detectable_blunders))
         .i64("clean_readings", n(|c| c.set.clean_readings))
+        .bool(
+            "not_explained",
+            cases.iter().map(|c| c.set.not_explained).collect(),
+        )
         .build()
 }
 

@@ -110,6 +110,7 @@ fn read_cases(t: &TableRef) -> Result<Vec<Case>> {
     let where_correct = t.opt_bool("where_correct")?;
     let magnitude_ratio = t.opt_f64("magnitude_ratio")?;
     let time = t.bool("time_effect_without_time")?;
+    let not_explained = t.bool("not_explained")?;
     (0..n)
         .map(|i| {
             let kind = CaseKind::parse(&kinds[i])
@@ -148,6 +149,7 @@ fn read_cases(t: &TableRef) -> Result<Vec<Case>> {
                     false_blunders: false_blunders[i],
                     clean_readings: clean_readings[i],
                     time_effect_without_time: time[i],
+                    not_explained: not_explained[i],
                     true_set: true_set[i].clone(),
                     named_set: named_set[i].clone(),
                 },
