@@ -34,7 +34,7 @@ use crate::random;
 use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use crate::tracker::TrackerModel;
 use anyhow::{Result, anyhow};
-use nalgebra::DVector;
+use nalgebra::{DVector, Vector3};
 use rand::rngs::ChaCha8Rng;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -341,15 +341,17 @@ pub(super) fn diagnose_blind(
     mc_draws: usize,
     seed: u64,
 ) -> Result<Diagnosis> {
-    diagnose(
-        c,
-        &DiagnoseSettings {
-            model: ErrorModel::of(tracker),
-            mc_draws,
-            seed,
-            ..DiagnoseSettings::default()
-        },
-    )
+    diagnose(c, &settings(tracker, mc_draws, seed))
+}
+
+/// The settings of [`diagnose_blind`].
+pub(super) fn settings(tracker: TrackerModel, mc_draws: usize, seed: u64) -> DiagnoseSettings {
+    DiagnoseSettings {
+        model: ErrorModel::of(tracker),
+        mc_draws,
+        seed,
+        ..DiagnoseSettings::default()
+    }
 }
 
 pub(super) fn simulate(
@@ -391,6 +393,32 @@ fn key(r: &CampaignReading) -> Key {
     (r.station.clone(), r.target.clone(), r.face.number())
 }
 
+/// The noise-free change an effect makes to each of `readings` (az, el in
+/// rad, d in mm): the difference of the campaigns with and without it.
+pub(super) fn signal(
+    with: &Campaign,
+    without: &Campaign,
+    readings: &[CampaignReading],
+) -> Vec<Vector3<f64>> {
+    let base: BTreeMap<Key, &CampaignReading> =
+        without.readings.iter().map(|r| (key(r), r)).collect();
+    let eff: BTreeMap<Key, &CampaignReading> = with.readings.iter().map(|r| (key(r), r)).collect();
+    readings
+        .iter()
+        .map(|r| {
+            let k = key(r);
+            match (eff.get(&k), base.get(&k)) {
+                (Some(a), Some(b)) => Vector3::new(
+                    crate::kinematics::wrap_angle((a.az_deg - b.az_deg).to_radians()),
+                    (a.el_deg - b.el_deg).to_radians(),
+                    a.d_mm - b.d_mm,
+                ),
+                _ => Vector3::zeros(),
+            }
+        })
+        .collect()
+}
+
 /// The effect's Δχ² on the readings once the base adjustment has absorbed
 /// what it can: `‖P⊥·W·Δ‖²` with Δ the noise-free difference of the
 /// readings with and without the effect.
@@ -403,21 +431,12 @@ pub(super) fn signal_chi2(
     let Some(lin) = &d.calibration.linearisation else {
         return 0.0;
     };
-    let base: BTreeMap<Key, &CampaignReading> =
-        without.readings.iter().map(|r| (key(r), r)).collect();
-    let eff: BTreeMap<Key, &CampaignReading> = with.readings.iter().map(|r| (key(r), r)).collect();
     let mut delta = DVector::zeros(lin.jacobian.nrows());
-    for (i, r) in readings.iter().enumerate() {
-        let k = key(r);
-        if let (Some(a), Some(b)) = (eff.get(&k), base.get(&k)) {
-            let daz = crate::kinematics::wrap_angle((a.az_deg - b.az_deg).to_radians());
-            let del = (a.el_deg - b.el_deg).to_radians();
-            let dd = a.d_mm - b.d_mm;
-            let s = d.sigma[i];
-            delta[3 * i] = daz / s.x;
-            delta[3 * i + 1] = del / s.y;
-            delta[3 * i + 2] = dd / s.z;
-        }
+    for (i, x) in signal(with, without, readings).iter().enumerate() {
+        let s = d.sigma[i];
+        delta[3 * i] = x.x / s.x;
+        delta[3 * i + 1] = x.y / s.y;
+        delta[3 * i + 2] = x.z / s.z;
     }
     super::linear::unabsorbed_norm2(&lin.jacobian, &delta)
 }

@@ -238,6 +238,20 @@ fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signatu
     }
 }
 
+/// The most of `r` that any one of `columns` explains beside the model
+/// linearised as `j` (the largest Δχ² of their fits), the normal matrix
+/// factored once for them all.
+pub fn most_absorbed(j: &BlockJacobian, r: &DVector<f64>, columns: &[&Signature]) -> Result<f64, Singular> {
+    let full = Normal::assemble(j, None, |_| true)
+        .factor(0.0)
+        .ok_or(Singular(""))?;
+    let r_perp = project_out(j, &full, r);
+    Ok(columns
+        .iter()
+        .map(|c| fit_with(j, &full, &r_perp, c).delta_chi2)
+        .fold(0.0, f64::max))
+}
+
 /// The fit of `c` to the residuals `r` of the model linearised as `j`,
 /// without the cross-validation folds: what a refit needs.
 pub fn fit_once(j: &BlockJacobian, r: &DVector<f64>, c: &Signature) -> Result<Fit, Singular> {

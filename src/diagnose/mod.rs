@@ -1243,6 +1243,43 @@ impl StepContext<'_> {
     }
 }
 
+/// How much of an effect's signal neither the base adjustment nor the
+/// catalogue's nearest single effect absorbs, as Δχ² in units of the
+/// stated noise: `‖P⊥·W·Δ‖²` less the largest Δχ² of one candidate's
+/// columns fitted to it. `delta`: the noise-free change of each reading of
+/// `c` (az, el in rad, d in mm), in reading order.
+///
+/// Below a detection threshold, an effect outside the catalogue cannot be
+/// told from that catalogue effect on this campaign — by this diagnosis or
+/// any other: a part that grows as the hall warms, measured station after
+/// station, is a range scale.
+pub(super) fn beyond_catalogue(c: &Campaign, s: &Settings, delta: &[Vector3<f64>]) -> Result<f64> {
+    let net = Network::from_campaign(c)?;
+    let cal = base_calibration(&net, s)?;
+    let lin = cal
+        .linearisation
+        .as_ref()
+        .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
+    let mut x = DVector::zeros(lin.jacobian.nrows());
+    for (i, (d, o)) in delta.iter().zip(&net.obs).enumerate() {
+        for k in 0..3 {
+            x[3 * i + k] = d[k] / o.sigma[k];
+        }
+    }
+    let infos = reading_infos(c, &net, &cal);
+    let order = station_order(c, &net.stations);
+    let cx = candidates::Context {
+        readings: &infos,
+        stations: &net.stations,
+        targets: &net.targets,
+        station_order: &order,
+    };
+    let (cands, _) = candidates::build(&cx, &|_| true);
+    let columns: Vec<&Signature> = cands.iter().map(|c| &c.columns).collect();
+    let total = linear::unabsorbed_norm2(&lin.jacobian, &x);
+    Ok(total - linear::most_absorbed(&lin.jacobian, &x, &columns)?)
+}
+
 /// Step 1: the bundle adjustment with the base model.
 fn base_calibration(net: &Network, s: &Settings) -> Result<Calibration> {
     let start = ErrorParams::zero(&s.model);

@@ -28,7 +28,8 @@
 //! Outputs: `cases` (one row per campaign: `case`, `kind`, `layout`,
 //! `stations`, `readings`, `sigma_angle_urad`, `sigma_range_um`,
 //! `unknown`, `unknown_factor`, `unknown_description`, `signal_chi2`,
-//! `detectable`; the catalogue effect `known_effect`, `known_where`,
+//! `detectable`, `signal_beyond_catalogue_chi2`, `distinguishable` (see
+//! [`crate::diagnose::open_check`]); the catalogue effect `known_effect`, `known_where`,
 //! `known_true_magnitude`, `known_signal_chi2`, `known_detectable`, `known_named`,
 //! `known_named_magnitude`, `known_magnitude_u`, `known_unit`,
 //! `magnitude_within_3u` (empty or null without one); the diagnosis
@@ -42,7 +43,10 @@
 //! `with_known`, `catalogue_named_pct` of those with a catalogue effect,
 //! `with_known_detectable`, `catalogue_named_detectable_pct` of those whose
 //! catalogue effect is detectable on its own,
-//! `magnitude_within_3u_pct` of those named; NaN where nothing is counted).
+//! `magnitude_within_3u_pct` of those named; `distinguishable_cases` and on
+//! them `not_explained_distinguishable_pct`,
+//! `catalogue_as_cause_distinguishable_pct`,
+//! `factor_correct_distinguishable_pct`; NaN where nothing is counted).
 //!
 //! A case is drawn from `seed` and its number alone, as in `blind_check`;
 //! the check is not split into sweep blocks (no summary stage reads its
@@ -161,6 +165,8 @@ const CASES: &[&str] = &[
     "unknown_description",
     "signal_chi2",
     "detectable",
+    "signal_beyond_catalogue_chi2",
+    "distinguishable",
     "known_effect",
     "known_where",
     "known_true_magnitude",
@@ -197,6 +203,10 @@ const SUMMARY: &[&str] = &[
     "with_known_detectable",
     "catalogue_named_detectable_pct",
     "magnitude_within_3u_pct",
+    "distinguishable_cases",
+    "not_explained_distinguishable_pct",
+    "catalogue_as_cause_distinguishable_pct",
+    "factor_correct_distinguishable_pct",
 ];
 
 impl StageKind for OpenWorldCheckStage {
@@ -304,6 +314,19 @@ fn summary_table(cases: &[Case]) -> Result<DataFrame> {
             "magnitude_within_3u_pct",
             pct(Rates::magnitude_within_3u_rate),
         )
+        .i64("distinguishable_cases", n(|r| r.distinguishable_cases))
+        .f64(
+            "not_explained_distinguishable_pct",
+            pct(Rates::distinguishable_not_explained_rate),
+        )
+        .f64(
+            "catalogue_as_cause_distinguishable_pct",
+            pct(Rates::distinguishable_catalogue_as_cause_rate),
+        )
+        .f64(
+            "factor_correct_distinguishable_pct",
+            pct(Rates::distinguishable_factor_correct_rate),
+        )
         .build()
 }
 
@@ -350,6 +373,11 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
         .str("unknown_description", &s(|c| c.unknown_description.clone()))
         .f64("signal_chi2", x(|c| c.signal_chi2))
         .bool("detectable", b(|c| c.detectable))
+        .f64(
+            "signal_beyond_catalogue_chi2",
+            x(|c| c.signal_beyond_catalogue_chi2),
+        )
+        .bool("distinguishable", b(|c| c.distinguishable))
         .str("known_effect", &known_s(|k| k.effect.clone()))
         .str("known_where", &known_s(|k| k.place.clone()))
         .f64("known_true_magnitude", known_x(|k| k.magnitude))
