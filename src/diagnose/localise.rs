@@ -22,7 +22,7 @@
 //! | factor | basis |
 //! |---|---|
 //! | `range` | a piecewise-linear function (8 knots) in d on each coordinate; sine and cosine of `2π·d/P` on d for periods P from 0.2 m to 5 m (the best period counted as alternatives) |
-//! | `az`, `el` | a Fourier series in az (orders 2–4) / a piecewise-linear function (8 knots) in el, on each coordinate |
+//! | `az`, `el` | a Fourier series in az (orders 1–4) on each coordinate, and a tilt of the standing axis as such a series (on az and el at once) / a piecewise-linear function (8 knots) in el, on each coordinate |
 //! | `time` | a piecewise-linear function (8 knots) in `time_s` on each coordinate, and a growth of the reflector field about its centroid |
 //! | `station × time` | a step of one station's pose (translation, rotation) and of its range after a time, at times on a grid (station and time counted as alternatives) |
 //! | `station`, `reflector`, `face` | a range offset per station / per reflector, a face-2 offset on each coordinate |
@@ -253,6 +253,47 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
             shape: Shape::Labels(labels),
             unit: COMPONENT_UNIT[comp],
             template: Template::Fourier { comp },
+        });
+    }
+    // az: the standing axis tilting as it turns (a worn bearing), tilts
+    // `tx`, `ty` each a Fourier series in az. A tilt ω = (tx, ty, 0) of
+    // the station frame moves a direction u by ω × u: the elevation by
+    // `tx·sin az − ty·cos az`, the azimuth by `−tan el·(tx·cos az + ty·sin
+    // az)` — on both angles at once, which one series per coordinate
+    // cannot fit, and whose unfitted rest the w-tests took for blunders.
+    {
+        let mut c = Signature::new(16);
+        for (i, r) in infos.iter().enumerate() {
+            let (sa, ca, te) = (r.az.sin(), r.az.cos(), r.el.tan());
+            let (w_az, w_el) = (PER_UNIT[0] / r.sigma[0], PER_UNIT[1] / r.sigma[1]);
+            for order in 1..=4 {
+                let k = order as f64 * r.az;
+                for (h, f) in [k.sin(), k.cos()].into_iter().enumerate() {
+                    let col = 4 * (order - 1) + 2 * h;
+                    c.add(i, 0, col, -te * ca * f * w_az);
+                    c.add(i, 1, col, sa * f * w_el);
+                    c.add(i, 0, col + 1, -te * sa * f * w_az);
+                    c.add(i, 1, col + 1, -ca * f * w_el);
+                }
+            }
+        }
+        let labels = (1..=4)
+            .flat_map(|o| {
+                [
+                    format!("tx sin {o}·az"),
+                    format!("ty sin {o}·az"),
+                    format!("tx cos {o}·az"),
+                    format!("ty cos {o}·az"),
+                ]
+            })
+            .collect();
+        out.push(Basis {
+            factor: "az",
+            what: "a tilt of the standing axis, a Fourier series in az (orders 1–4)".into(),
+            columns: c,
+            shape: Shape::Labels(labels),
+            unit: "µrad",
+            template: Template::None,
         });
     }
     // time: the reflectors' field growing about its centroid (a part
