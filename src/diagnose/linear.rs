@@ -241,7 +241,11 @@ fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signatu
 /// The most of `r` that any one of `columns` explains beside the model
 /// linearised as `j` (the largest Δχ² of their fits), the normal matrix
 /// factored once for them all.
-pub fn most_absorbed(j: &BlockJacobian, r: &DVector<f64>, columns: &[&Signature]) -> Result<f64, Singular> {
+pub fn most_absorbed(
+    j: &BlockJacobian,
+    r: &DVector<f64>,
+    columns: &[&Signature],
+) -> Result<f64, Singular> {
     let full = Normal::assemble(j, None, |_| true)
         .factor(0.0)
         .ok_or(Singular(""))?;

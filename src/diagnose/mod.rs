@@ -442,11 +442,26 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             }),
         }
     }
-    // The first of the best: the greedy path wins ties.
-    let path = match paths
-        .into_iter()
-        .min_by(|a, b| a.state.bic().total_cmp(&b.state.bic()))
-    {
+    // The first of the best by BIC: the greedy path wins ties. Another
+    // path takes its place when, each judged beside the structure it
+    // leaves ([`Path::bic`]), it is better by a very strong margin
+    // (ΔBIC ≥ [`models::MISMATCH_BIC`]): a structure that is credited to
+    // a path must be well beyond what the best path's members explain.
+    let plain = paths
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.state.bic().total_cmp(&b.1.state.bic()))
+        .map(|(i, _)| i);
+    let beside = paths
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.bic().total_cmp(&b.1.bic()))
+        .map(|(i, _)| i);
+    let pick = match (plain, beside) {
+        (Some(a), Some(b)) if paths[b].bic() + models::MISMATCH_BIC <= paths[a].bic() => Some(b),
+        (a, _) => a,
+    };
+    let path = match pick.map(|i| paths.swap_remove(i)) {
         Some(p) => p,
         None => Path {
             rows: Vec::new(),
@@ -467,17 +482,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         if let Some(fits) =
             compare_models(&final_state.net, &final_state, &ctx, &mut skipped_models)
         {
-            let left = localise::structure(
-                &final_state.lm,
-                &final_state.members,
-                final_state.dof(),
-                s.alpha,
-                &final_state.infos,
-                &final_state.net.stations,
-                &final_state.net.targets,
-            );
-            let beat = left.map_or(f64::NEG_INFINITY, |l| l.delta_bic);
-            let row = model_row(&fits, s.model.tracker(), floor, beat);
+            let row = model_row(&fits, s.model.tracker(), floor, scored.left_bic);
             if let Some(row) = row.filter(|r| r.significant) {
                 return on_the_model_that_fits(c, s, row, fits);
             }
@@ -812,6 +817,19 @@ struct Path {
     scored: Scored,
     /// Whether the last step could still admit a member.
     open: bool,
+}
+
+impl Path {
+    /// The final model's BIC ([`State::bic`]) with the structure it leaves
+    /// ([`Scored::left_bic`]) taken as a nuisance: paths are compared on
+    /// what their sets explain *besides* an effect outside the catalogue.
+    /// Without it, a broad candidate wins by absorbing part of that effect
+    /// — range scales at every station beside a knocked tripod, where one
+    /// station's scale and the knock's step explain the readings with
+    /// fewer parameters.
+    fn bic(&self) -> f64 {
+        self.state.bic() - self.scored.left_bic.max(0.0)
+    }
 }
 
 /// A member's row, and how its magnitude is read from its parameters.
@@ -1400,9 +1418,13 @@ struct Scored {
     blunder_tests: usize,
     /// Members' columns before each candidate's.
     members_k: usize,
-    /// ΔBIC of the dominant smooth structure ([`localise::structure`]),
-    /// −∞ when none is significant.
+    /// ΔBIC of the dominant smooth structure ([`localise::structure`])
+    /// when it weighs against the rows (a row to compare it with exists),
+    /// −∞ otherwise.
     structure_bic: f64,
+    /// ΔBIC of the dominant smooth structure on this state, −∞ when none
+    /// is significant: what the set leaves that one factor explains.
+    left_bic: f64,
 }
 
 /// The worst reading coordinate's test as a row.
@@ -1581,6 +1603,7 @@ impl StepContext<'_> {
         ) else {
             return plain;
         };
+        plain.left_bic = structure.delta_bic;
         // The best significant row's columns: an effect's, or the worst
         // reading's coordinate.
         let best_effect = plain
@@ -1614,6 +1637,7 @@ impl StepContext<'_> {
         }
         let mut against = self.score_against(st, members, step, floor, Some(&structure.columns));
         against.structure_bic = structure.delta_bic;
+        against.left_bic = structure.delta_bic;
         against
     }
 
@@ -1765,6 +1789,7 @@ impl StepContext<'_> {
             blunder_tests,
             members_k: k_m,
             structure_bic: f64::NEG_INFINITY,
+            left_bic: f64::NEG_INFINITY,
         }
     }
 

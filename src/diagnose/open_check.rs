@@ -409,7 +409,10 @@ impl Rates {
     }
     /// The three rates above on the distinguishable cases.
     pub fn distinguishable_not_explained_rate(&self) -> f64 {
-        Rates::share(self.distinguishable_not_explained, self.distinguishable_cases)
+        Rates::share(
+            self.distinguishable_not_explained,
+            self.distinguishable_cases,
+        )
     }
     pub fn distinguishable_catalogue_as_cause_rate(&self) -> f64 {
         Rates::share(
@@ -418,7 +421,10 @@ impl Rates {
         )
     }
     pub fn distinguishable_factor_correct_rate(&self) -> f64 {
-        Rates::share(self.distinguishable_factor_correct, self.distinguishable_cases)
+        Rates::share(
+            self.distinguishable_factor_correct,
+            self.distinguishable_cases,
+        )
     }
     /// False blunders per 1 000 clean readings.
     pub fn false_blunders_per_1000(&self) -> f64 {
