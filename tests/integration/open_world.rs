@@ -174,7 +174,11 @@ fn an_effect_outside_the_catalogue_is_declared_not_explained_and_localised() {
         100.0 * all.catalogue_named_detectable_rate(),
         100.0 * all.magnitude_within_3u_rate(),
     );
-    assert!(all.distinguishable_cases >= 50, "{}", all.distinguishable_cases);
+    assert!(
+        all.distinguishable_cases >= 50,
+        "{}",
+        all.distinguishable_cases
+    );
     for unknown in ["tripod-knock", "adm-cyclic", "axis-wobble", "adm-reset"] {
         assert!(
             cases
