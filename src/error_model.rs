@@ -148,18 +148,18 @@ impl ParamId {
             .find(|p| p.id() == s)
             .or_else(|| all().find(|p| p.symbol() == s))
     }
-    /// Every model's ids for messages: `dx1 … ez3 (δx1 … εz3) or
-    /// beam_offset_x … range_offset`.
+    /// Every model's ids for messages: `dx1 … ez3 (δx1 … εz3) or a
+    /// mirror-tracker parameter (beam_offset_x … range_offset)`.
     fn expected() -> String {
         let spans: Vec<String> = TrackerModel::ALL
             .iter()
             .filter_map(|m| {
                 let (first, last) = (m.params().first()?, m.params().last()?);
                 let ids = format!("{} … {}", first.id, last.id);
-                Some(if first.symbol == first.id {
-                    ids
-                } else {
+                Some(if *m == TrackerModel::default() {
                     format!("{ids} ({} … {})", first.symbol, last.symbol)
+                } else {
+                    format!("a {m} parameter ({ids})")
                 })
             })
             .collect();
@@ -326,15 +326,17 @@ impl Coef {
     }
     /// The term's value at the joints (the basis function).
     pub(crate) fn basis(&self, q: Joints) -> f64 {
-        let angle = match self.param.joint() {
+        // The joint is looked up for harmonics only: a constant, the
+        // common case, needs nothing of the parameter's table.
+        let angle = || match self.param.joint() {
             Some(Joint::Theta) => q.theta,
             Some(Joint::Phi) => q.phi,
             Some(Joint::D) | None => 0.0,
         };
         match self.term {
             Term::Const => 1.0,
-            Term::Sin(k) => (k as f64 * angle).sin(),
-            Term::Cos(k) => (k as f64 * angle).cos(),
+            Term::Sin(k) => (k as f64 * angle()).sin(),
+            Term::Cos(k) => (k as f64 * angle()).cos(),
             Term::Pow(k) => (q.d * 1e-3).powi(k as i32),
         }
     }

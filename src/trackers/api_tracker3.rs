@@ -18,12 +18,18 @@ use nalgebra::Vector3;
 pub struct ApiTracker3;
 
 /// A DH parameter: translations δ in µm, rotations ε in µrad.
-const fn dh(id: &'static str, symbol: &'static str, joint: Joint, angular: bool) -> Param {
+const fn dh(
+    id: &'static str,
+    symbol: &'static str,
+    joint: Joint,
+    angular: bool,
+    meaning: &'static str,
+) -> Param {
     Param {
         id,
         symbol,
         angular,
-        meaning: symbol,
+        meaning,
         joint: Some(joint),
     }
 }
@@ -33,24 +39,24 @@ const fn dh(id: &'static str, symbol: &'static str, joint: Joint, angular: bool)
 const PARAMS: [Param; 18] = {
     use Joint::{D, Phi, Theta};
     [
-        dh("dx1", "δx1", Theta, false),
-        dh("dy1", "δy1", Theta, false),
-        dh("dz1", "δz1", Theta, false),
-        dh("ex1", "εx1", Theta, true),
-        dh("ey1", "εy1", Theta, true),
-        dh("ez1", "εz1", Theta, true),
-        dh("dx2", "δx2", Phi, false),
-        dh("dy2", "δy2", Phi, false),
-        dh("dz2", "δz2", Phi, false),
-        dh("ex2", "εx2", Phi, true),
-        dh("ey2", "εy2", Phi, true),
-        dh("ez2", "εz2", Phi, true),
-        dh("dx3", "δx3", D, false),
-        dh("dy3", "δy3", D, false),
-        dh("dz3", "δz3", D, false),
-        dh("ex3", "εx3", D, true),
-        dh("ey3", "εy3", D, true),
-        dh("ez3", "εz3", D, true),
+        dh("dx1", "δx1", Theta, false, "joint 1 (standing axis): translation error along x"),
+        dh("dy1", "δy1", Theta, false, "joint 1 (standing axis): translation error along y"),
+        dh("dz1", "δz1", Theta, false, "joint 1 (standing axis): translation error along z"),
+        dh("ex1", "εx1", Theta, true, "joint 1 (standing axis): rotation error about x"),
+        dh("ey1", "εy1", Theta, true, "joint 1 (standing axis): rotation error about y"),
+        dh("ez1", "εz1", Theta, true, "joint 1 (standing axis): rotation error about z"),
+        dh("dx2", "δx2", Phi, false, "joint 2 (elevation axis): translation error along x"),
+        dh("dy2", "δy2", Phi, false, "joint 2 (elevation axis): translation error along y"),
+        dh("dz2", "δz2", Phi, false, "joint 2 (elevation axis): translation error along z"),
+        dh("ex2", "εx2", Phi, true, "joint 2 (elevation axis): rotation error about x"),
+        dh("ey2", "εy2", Phi, true, "joint 2 (elevation axis): rotation error about y"),
+        dh("ez2", "εz2", Phi, true, "joint 2 (elevation axis): rotation error about z"),
+        dh("dx3", "δx3", D, false, "joint 3 (beam): translation error along x"),
+        dh("dy3", "δy3", D, false, "joint 3 (beam): translation error along y"),
+        dh("dz3", "δz3", D, false, "joint 3 (beam): translation error along z"),
+        dh("ex3", "εx3", D, true, "joint 3 (beam): rotation error about x"),
+        dh("ey3", "εy3", D, true, "joint 3 (beam): rotation error about y"),
+        dh("ez3", "εz3", D, true, "joint 3 (beam): rotation error about z"),
     ]
 };
 
@@ -76,6 +82,11 @@ impl Model for ApiTracker3 {
         };
         Box::new(Chain {
             params,
+            columns: params
+                .coefs()
+                .iter()
+                .map(|c| (c.param.local(), c.param.scale()))
+                .collect(),
             constant: constant.then(|| ErrorFrames::new(&params.base_at(q0))),
         })
     }
@@ -134,6 +145,9 @@ impl Model for ApiTracker3 {
 /// The chain for one parameter set; its error frames when constant.
 struct Chain<'a> {
     params: &'a ErrorParams,
+    /// Per coefficient, its parameter's place in the chain's arrays and its
+    /// display-to-internal scale: looked up once, not per reading.
+    columns: Vec<(usize, f64)>,
     constant: Option<ErrorFrames>,
 }
 
@@ -163,7 +177,8 @@ impl Evaluate for Chain<'_> {
             self.params
                 .coefs()
                 .iter()
-                .map(|c| dbase[c.param.local()] * (c.basis(q) * c.param.scale())),
+                .zip(&self.columns)
+                .map(|(c, &(k, scale))| dbase[k] * (c.basis(q) * scale)),
         );
         p
     }
