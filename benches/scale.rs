@@ -25,7 +25,7 @@ use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind, Spec};
 use ltcal::noise::Noise;
 use ltcal::simulate::{CampaignSpec, simulate_campaign};
-use ltcal::tracker::TrackerModel;
+use ltcal::trackers::TrackerModel;
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -134,7 +134,7 @@ fn calibrate_hall(c: &mut Criterion) {
 fn mirror_hall(c: &mut Criterion) {
     let mut g = c.benchmark_group("mirror_hall");
     g.sample_size(10).measurement_time(Duration::from_secs(4));
-    let model = ErrorModel::of(TrackerModel::MirrorTracker);
+    let model = ErrorModel::of(TrackerModel::parse("mirror-tracker").unwrap());
     let mut truth = ErrorParams::zero(&model);
     truth.values_mut().iter_mut().for_each(|v| *v = 10.0);
     let camp = campaign_with(Kind::Hall, 200, 8, 1, &truth);

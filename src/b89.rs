@@ -282,7 +282,7 @@ mod tests {
     use super::*;
     use crate::error_model::ErrorModel;
     use crate::physical::{self, CORRESPONDENCE};
-    use crate::tracker::TrackerModel;
+    use crate::trackers::TrackerModel;
 
     fn physical_directions(zero: &ErrorParams) -> Vec<Direction> {
         CORRESPONDENCE
@@ -332,9 +332,11 @@ mod tests {
     #[test]
     fn the_mirror_offset_separates_the_faces_by_four_times_itself() {
         // It moves a point by 2·mo along the mirror's normal, which the
-        // back face reverses (`mirror::tests`).
+        // back face reverses (`trackers::mirror_tracker::tests`).
         let t = tests(&Positions::default());
-        let zero = ErrorParams::zero(&ErrorModel::of(TrackerModel::MirrorTracker));
+        let zero = ErrorParams::zero(&ErrorModel::of(
+            TrackerModel::parse("mirror-tracker").unwrap(),
+        ));
         let every: Vec<Direction> = (0..zero.coefs().len()).map(|k| (k, 1.0)).collect();
         let s = sensitivity(&t, &zero, &every);
         let at = |id: &str| {

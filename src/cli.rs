@@ -175,7 +175,7 @@ enum Command {
         seed: u64,
         /// The tracker model to fit (default: the campaign's `[tracker] model`).
         #[arg(long, value_name = "ID", value_parser = tracker_model)]
-        model: Option<crate::tracker::TrackerModel>,
+        model: Option<crate::trackers::TrackerModel>,
         /// A hypothesis file: your own effects, tried beside the catalogue's
         /// (README, "Your own effects").
         #[arg(long, value_name = "FILE")]
@@ -190,11 +190,11 @@ enum Command {
 /// thousand took minutes).
 const MAX_THREADS: u64 = 1024;
 
-fn tracker_model(s: &str) -> Result<crate::tracker::TrackerModel, String> {
-    crate::tracker::TrackerModel::parse(s).ok_or_else(|| {
+fn tracker_model(s: &str) -> Result<crate::trackers::TrackerModel, String> {
+    crate::trackers::TrackerModel::parse(s).ok_or_else(|| {
         format!(
             "unknown tracker model; expected {}",
-            crate::tracker::TrackerModel::expected()
+            crate::trackers::TrackerModel::expected()
         )
     })
 }

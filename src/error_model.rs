@@ -34,30 +34,26 @@
 //! # Other trackers
 //!
 //! The coefficient space is shared by every tracker model
-//! ([`TrackerModel`]): a [`ParamId`] is one of the 18 DH parameters or one of
-//! the mirror tracker's 10 misalignments ([`crate::mirror`], constants only),
-//! and a parameter set holds the parameters of one model. Everything that
-//! fits or simulates goes through the [`Evaluator`] — a point and its
-//! derivative by each coefficient, and the inverse — so identification,
-//! the bundle adjustment, the diagnosis and simulation fit either tracker
-//! without knowing which. The mirror model's derivatives are central
-//! differences of its exact beam path (a reflection has no tidy chain rule);
-//! a step of one display unit leaves a truncation error of the order of the
-//! third derivative, below 1e-9 of the derivative
-//! (`tests::mirror_derivatives_match_a_finer_difference`).
+//! ([`TrackerModel`], each a plug-in of [`crate::trackers`]): a [`ParamId`]
+//! is one parameter of one model — the 18 DH parameters here, the
+//! parameters of the other models in their plug-ins' tables, in registry
+//! order — and a parameter set holds the parameters of one model. The DH
+//! chain's mathematics stays here (its plug-in wraps it); shapes (Eq. 9 and
+//! 10) are the DH chain's, every other model's parameters are constants.
+//! Everything that fits or simulates goes through the [`Evaluator`] — a
+//! point and its derivative by each coefficient, from the model's plug-in,
+//! and the inverse — so identification, the bundle adjustment, the
+//! diagnosis and simulation fit any tracker without knowing which.
 
 pub use crate::kinematics::InverseError;
 use crate::kinematics::{self, Face, Joints, Reading, link1_rotation, link2_rotation};
-use crate::mirror::{self, MirrorErrors, MirrorTracker};
-use crate::tracker::TrackerModel;
+use crate::trackers::{self, Evaluate, Param, TrackerModel};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::fmt;
 
 /// Number of error parameters of the DH model: 6 per joint, 3 joints.
 pub const N_PARAMS: usize = 18;
-/// Every model's parameters: the DH model's, then the mirror tracker's.
-const N_ALL: usize = N_PARAMS + mirror::IDS.len();
 
 /// The joint an error transform belongs to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -85,78 +81,56 @@ impl Joint {
 }
 
 /// One error parameter of one tracker model: `δx, δy, δz, εx, εy, εz` of
-/// joint 1, 2 or 3 of the DH model, or a misalignment of the mirror tracker.
+/// joint 1, 2 or 3 of the DH model, or a parameter of another model, by its
+/// place in the shared coefficient space (the registry's order).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ParamId(u8);
-
-const IDS: [&str; N_PARAMS] = [
-    "dx1", "dy1", "dz1", "ex1", "ey1", "ez1", "dx2", "dy2", "dz2", "ex2", "ey2", "ez2", "dx3",
-    "dy3", "dz3", "ex3", "ey3", "ez3",
-];
-const SYMBOLS: [&str; N_PARAMS] = [
-    "δx1", "δy1", "δz1", "εx1", "εy1", "εz1", "δx2", "δy2", "δz2", "εx2", "εy2", "εz2", "δx3",
-    "δy3", "δz3", "εx3", "εy3", "εz3",
-];
 
 impl ParamId {
     /// The parameters of one tracker model, in table order.
     pub fn of(model: TrackerModel) -> impl Iterator<Item = ParamId> {
-        let range = match model {
-            TrackerModel::ApiTracker3 => 0..N_PARAMS,
-            TrackerModel::MirrorTracker => N_PARAMS..N_ALL,
-        };
-        range.map(|i| ParamId(i as u8))
+        let first = model.first_param();
+        (first..first + model.params().len()).map(|i| ParamId(i as u8))
     }
     /// The model this parameter belongs to.
     pub fn tracker(self) -> TrackerModel {
-        if self.index() < N_PARAMS {
-            TrackerModel::ApiTracker3
-        } else {
-            TrackerModel::MirrorTracker
-        }
+        trackers::owner(self.index()).0
     }
-    /// The place in the DH model's arrays (`dx1` = 0 … `ez3` = 17), or past
-    /// them for the mirror tracker's misalignments.
+    /// The place in the shared coefficient space: the DH model's first
+    /// (`dx1` = 0 … `ez3` = 17), then every other model's in registry order.
     pub fn index(self) -> usize {
         self.0 as usize
     }
     pub fn from_index(i: usize) -> ParamId {
-        assert!(i < N_ALL);
+        assert!(i < trackers::n_params());
         ParamId(i as u8)
     }
-    /// The joint of a DH parameter; `None` for the mirror tracker's.
+    /// The place in its own model's table ([`TrackerModel::params`]).
+    pub fn local(self) -> usize {
+        trackers::owner(self.index()).1
+    }
+    /// Its entry in its model's table.
+    pub fn param(self) -> &'static Param {
+        let (model, k) = trackers::owner(self.index());
+        &model.params()[k]
+    }
+    /// The joint whose variable its shape may follow; `None` for a
+    /// constant-only parameter (every model's but the DH chain's).
     pub fn joint(self) -> Option<Joint> {
-        match self.0 / 6 {
-            _ if self.index() >= N_PARAMS => None,
-            0 => Some(Joint::Theta),
-            1 => Some(Joint::Phi),
-            _ => Some(Joint::D),
-        }
+        self.param().joint
     }
     /// A rotation error ε or a tilt (as opposed to a translation δ or an offset).
     pub fn is_angular(self) -> bool {
-        match self.mirror_index() {
-            Some(k) => mirror::IDS[k].1 == "µrad",
-            None => self.0 % 6 >= 3,
-        }
+        self.param().angular
     }
-    fn mirror_index(self) -> Option<usize> {
-        self.index().checked_sub(N_PARAMS)
-    }
-    /// The ASCII id used in TOML and tables: `dx1` … `ez3`, or the mirror
-    /// tracker's `beam_offset_x` … `range_offset`.
+    /// The ASCII id used in TOML and tables: `dx1` … `ez3`, or another
+    /// model's (`beam_offset_x` … `range_offset`).
     pub fn id(self) -> &'static str {
-        match self.mirror_index() {
-            Some(k) => mirror::IDS[k].0,
-            None => IDS[self.index()],
-        }
+        self.param().id
     }
-    /// The paper's symbol (`δx1` … `εz3`); a mirror misalignment's id.
+    /// The paper's symbol (`δx1` … `εz3`); another model's parameter's id.
     pub fn symbol(self) -> &'static str {
-        match self.mirror_index() {
-            Some(k) => mirror::IDS[k].0,
-            None => SYMBOLS[self.index()],
-        }
+        self.param().symbol
     }
     /// The display unit of a constant value.
     pub fn unit(self) -> &'static str {
@@ -169,16 +143,27 @@ impl ParamId {
     /// Accepts the ASCII id or the paper's symbol, of any model.
     pub fn parse(s: &str) -> Option<ParamId> {
         let s = s.trim();
-        IDS.iter()
-            .position(|&i| i == s)
-            .or_else(|| SYMBOLS.iter().position(|&i| i == s))
-            .or_else(|| {
-                mirror::IDS
-                    .iter()
-                    .position(|(i, _, _)| *i == s)
-                    .map(|k| k + N_PARAMS)
+        let all = || (0..trackers::n_params()).map(|i| ParamId(i as u8));
+        all()
+            .find(|p| p.id() == s)
+            .or_else(|| all().find(|p| p.symbol() == s))
+    }
+    /// Every model's ids for messages: `dx1 … ez3 (δx1 … εz3) or a
+    /// mirror-tracker parameter (beam_offset_x … range_offset)`.
+    fn expected() -> String {
+        let spans: Vec<String> = TrackerModel::ALL
+            .iter()
+            .filter_map(|m| {
+                let (first, last) = (m.params().first()?, m.params().last()?);
+                let ids = format!("{} … {}", first.id, last.id);
+                Some(if *m == TrackerModel::default() {
+                    format!("{ids} ({} … {})", first.symbol, last.symbol)
+                } else {
+                    format!("a {m} parameter ({ids})")
+                })
             })
-            .map(|i| ParamId(i as u8))
+            .collect();
+        spans.join(" or ")
     }
 }
 
@@ -199,8 +184,8 @@ impl<'de> Deserialize<'de> for ParamId {
         let s = String::deserialize(d)?;
         ParamId::parse(&s).ok_or_else(|| {
             serde::de::Error::custom(format!(
-                "unknown error parameter `{s}`; expected one of dx1 … ez3 (δx1 … εz3) \
-                 or a mirror tracker's misalignment (beam_offset_x … range_offset)"
+                "unknown error parameter `{s}`; expected one of {}",
+                ParamId::expected()
             ))
         })
     }
@@ -315,7 +300,7 @@ impl Coef {
         };
         let param = ParamId::parse(p)?;
         match (param.joint(), term) {
-            // The mirror tracker's misalignments are constants.
+            // Constant-only parameters (every model's but the DH chain's).
             (None, Term::Const) | (Some(Joint::Theta | Joint::Phi), _) => {}
             (None, _) | (Some(Joint::D), Term::Sin(_) | Term::Cos(_)) => return None,
             (Some(Joint::D), _) => {}
@@ -340,16 +325,18 @@ impl Coef {
         }
     }
     /// The term's value at the joints (the basis function).
-    fn basis(&self, q: Joints) -> f64 {
-        let angle = match self.param.joint() {
+    pub(crate) fn basis(&self, q: Joints) -> f64 {
+        // The joint is looked up for harmonics only: a constant, the
+        // common case, needs nothing of the parameter's table.
+        let angle = || match self.param.joint() {
             Some(Joint::Theta) => q.theta,
             Some(Joint::Phi) => q.phi,
             Some(Joint::D) | None => 0.0,
         };
         match self.term {
             Term::Const => 1.0,
-            Term::Sin(k) => (k as f64 * angle).sin(),
-            Term::Cos(k) => (k as f64 * angle).cos(),
+            Term::Sin(k) => (k as f64 * angle()).sin(),
+            Term::Cos(k) => (k as f64 * angle()).cos(),
             Term::Pow(k) => (q.d * 1e-3).powi(k as i32),
         }
     }
@@ -375,12 +362,13 @@ fn superscript(k: u32) -> String {
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct ErrorModel {
     tracker: TrackerModel,
-    shapes: [Shape; N_ALL],
+    /// By the parameter's place in its model's table.
+    shapes: Vec<Shape>,
 }
 
 impl Default for ErrorModel {
     fn default() -> ErrorModel {
-        ErrorModel::of(TrackerModel::ApiTracker3)
+        ErrorModel::of(TrackerModel::default())
     }
 }
 
@@ -394,7 +382,7 @@ impl ErrorModel {
     pub fn of(tracker: TrackerModel) -> ErrorModel {
         ErrorModel {
             tracker,
-            shapes: [Shape::Constant; N_ALL],
+            shapes: vec![Shape::Constant; tracker.params().len()],
         }
     }
 
@@ -425,17 +413,23 @@ impl ErrorModel {
             }
             (None, _) => {
                 return Err(format!(
-                    "`{}` is a misalignment of the mirror tracker, a constant: it takes no shape",
-                    p.id()
+                    "`{}` is a misalignment of the {} model, a constant: it takes no shape",
+                    p.id(),
+                    p.tracker()
                 ));
             }
         }
-        self.shapes[p.index()] = shape;
+        self.shapes[p.local()] = shape;
         Ok(self)
     }
 
+    /// A parameter's shape; a constant for another model's parameter.
     pub fn shape(&self, p: ParamId) -> Shape {
-        self.shapes[p.index()]
+        if p.tracker() == self.tracker {
+            self.shapes[p.local()]
+        } else {
+            Shape::Constant
+        }
     }
 
     /// All coefficients, parameter by parameter, in a fixed order.
@@ -446,7 +440,7 @@ impl ErrorModel {
                 param: p,
                 term: Term::Const,
             });
-            match self.shapes[p.index()] {
+            match self.shapes[p.local()] {
                 Shape::Constant => {}
                 Shape::Fourier(n) => {
                     for k in 1..=n {
@@ -517,7 +511,7 @@ impl ErrorParams {
     /// there are none), or the first two that disagree.
     pub fn tracker_of(coefs: &[Coef]) -> Result<TrackerModel, (Coef, Coef)> {
         let Some(first) = coefs.first() else {
-            return Ok(TrackerModel::ApiTracker3);
+            return Ok(TrackerModel::default());
         };
         match coefs
             .iter()
@@ -563,29 +557,18 @@ impl ErrorParams {
     /// The 18 parameters of a DH parameter set at a joint position, in
     /// internal units (mm, rad).
     pub fn base_at(&self, q: Joints) -> [f64; N_PARAMS] {
-        debug_assert_eq!(self.tracker, TrackerModel::ApiTracker3);
+        debug_assert_eq!(self.tracker, TrackerModel::default());
         let mut base = [0.0; N_PARAMS];
         for (c, v) in self.coefs.iter().zip(&self.values) {
-            base[c.param.index()] += v * c.basis(q) * c.param.scale();
+            base[c.param.local()] += v * c.basis(q) * c.param.scale();
         }
         base
     }
 
-    /// Eq. (8) (or the mirror tracker's beam path): the point a tracker with
+    /// Eq. (8) (or another model's forward model): the point a tracker with
     /// these errors reaches at these joints.
     pub fn point(&self, q: Joints) -> Vector3<f64> {
         self.evaluator().point(q, &Links::new(q))
-    }
-
-    /// The mirror tracker's misalignments of a mirror parameter set.
-    fn mirror_errors(&self, values: &[f64]) -> MirrorErrors {
-        let mut a = [0.0; mirror::IDS.len()];
-        for (c, v) in self.coefs.iter().zip(values) {
-            if let Some(k) = c.param.mirror_index() {
-                a[k] += v;
-            }
-        }
-        MirrorErrors::from_array(a)
     }
 
     /// The corrected coordinates of a reading: Eq. (8) at the reading's joints.
@@ -593,40 +576,12 @@ impl ErrorParams {
         self.point(r.joints())
     }
 
-    /// An evaluator for many readings with the same parameters.
+    /// An evaluator for many readings with the same parameters: its
+    /// model's forward model ([`crate::trackers::Model::evaluate`]).
     pub fn evaluator(&self) -> Evaluator<'_> {
-        let kind = match self.tracker {
-            TrackerModel::ApiTracker3 => {
-                let constant = self.coefs.iter().all(|c| c.term == Term::Const);
-                let q0 = Joints {
-                    theta: 0.0,
-                    phi: 0.0,
-                    d: 0.0,
-                };
-                Kind::Dh(constant.then(|| ErrorFrames::new(&self.base_at(q0))))
-            }
-            TrackerModel::MirrorTracker => {
-                let tracker = |k: Option<(usize, f64)>| {
-                    let mut v = self.values.clone();
-                    if let Some((k, step)) = k {
-                        v[k] += step;
-                    }
-                    MirrorTracker::new(&self.mirror_errors(&v))
-                };
-                Kind::Mirror {
-                    at: tracker(None),
-                    steps: (0..self.coefs.len())
-                        .map(|k| {
-                            [
-                                tracker(Some((k, MIRROR_STEP))),
-                                tracker(Some((k, -MIRROR_STEP))),
-                            ]
-                        })
-                        .collect(),
-                }
-            }
-        };
-        Evaluator { params: self, kind }
+        Evaluator {
+            model: self.tracker.plugin().evaluate(self),
+        }
     }
     /// Section 5.1, measuring: the reading a tracker with these errors takes
     /// when its beam reaches `target` ([`Evaluator::reading_of`]).
@@ -635,51 +590,16 @@ impl ErrorParams {
     }
 }
 
-/// The step of the mirror model's central differences, display units (1 µm
-/// or 1 µrad): far above rounding (coordinates of 10⁴ mm round at 10⁻¹² mm),
-/// far below where the model bends (its second order is 10⁻⁸ of its first
-/// at this size).
-const MIRROR_STEP: f64 = 1.0;
-
 /// Evaluates one parameter set at many joint positions, building what does
-/// not depend on the joints once: the DH error frames when every
-/// coefficient is a constant, the mirror tracker and its stepped copies.
+/// not depend on the joints once (its model's plug-in decides what).
 pub struct Evaluator<'a> {
-    params: &'a ErrorParams,
-    kind: Kind,
-}
-
-// One evaluator per linearisation, on the stack: the DH frames' size costs
-// nothing, and boxing them would add a pointer chase per reading.
-#[allow(clippy::large_enum_variant)]
-enum Kind {
-    /// The DH chain; its error frames when constant.
-    Dh(Option<ErrorFrames>),
-    /// The mirror tracker at the values, and at each coefficient stepped
-    /// up and down by [`MIRROR_STEP`].
-    Mirror {
-        at: MirrorTracker,
-        steps: Vec<[MirrorTracker; 2]>,
-    },
+    model: Box<dyn Evaluate + 'a>,
 }
 
 impl Evaluator<'_> {
-    /// The DH error frames at `q` (a DH parameter set only).
-    fn with_frames<T>(
-        &self,
-        constant: &Option<ErrorFrames>,
-        q: Joints,
-        f: impl FnOnce(&ErrorFrames) -> T,
-    ) -> T {
-        match constant {
-            Some(fr) => f(fr),
-            None => f(&ErrorFrames::new(&self.params.base_at(q))),
-        }
-    }
-
     /// Section 5.1, measuring: the reading a tracker with these errors takes
     /// when its beam reaches `target` — the joint values that solve Eq. (8)
-    /// (or the mirror's beam path) exactly ([`kinematics::invert`]).
+    /// (or another model's forward model) exactly ([`kinematics::invert`]).
     pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Result<Reading, InverseError> {
         kinematics::invert(target, face, |r| {
             let q = r.joints();
@@ -689,10 +609,7 @@ impl Evaluator<'_> {
 
     /// Eq. (8) at joints `q` whose link rotations are `links`.
     pub fn point(&self, q: Joints, links: &Links) -> Vector3<f64> {
-        match &self.kind {
-            Kind::Dh(constant) => self.with_frames(constant, q, |fr| fr.forward(links)),
-            Kind::Mirror { at, .. } => at.point(q.reading()),
-        }
+        self.model.point(q, links)
     }
 
     /// The point and `∂P/∂value` for every coefficient (mm per display unit).
@@ -703,28 +620,7 @@ impl Evaluator<'_> {
         jac: &mut Vec<Vector3<f64>>,
     ) -> Vector3<f64> {
         jac.clear();
-        match &self.kind {
-            Kind::Dh(constant) => {
-                let (p, dbase) =
-                    self.with_frames(constant, q, |fr| fr.forward_with_jacobian(links));
-                jac.extend(
-                    self.params
-                        .coefs
-                        .iter()
-                        .map(|c| dbase[c.param.index()] * (c.basis(q) * c.param.scale())),
-                );
-                p
-            }
-            Kind::Mirror { at, steps } => {
-                let r = q.reading();
-                jac.extend(
-                    steps
-                        .iter()
-                        .map(|[up, down]| (up.point(r) - down.point(r)) / (2.0 * MIRROR_STEP)),
-                );
-                at.point(r)
-            }
-        }
+        self.model.point_with_jacobian(q, links, jac)
     }
 }
 
@@ -980,94 +876,5 @@ mod tests {
                 .with_shape(ParamId::parse("dz3").unwrap(), Shape::Fourier(1))
                 .is_err()
         );
-    }
-}
-
-#[cfg(test)]
-mod mirror_tests {
-    use super::*;
-
-    /// Every misalignment at a few µm / µrad, some of each sign.
-    fn mirror_params() -> ErrorParams {
-        let mut p = ErrorParams::zero(&ErrorModel::of(TrackerModel::MirrorTracker));
-        for (k, v) in p.values_mut().iter_mut().enumerate() {
-            *v = [7.0, -4.0, 12.0, -9.0, 5.0][k % 5] + k as f64;
-        }
-        p
-    }
-
-    fn readings() -> Vec<Joints> {
-        let mut out = Vec::new();
-        for az in [-170.0, -60.0, 10.0, 95.0] {
-            for el in [-40.0, 0.0, 35.0, 70.0, 120.0] {
-                for d in [900.0, 6000.0, 25000.0] {
-                    let r = Reading {
-                        az: f64::to_radians(az),
-                        el: f64::to_radians(el),
-                        d,
-                    };
-                    out.push(r.joints());
-                }
-            }
-        }
-        out
-    }
-
-    #[test]
-    fn mirror_derivatives_match_a_finer_difference() {
-        let p = mirror_params();
-        let eval = p.evaluator();
-        let mut jac = Vec::new();
-        for q in readings() {
-            let at = eval.point_with_jacobian(q, &Links::new(q), &mut jac);
-            assert!((at - eval.point(q, &Links::new(q))).norm() < 1e-15);
-            for (k, col) in jac.iter().enumerate() {
-                // A tenth of the step, by the exact model directly.
-                let h = 0.1;
-                let e = |s: f64| {
-                    let mut v = p.values().to_vec();
-                    v[k] += s;
-                    MirrorTracker::new(&p.mirror_errors(&v)).point(q.reading())
-                };
-                let fine = (e(h) - e(-h)) / (2.0 * h);
-                assert!(
-                    (col - fine).norm() <= 1e-7 * col.norm().max(1e-3),
-                    "{}: {col} vs {fine}",
-                    p.coefs()[k].name()
-                );
-            }
-        }
-    }
-
-    #[test]
-    fn the_mirror_inverse_round_trips_through_the_evaluator() {
-        let p = mirror_params();
-        let eval = p.evaluator();
-        for q in readings() {
-            let r = q.reading();
-            let face = r.face();
-            let x = eval.point(q, &Links::new(q));
-            let back = eval.reading_of(&x, face).unwrap();
-            let y = p.point(back.joints());
-            assert!((x - y).norm() < 1e-9, "{r:?}: {}", (x - y).norm());
-            assert_eq!(back.face(), face);
-        }
-    }
-
-    #[test]
-    fn a_parameter_set_is_of_one_model() {
-        let dx1 = Coef::parse("dx1").unwrap();
-        let tilt = Coef::parse("transit_tilt").unwrap();
-        assert_eq!(tilt.param.tracker(), TrackerModel::MirrorTracker);
-        assert_eq!(Coef::parse("transit_tilt.sin1"), None);
-        assert!(ErrorParams::tracker_of(&[dx1, tilt]).is_err());
-        assert_eq!(
-            ErrorParams::tracker_of(&[tilt]),
-            Ok(TrackerModel::MirrorTracker)
-        );
-        let m = ErrorModel::of(TrackerModel::MirrorTracker);
-        assert_eq!(m.coefs().len(), mirror::IDS.len());
-        assert!(m.clone().with_shape(dx1.param, Shape::Poly(1)).is_err());
-        assert!(m.with_shape(tilt.param, Shape::Fourier(1)).is_err());
     }
 }

@@ -21,7 +21,6 @@ pub mod identify;
 pub mod kinematics;
 pub mod layout;
 pub mod mesh;
-pub mod mirror;
 pub mod noise;
 pub mod open_world;
 pub mod physical;
@@ -34,7 +33,7 @@ pub mod simulate;
 pub mod solver;
 pub mod stages;
 pub mod table;
-pub mod tracker;
+pub mod trackers;
 
 /// The version that enters every cache key.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");

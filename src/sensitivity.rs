@@ -11,7 +11,6 @@
 
 use crate::error_model::{ErrorModel, ErrorParams, InverseError, ParamId};
 use crate::kinematics::{Face, Reading, nominal_point, nominal_reading};
-use crate::tracker::TrackerModel;
 use nalgebra::Vector3;
 
 /// The error a single parameter produces at one point.
@@ -116,32 +115,19 @@ pub fn classify(field: &[FieldPoint], rel_tol: f64) -> Classification {
 /// Section 6's statement for each parameter (NOTES item 11); none for a
 /// parameter of another tracker than the paper's.
 pub fn paper_statement(p: ParamId) -> Option<&'static str> {
-    if p.tracker() != TrackerModel::ApiTracker3 {
-        return None;
-    }
-    Some(match p.id() {
-        "ex1" | "ey1" | "ez1" => "varies with θ, φ, d",
-        "ex2" | "ey2" => "varies with φ, d",
-        "ez2" | "ex3" | "ey3" => "varies with d",
-        "ez3" => "no error",
-        _ => "constant",
-    })
+    p.tracker().plugin().section6(p.local())
 }
 
 /// Section 6's statement as a [`Classification`], for comparing field by field.
 pub fn paper_classification(p: ParamId) -> Option<Classification> {
-    paper_statement(p)?;
-    let (theta, phi, d) = match p.id() {
-        "ex1" | "ey1" | "ez1" => (true, true, true),
-        "ex2" | "ey2" => (false, true, true),
-        "ez2" | "ex3" | "ey3" => (false, false, true),
-        _ => (false, false, false),
-    };
+    let statement = paper_statement(p)?;
+    let varies = statement.strip_prefix("varies with ").unwrap_or_default();
+    let with = |q: &str| varies.split(", ").any(|x| x == q);
     Some(Classification {
-        produces_error: p.id() != "ez3",
-        theta,
-        phi,
-        d,
+        produces_error: statement != "no error",
+        theta: with("θ"),
+        phi: with("φ"),
+        d: with("d"),
     })
 }
 
@@ -378,6 +364,7 @@ fn place(at: &[(f64, f64)], theta_deg: &[f64], phi_deg: &[f64]) -> String {
 mod tests {
     use super::*;
     use crate::mesh;
+    use crate::trackers::TrackerModel;
 
     #[test]
     fn section6_classification() {
@@ -386,7 +373,7 @@ mod tests {
                 .into_iter()
                 .map(|m| m.p)
                 .collect();
-        for p in ParamId::of(TrackerModel::ApiTracker3) {
+        for p in ParamId::of(TrackerModel::default()) {
             let field = error_field(p, 1.0, &pts).unwrap();
             let ours = classify(&field, 1e-6).describe();
             // The one difference from the paper: a rotation about the
@@ -402,14 +389,14 @@ mod tests {
 
     #[test]
     fn paper_classification_says_what_the_paper_says() {
-        for p in ParamId::of(TrackerModel::ApiTracker3) {
+        for p in ParamId::of(TrackerModel::default()) {
             assert_eq!(
                 paper_classification(p).map(|c| c.describe()).as_deref(),
                 paper_statement(p)
             );
         }
         // The paper says nothing of the mirror tracker.
-        for p in ParamId::of(TrackerModel::MirrorTracker) {
+        for p in ParamId::of(TrackerModel::parse("mirror-tracker").unwrap()) {
             assert_eq!(paper_statement(p), None);
             assert_eq!(
                 explain_difference(

@@ -17,7 +17,7 @@ use crate::kinematics::{Face, Reading};
 use crate::layout::Layout;
 use crate::noise::Noise;
 use crate::random;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use nalgebra::{Rotation3, Vector3};
 use std::f64::consts::PI;
 

@@ -10,7 +10,7 @@
 
 use super::Campaign;
 use crate::kinematics::nominal_point;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use nalgebra::Vector3;
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;

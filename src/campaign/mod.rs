@@ -28,7 +28,7 @@ pub use usable::{
 pub use write::{overwrite, write};
 
 use crate::kinematics::{Face, Reading};
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use nalgebra::Vector3;
 
 /// The tables a campaign travels as between stages (a group input slot:

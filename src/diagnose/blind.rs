@@ -32,7 +32,7 @@ use crate::layout::{self, Kind, Spec};
 use crate::noise::Noise;
 use crate::random;
 use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::{Result, anyhow};
 use nalgebra::{DVector, Vector3};
 use rand::rngs::ChaCha8Rng;

@@ -511,7 +511,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     let left_chi2_p = final_state.chi2_p();
     if compare && open && left_chi2_p < s.alpha {
         let ln_m = (final_state.lm.rows() as f64).ln();
-        let rank_of = |m: crate::tracker::TrackerModel| {
+        let rank_of = |m: crate::trackers::TrackerModel| {
             models.iter().find(|f| f.model == m).map(|f| f.rank as f64)
         };
         let base_rank = rank_of(s.model.tracker());
@@ -661,7 +661,7 @@ fn compare_models(
         (base.lm.rows(), base.lm.dof()),
         base.lm.cv_rms_um_base(),
     )];
-    for t in crate::tracker::TrackerModel::ALL {
+    for t in crate::trackers::TrackerModel::ALL {
         if t != s.model.tracker() {
             match models::fit(net, t, ctx.fold_of, ctx.n_folds, &base.rejected) {
                 Ok(f) => fits.push(f),
@@ -684,7 +684,7 @@ fn compare_models(
 /// (`best_effect_bic`). `None` with one model only.
 fn model_row(
     fits: &[models::ModelFit],
-    base: crate::tracker::TrackerModel,
+    base: crate::trackers::TrackerModel,
     floor: f64,
     best_effect_bic: f64,
 ) -> Option<Row> {

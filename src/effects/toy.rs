@@ -64,7 +64,7 @@ mod tests {
     use crate::layout::{self, Kind, Spec};
     use crate::noise::Noise;
     use crate::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
-    use crate::tracker::TrackerModel;
+    use crate::trackers::TrackerModel;
 
     const NOISE: Noise = Noise {
         sigma_angle_urad: 1.0,
@@ -135,7 +135,7 @@ mod tests {
                 stations: (4, 5),
                 noise_angle_urad: (0.5, 1.0),
                 noise_range_um: (1.0, 2.0),
-                tracker: TrackerModel::ApiTracker3,
+                tracker: TrackerModel::default(),
                 tracker_sigma: 5.0,
             },
             none_fraction: 0.0,

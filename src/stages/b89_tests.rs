@@ -38,12 +38,10 @@
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::b89::{self, Direction, Positions, Test};
 use crate::error_model::{Coef, ErrorModel, ErrorParams};
-use crate::mirror;
-use crate::physical::{self, CORRESPONDENCE, Misalignment};
 use crate::plots;
 use crate::schema;
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::{Result, anyhow, bail};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
@@ -56,7 +54,7 @@ pub enum Parameters {
     /// The misalignments of [`crate::physical`].
     #[default]
     Physical,
-    /// Every coefficient of [`physical::dh_model`].
+    /// Every coefficient of [`crate::physical::dh_model`].
     Dh,
 }
 
@@ -127,28 +125,24 @@ impl B89TestsStage {
                 .position(|x| *x == c)
                 .expect("the model holds every coefficient named")
         };
-        match (self.model, self.parameters) {
-            // `parameters = "dh"` is refused for the mirror at load.
-            (TrackerModel::MirrorTracker, _) => mirror::IDS
-                .iter()
-                .map(|&(id, unit, meaning)| {
-                    let c = Coef::parse(id).expect("a mirror misalignment is a coefficient");
-                    (Row::new(id, unit, meaning), (at(c), 1.0))
-                })
-                .collect(),
-            (_, Parameters::Physical) => CORRESPONDENCE
-                .iter()
-                .map(|m| {
-                    let row = Row::new(m.id, m.unit, m.meaning);
-                    (row, (at(m.coef()), m.sign))
-                })
-                .collect(),
-            (_, Parameters::Dh) => zero
-                .coefs()
+        // `parameters = "dh"` is refused at load for a model without
+        // coefficient rows.
+        if self.parameters == Parameters::Dh && self.model.plugin().coefficient_rows() {
+            zero.coefs()
                 .iter()
                 .enumerate()
                 .map(|(i, c)| (Row::new(&c.name(), &c.unit(), &c.symbol()), (i, 1.0)))
-                .collect(),
+                .collect()
+        } else {
+            self.model
+                .plugin()
+                .misalignments()
+                .iter()
+                .map(|m| {
+                    let row = Row::new(m.id, m.unit, m.meaning);
+                    (row, (at(m.coef), m.sign))
+                })
+                .collect()
         }
     }
 
@@ -156,10 +150,7 @@ impl B89TestsStage {
     fn evaluate(&self, tests: &[Test], inputs: &StageInputs) -> Result<Evaluated> {
         let errors = self.errors(inputs)?;
         let err_um = b89::simulate(tests, &errors).map_err(|e| anyhow!("with these errors {e}"))?;
-        let zero = ErrorParams::zero(&match self.model {
-            TrackerModel::ApiTracker3 => physical::dh_model(),
-            TrackerModel::MirrorTracker => ErrorModel::of(TrackerModel::MirrorTracker),
-        });
+        let zero = ErrorParams::zero(&self.model.b89_model());
         let (rows, dirs): (Vec<Row>, Vec<Direction>) = self.directions(&zero).into_iter().unzip();
         let sens = b89::sensitivity(tests, &zero, &dirs);
         Ok(Evaluated { rows, err_um, sens })
@@ -186,32 +177,18 @@ impl B89TestsStage {
         }
         let unknown =
             |id: &str| anyhow!("`{id}` is not a misalignment of the {} model", self.model);
-        match self.model {
-            TrackerModel::ApiTracker3 => {
-                let given = self
-                    .misalignments
-                    .iter()
-                    .map(|(id, v)| {
-                        Misalignment::parse(id)
-                            .map(|m| (m, *v))
-                            .ok_or_else(|| unknown(id))
-                    })
-                    .collect::<Result<Vec<_>>>()?;
-                let mapped = physical::to_dh(&given);
-                for (c, v) in mapped.coefs().iter().zip(mapped.values()) {
-                    if *v != 0.0 {
-                        *values.entry(*c).or_default() += v;
-                    }
-                }
-            }
-            TrackerModel::MirrorTracker => {
-                for (id, v) in &self.misalignments {
-                    let c = Coef::parse(id)
-                        .filter(|c| c.param.tracker() == TrackerModel::MirrorTracker)
-                        .ok_or_else(|| unknown(id))?;
-                    *values.entry(c).or_default() += v;
-                }
-            }
+        let given: Vec<(&str, f64)> = self
+            .misalignments
+            .iter()
+            .map(|(id, v)| (id.as_str(), *v))
+            .collect();
+        let mapped = self
+            .model
+            .plugin()
+            .misaligned(&given)
+            .map_err(|id| unknown(&id))?;
+        for (c, v) in mapped {
+            *values.entry(c).or_default() += v;
         }
         if values.is_empty() {
             // No error at all: a perfect tracker of this model.
@@ -357,10 +334,13 @@ impl StageKind for B89TestsStage {
                 format!("{n_tests} tests: at most {MAX_TESTS}"),
             ));
         }
-        let known: Vec<&str> = match self.model {
-            TrackerModel::ApiTracker3 => CORRESPONDENCE.iter().map(|m| m.id).collect(),
-            TrackerModel::MirrorTracker => mirror::IDS.iter().map(|(id, _, _)| *id).collect(),
-        };
+        let known: Vec<&str> = self
+            .model
+            .plugin()
+            .misalignments()
+            .iter()
+            .map(|m| m.id)
+            .collect();
         for (id, v) in &self.misalignments {
             let field = format!("misalignments.{id}");
             if !known.contains(&id.as_str()) {
@@ -379,10 +359,13 @@ impl StageKind for B89TestsStage {
                 ));
             }
         }
-        if self.model == TrackerModel::MirrorTracker && self.parameters == Parameters::Dh {
+        if !self.model.plugin().coefficient_rows() && self.parameters == Parameters::Dh {
             out.push(Invalid::new(
                 "parameters",
-                "the mirror tracker has no DH parameters: use `parameters = \"physical\"`",
+                format!(
+                    "the {} model has no DH parameters: use `parameters = \"physical\"`",
+                    self.model
+                ),
             ));
         }
         out

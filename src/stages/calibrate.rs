@@ -37,7 +37,7 @@ use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
 use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};

@@ -34,7 +34,7 @@ use crate::diagnose::{self, Diagnosis, Settings, output};
 use crate::effects;
 use crate::error_model::{ParamId, Shape};
 use crate::hypothesis::Hypothesis;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::{Result, anyhow};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;

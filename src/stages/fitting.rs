@@ -13,7 +13,7 @@ use crate::determined::Estimate;
 use crate::error_model::{ErrorModel, ErrorParams, ParamId, Shape};
 use crate::schema::{self, IdentifiedColumns};
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::Result;
 use polars::prelude::DataFrame;
 use std::collections::BTreeMap;

@@ -32,7 +32,7 @@ use crate::identify::{self, KnownPoint, Settings, Weighting};
 use crate::noise::Noise;
 use crate::schema;
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;

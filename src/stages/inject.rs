@@ -17,7 +17,7 @@ use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting
 use crate::error_model::{Coef, ErrorParams, ParamId, Shape, Term};
 use crate::random;
 use crate::schema;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;

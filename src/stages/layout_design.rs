@@ -61,7 +61,7 @@ use crate::noise::Noise;
 use crate::plots;
 use crate::simulate::{self, CampaignSpec};
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::{Context as _, Result, anyhow, bail};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};

@@ -48,7 +48,7 @@ use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::plots::{self, CoverageRow, PlanPoint};
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};

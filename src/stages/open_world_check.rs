@@ -64,7 +64,7 @@ use crate::effects;
 use crate::layout::Kind;
 use crate::open_world;
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};

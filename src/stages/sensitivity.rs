@@ -40,7 +40,7 @@ use crate::mesh::{self, Range};
 use crate::plots::{self, DirectionCurves, ParamField};
 use crate::sensitivity::{self, Classification, MeshSpan};
 use crate::table::TableBuilder;
-use crate::tracker::TrackerModel;
+use crate::trackers::TrackerModel;
 use anyhow::{Result, anyhow};
 use nalgebra::Vector3;
 use polars::prelude::DataFrame;

@@ -682,8 +682,8 @@ fn a_gross_blunder_on_the_mirror_tracker_is_named_never_a_singular_fold() {
     use ltcal::layout::{self, Kind, Spec};
     use ltcal::noise::Noise;
     use ltcal::simulate::{CampaignSpec, simulate_campaign};
-    use ltcal::tracker::TrackerModel;
-    let model = ErrorModel::of(TrackerModel::MirrorTracker);
+    use ltcal::trackers::TrackerModel;
+    let model = ErrorModel::of(TrackerModel::parse("mirror-tracker").unwrap());
     let mut errors = ErrorParams::zero(&model);
     errors.values_mut().iter_mut().for_each(|v| *v = 10.0);
     let layout = layout::build(&Spec::new(Kind::Corner));

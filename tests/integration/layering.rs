@@ -185,3 +185,76 @@ fn no_effect_id_is_matched_outside_its_plug_in() {
         }
     }
 }
+
+/// A tracker model's names in code: its id as a string literal, and its
+/// plug-in type (the id in camel case, `mirror-tracker` → `MirrorTracker`,
+/// which also catches a `TrackerModel::MirrorTracker` variant).
+fn model_names(id: &str) -> [String; 2] {
+    let camel: String = id
+        .split('-')
+        .map(|w| {
+            let mut c = w.chars();
+            c.next()
+                .map_or(String::new(), |f| f.to_uppercase().chain(c).collect())
+        })
+        .collect();
+    [format!("\"{id}\""), camel]
+}
+
+/// The first name of a model among `ids` that the shipped part of `code`
+/// (before any `#[cfg(test)]`) uses. Unit tests may pick a model by its id.
+fn names_a_tracker_model(code: &str, ids: &[&str]) -> Option<String> {
+    let shipped = code.split("#[cfg(test)]").next().unwrap_or_default();
+    ids.iter()
+        .flat_map(|id| model_names(id))
+        .find(|name| shipped.contains(name.as_str()))
+}
+
+/// ARCHITECTURE.md: only a tracker model's own file knows the model — code
+/// outside `src/trackers/` asks a `TrackerModel` handle or iterates
+/// `TrackerModel::ALL`, so no shipped code matches a model's id or names
+/// its type. Unit tests are allowed to pick a model by its id
+/// (`TrackerModel::parse("mirror-tracker")`), as these integration tests do.
+#[test]
+fn no_tracker_model_is_matched_outside_its_plug_in() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let trackers = src.join("trackers");
+    let ids: Vec<&str> = ltcal::trackers::TrackerModel::ALL
+        .iter()
+        .map(|m| m.id())
+        .collect();
+    assert!(ids.len() >= 2, "{ids:?}");
+    let offending: Vec<String> = rust_files(&src)
+        .into_iter()
+        .filter(|f| !f.starts_with(&trackers))
+        .filter_map(|f| {
+            names_a_tracker_model(&code(&f), &ids)
+                .map(|name| format!("{} names {name}", f.strip_prefix(&src).unwrap().display()))
+        })
+        .collect();
+    assert!(
+        offending.is_empty(),
+        "go through the TrackerModel handle or the registry (src/trackers/):\n  {}",
+        offending.join("\n  ")
+    );
+}
+
+#[test]
+fn the_tracker_model_check_sees_a_planted_match() {
+    let ids = ["api-tracker3", "mirror-tracker"];
+    let planted = [
+        "match m { TrackerModel::MirrorTracker => 1, _ => 0 }",
+        "if m.id() == \"api-tracker3\" { dh() }",
+        "let t = TrackerModel::parse(\"mirror-tracker\");",
+        "use crate::trackers::ApiTracker3;",
+    ];
+    for code in planted {
+        assert!(names_a_tracker_model(code, &ids).is_some(), "{code}");
+    }
+    for clean in [
+        "let t = TrackerModel::default(); t.plugin().misalignments()",
+        "fn f() {}\n#[cfg(test)]\nmod tests { const M: &str = \"mirror-tracker\"; }",
+    ] {
+        assert_eq!(names_a_tracker_model(clean, &ids), None, "{clean}");
+    }
+}

@@ -17,7 +17,7 @@ use ltcal::open_world::{AdmCyclic, OpenEffect};
 use ltcal::random;
 use ltcal::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
 use ltcal::stages::open_world_check::OpenWorldCheckStage;
-use ltcal::tracker::TrackerModel;
+use ltcal::trackers::TrackerModel;
 use rayon::prelude::*;
 use std::sync::Arc;
 
@@ -62,7 +62,7 @@ fn simulate(seed: u64, errors: &ErrorParams) -> SimulatedCampaign {
 /// The tracker of every campaign here: a few µm and µrad of kinematic errors.
 fn tracker(seed: u64) -> ErrorParams {
     let mut rng = random::stream(seed, "open-world-tracker");
-    let mut errors = ErrorParams::zero(&ErrorModel::of(TrackerModel::ApiTracker3));
+    let mut errors = ErrorParams::zero(&ErrorModel::of(TrackerModel::default()));
     for v in errors.values_mut() {
         *v = 5.0 * random::normal(&mut rng);
     }
@@ -241,7 +241,9 @@ fn a_wrong_model_under_a_large_effect_is_named() {
         .into_par_iter()
         .map(|seed| {
             let mut rng = random::stream(seed, "wrong-model");
-            let mut errors = ErrorParams::zero(&ErrorModel::of(TrackerModel::MirrorTracker));
+            let mut errors = ErrorParams::zero(&ErrorModel::of(
+                TrackerModel::parse("mirror-tracker").unwrap(),
+            ));
             for v in errors.values_mut() {
                 *v = 5.0 * random::normal(&mut rng);
             }
@@ -252,7 +254,7 @@ fn a_wrong_model_under_a_large_effect_is_named() {
                 toml::from_str(&format!("[range-scale]\nppm = {{ {station} = {ppm} }}\n")).unwrap();
             let faces = [Face::Front, Face::Back];
             let mut sim = campaign(&layout, &errors, &faces, &fx, seed);
-            sim.campaign.meta.tracker.model = TrackerModel::ApiTracker3.id().into();
+            sim.campaign.meta.tracker.model = TrackerModel::default().id().into();
             let d = diagnose::diagnose(&sim.campaign, &settings(seed, Vec::new())).unwrap();
             let set: Vec<&diagnose::Row> = d.explanation().collect();
             let mismatch = set

@@ -10,7 +10,7 @@ use ltcal::kinematics::Face;
 use ltcal::layout::{self, Kind, Spec};
 use ltcal::noise::Noise;
 use ltcal::simulate::{CampaignSpec, SimulatedCampaign, simulate_campaign};
-use ltcal::tracker::TrackerModel;
+use ltcal::trackers::TrackerModel;
 use nalgebra::DVector;
 
 const BOTH: [Face; 2] = [Face::Front, Face::Back];
@@ -220,7 +220,12 @@ fn a_mirror_campaign_with_an_effect_is_a_model_mismatch_and_the_effect() {
         }),
         ..Effects::default()
     };
-    let sim = simulate_with(REALISTIC, &ten(TrackerModel::MirrorTracker), &effects, 7);
+    let sim = simulate_with(
+        REALISTIC,
+        &ten(TrackerModel::parse("mirror-tracker").unwrap()),
+        &effects,
+        7,
+    );
     let s = Settings {
         model: ErrorModel::constant(),
         mc_draws: 20,
@@ -251,17 +256,17 @@ fn a_mirror_campaign_with_an_effect_is_a_model_mismatch_and_the_effect() {
 #[test]
 fn models_that_fit_equally_well_are_not_a_model_mismatch() {
     use ltcal::diagnose::{self, Settings, output};
-    let mut tiny = ten(TrackerModel::MirrorTracker);
+    let mut tiny = ten(TrackerModel::parse("mirror-tracker").unwrap());
     tiny.values_mut().iter_mut().for_each(|v| *v = 0.01);
     let sim = simulate(REALISTIC, &tiny, 9);
     let s = Settings {
-        model: ErrorModel::of(TrackerModel::MirrorTracker),
+        model: ErrorModel::of(TrackerModel::parse("mirror-tracker").unwrap()),
         mc_draws: 20,
         ..Settings::default()
     };
     let d = diagnose::diagnose(&sim.campaign, &s).unwrap();
     let m = &d.models;
-    assert_eq!(m[0].model, TrackerModel::ApiTracker3, "{m:?}");
+    assert_eq!(m[0].model, TrackerModel::default(), "{m:?}");
     assert!(
         m[1].bic - m[0].bic > 10.0 && (m[1].chi2 - m[0].chi2).abs() < 25.0,
         "{m:?}"
@@ -281,7 +286,11 @@ fn models_that_fit_equally_well_are_not_a_model_mismatch() {
 #[test]
 fn the_model_row_counts_against_max_steps() {
     use ltcal::diagnose::{self, Settings};
-    let sim = simulate(REALISTIC, &ten(TrackerModel::MirrorTracker), 7);
+    let sim = simulate(
+        REALISTIC,
+        &ten(TrackerModel::parse("mirror-tracker").unwrap()),
+        7,
+    );
     for steps in [0, 1] {
         let s = Settings {
             model: ErrorModel::constant(),

@@ -42,14 +42,26 @@
 //! through the transit axis point `o = transit_offset·x̂_h`, offset along
 //! its normal `n = R_z(az)·R_x(transit_tilt)·n_h(β, mirror_tilt)`; the beam
 //! line `s₀ + t·u` meets it at `t*`; the path out is `d + R0 − t*` along
-//! the reflected `r = u − 2(u·n)n` ([`MirrorTracker::point`]). The base
+//! the reflected `r = u − 2(u·n)n` ([`BeamPath::point`]). The base
 //! errors are fixed in the station frame while the mirror turns: they act
 //! through the reflection, `δr = (I − 2nnᵀ)·δu`, an error no joint of the
 //! head-laser DH chain carries — which is why a mirror tracker needs its own
 //! model. The test of the model is an independent ray trace
 //! (`tests::an_independent_ray_trace_agrees_to_a_nanometre`).
+//!
+//! # The plug-in
+//!
+//! [`MirrorTracker`] is the registry's entry: the ten misalignments as
+//! constant parameters, the beam path as the forward model. Its
+//! derivatives are central differences of the exact beam path (a reflection
+//! has no tidy chain rule); a step of one display unit leaves a truncation
+//! error of the order of the third derivative, below 1e-9 of the derivative
+//! (`evaluator_tests::mirror_derivatives_match_a_finer_difference`). The
+//! B89 stage reports and accepts the misalignments themselves.
 
-use crate::kinematics::Reading;
+use super::{Evaluate, Misalignment, Model, Param};
+use crate::error_model::{Coef, ErrorParams, Links};
+use crate::kinematics::{Joints, Reading};
 use nalgebra::{Rotation3, Vector3};
 
 /// The misalignments of a mirror tracker, display units (µm, µrad).
@@ -67,55 +79,34 @@ pub struct MirrorErrors {
     pub range_offset: f64,
 }
 
-/// The ids of [`MirrorErrors`]' fields, in order, with their units and
-/// meanings.
-pub const IDS: [(&str, &str, &str); 10] = [
-    (
-        "beam_offset_x",
-        "µm",
-        "incoming beam's offset from the standing axis, x",
-    ),
-    (
-        "beam_offset_y",
-        "µm",
-        "incoming beam's offset from the standing axis, y",
-    ),
-    (
-        "beam_tilt_x",
-        "µrad",
-        "incoming beam's tilt from the standing axis, x",
-    ),
-    (
-        "beam_tilt_y",
-        "µrad",
-        "incoming beam's tilt from the standing axis, y",
-    ),
-    (
-        "transit_offset",
-        "µm",
-        "transit axis offset from the standing axis, towards the beam",
-    ),
-    (
-        "transit_tilt",
-        "µrad",
-        "transit axis out of square with the standing axis",
-    ),
-    (
-        "mirror_offset",
-        "µm",
-        "reflecting surface's offset from the transit axis",
-    ),
-    (
-        "mirror_tilt",
-        "µrad",
-        "mirror normal out of the plane square to the transit axis",
-    ),
-    ("vertical_index", "µrad", "elevation encoder zero offset"),
-    ("range_offset", "µm", "distance zero (R0)"),
+/// The parameters of [`MirrorErrors`]' fields, in order: constants (a
+/// mirror's misalignment takes no shape), with their units and meanings.
+pub const PARAMS: [Param; 10] = [
+    misalignment("beam_offset_x", false, "incoming beam's offset from the standing axis, x"),
+    misalignment("beam_offset_y", false, "incoming beam's offset from the standing axis, y"),
+    misalignment("beam_tilt_x", true, "incoming beam's tilt from the standing axis, x"),
+    misalignment("beam_tilt_y", true, "incoming beam's tilt from the standing axis, y"),
+    misalignment("transit_offset", false, "transit axis offset from the standing axis, towards the beam"),
+    misalignment("transit_tilt", true, "transit axis out of square with the standing axis"),
+    misalignment("mirror_offset", false, "reflecting surface's offset from the transit axis"),
+    misalignment("mirror_tilt", true, "mirror normal out of the plane square to the transit axis"),
+    misalignment("vertical_index", true, "elevation encoder zero offset"),
+    misalignment("range_offset", false, "distance zero (R0)"),
 ];
 
+/// A misalignment: its id is its symbol, its unit µrad if `angular` else µm.
+const fn misalignment(id: &'static str, angular: bool, meaning: &'static str) -> Param {
+    Param {
+        id,
+        symbol: id,
+        angular,
+        meaning,
+        joint: None,
+    }
+}
+
 impl MirrorErrors {
-    /// The misalignments in the order of [`IDS`].
+    /// The misalignments in the order of [`PARAMS`].
     pub(crate) fn from_array(a: [f64; 10]) -> MirrorErrors {
         MirrorErrors {
             beam_offset_x: a[0],
@@ -134,7 +125,7 @@ impl MirrorErrors {
 
 /// A mirror tracker with its misalignments, in internal units (mm, rad).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct MirrorTracker {
+pub struct BeamPath {
     /// Where the incoming beam crosses `z = 0`.
     s0: Vector3<f64>,
     /// The incoming beam's direction (unit).
@@ -149,10 +140,10 @@ pub struct MirrorTracker {
     range_offset: f64,
 }
 
-impl MirrorTracker {
-    pub fn new(e: &MirrorErrors) -> MirrorTracker {
+impl BeamPath {
+    pub fn new(e: &MirrorErrors) -> BeamPath {
         let (um, urad) = (1e-3, 1e-6);
-        MirrorTracker {
+        BeamPath {
             s0: Vector3::new(e.beam_offset_x * um, e.beam_offset_y * um, 0.0),
             u: Vector3::new(e.beam_tilt_x * urad, e.beam_tilt_y * urad, 1.0).normalize(),
             transit_offset: e.transit_offset * um,
@@ -185,6 +176,108 @@ impl MirrorTracker {
         let at = self.s0 + t * self.u;
         let out = self.u - 2.0 * self.u.dot(&n) * n;
         at + (r.d + self.range_offset - t) * out
+    }
+}
+
+/// The plug-in.
+pub struct MirrorTracker;
+
+impl Model for MirrorTracker {
+    fn id(&self) -> &'static str {
+        "mirror-tracker"
+    }
+
+    fn describe(&self) -> &'static str {
+        "laser in the base, steered by a mirror on the transit axis"
+    }
+
+    fn params(&self) -> &'static [Param] {
+        &PARAMS
+    }
+
+    fn evaluate<'a>(&self, params: &'a ErrorParams) -> Box<dyn Evaluate + 'a> {
+        let tracker = |k: Option<(usize, f64)>| {
+            let mut v = params.values().to_vec();
+            if let Some((k, step)) = k {
+                v[k] += step;
+            }
+            BeamPath::new(&mirror_errors(params, &v))
+        };
+        Box::new(Stepped {
+            at: tracker(None),
+            steps: (0..params.coefs().len())
+                .map(|k| [tracker(Some((k, STEP))), tracker(Some((k, -STEP)))])
+                .collect(),
+        })
+    }
+
+    fn misalignments(&self) -> Vec<Misalignment> {
+        PARAMS
+            .iter()
+            .map(|p| Misalignment {
+                id: p.id,
+                unit: if p.angular { "µrad" } else { "µm" },
+                meaning: p.meaning,
+                coef: Coef::parse(p.id).expect("a mirror misalignment is a coefficient"),
+                sign: 1.0,
+            })
+            .collect()
+    }
+
+    fn misaligned(&self, given: &[(&str, f64)]) -> Result<Vec<(Coef, f64)>, String> {
+        given
+            .iter()
+            .map(|&(id, v)| {
+                Coef::parse(id)
+                    .filter(|c| c.param.tracker().id() == self.id())
+                    .map(|c| (c, v))
+                    .ok_or_else(|| id.to_string())
+            })
+            .collect()
+    }
+}
+
+/// The step of the central differences, display units (1 µm or 1 µrad):
+/// far above rounding (coordinates of 10⁴ mm round at 10⁻¹² mm), far below
+/// where the model bends (its second order is 10⁻⁸ of its first at this
+/// size).
+const STEP: f64 = 1.0;
+
+/// The misalignments of a mirror parameter set with coefficient values
+/// `values`.
+fn mirror_errors(params: &ErrorParams, values: &[f64]) -> MirrorErrors {
+    let mut a = [0.0; PARAMS.len()];
+    for (c, v) in params.coefs().iter().zip(values) {
+        a[c.param.local()] += v;
+    }
+    MirrorErrors::from_array(a)
+}
+
+/// The beam path at the values, and at each coefficient stepped up and
+/// down by [`STEP`].
+struct Stepped {
+    at: BeamPath,
+    steps: Vec<[BeamPath; 2]>,
+}
+
+impl Evaluate for Stepped {
+    fn point(&self, q: Joints, _: &Links) -> Vector3<f64> {
+        self.at.point(q.reading())
+    }
+
+    fn point_with_jacobian(
+        &self,
+        q: Joints,
+        _: &Links,
+        jac: &mut Vec<Vector3<f64>>,
+    ) -> Vector3<f64> {
+        let r = q.reading();
+        jac.extend(
+            self.steps
+                .iter()
+                .map(|[up, down]| (up.point(r) - down.point(r)) / (2.0 * STEP)),
+        );
+        self.at.point(r)
     }
 }
 
@@ -229,7 +322,7 @@ mod tests {
 
     #[test]
     fn without_misalignment_a_reading_reaches_its_spherical_point() {
-        let t = MirrorTracker::new(&MirrorErrors::default());
+        let t = BeamPath::new(&MirrorErrors::default());
         for r in readings() {
             assert!((t.point(r) - nominal_point(r)).norm() < 1e-9);
         }
@@ -284,7 +377,7 @@ mod tests {
     #[test]
     fn an_independent_ray_trace_agrees_to_a_nanometre() {
         let e = misaligned();
-        let t = MirrorTracker::new(&e);
+        let t = BeamPath::new(&e);
         for r in readings() {
             let (model, traced) = (t.point(r), ray_trace(&e, r));
             assert!(
@@ -310,7 +403,7 @@ mod tests {
             mirror_offset: mo,
             ..MirrorErrors::default()
         };
-        let t = MirrorTracker::new(&e);
+        let t = BeamPath::new(&e);
         for r in readings() {
             let dp = t.point(r) - nominal_point(r);
             let (n, _) = t.mirror(r);
@@ -323,7 +416,7 @@ mod tests {
             beam_tilt_x: 20.0,
             ..MirrorErrors::default()
         };
-        let t = MirrorTracker::new(&e);
+        let t = BeamPath::new(&e);
         let at = |az_deg: f64| {
             let r = Reading {
                 az: az_deg.to_radians(),
@@ -358,11 +451,106 @@ mod tests {
                 ("range_offset", e.range_offset),
             ]
         };
-        for (k, (id, _, _)) in IDS.iter().enumerate() {
+        for (k, id) in PARAMS.iter().map(|p| p.id).enumerate() {
             let e = MirrorErrors::from_array(std::array::from_fn(|j| f64::from(j == k)));
             for (name, v) in fields(&e) {
-                assert_eq!(v, f64::from(name == *id), "{id}: {name}");
+                assert_eq!(v, f64::from(name == id), "{id}: {name}");
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod evaluator_tests {
+    use super::*;
+    use crate::error_model::{ErrorModel, Shape};
+    use crate::trackers::TrackerModel;
+
+    fn handle() -> TrackerModel {
+        TrackerModel::parse(MirrorTracker.id()).unwrap()
+    }
+
+    /// Every misalignment at a few µm / µrad, some of each sign.
+    fn mirror_params() -> ErrorParams {
+        let mut p = ErrorParams::zero(&ErrorModel::of(handle()));
+        for (k, v) in p.values_mut().iter_mut().enumerate() {
+            *v = [7.0, -4.0, 12.0, -9.0, 5.0][k % 5] + k as f64;
+        }
+        p
+    }
+
+    fn readings() -> Vec<Joints> {
+        let mut out = Vec::new();
+        for az in [-170.0, -60.0, 10.0, 95.0] {
+            for el in [-40.0, 0.0, 35.0, 70.0, 120.0] {
+                for d in [900.0, 6000.0, 25000.0] {
+                    let r = Reading {
+                        az: f64::to_radians(az),
+                        el: f64::to_radians(el),
+                        d,
+                    };
+                    out.push(r.joints());
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn mirror_derivatives_match_a_finer_difference() {
+        let p = mirror_params();
+        let eval = p.evaluator();
+        let mut jac = Vec::new();
+        for q in readings() {
+            let at = eval.point_with_jacobian(q, &Links::new(q), &mut jac);
+            assert!((at - eval.point(q, &Links::new(q))).norm() < 1e-15);
+            for (k, col) in jac.iter().enumerate() {
+                // A tenth of the step, by the exact model directly.
+                let h = 0.1;
+                let e = |s: f64| {
+                    let mut v = p.values().to_vec();
+                    v[k] += s;
+                    BeamPath::new(&mirror_errors(&p, &v)).point(q.reading())
+                };
+                let fine = (e(h) - e(-h)) / (2.0 * h);
+                assert!(
+                    (col - fine).norm() <= 1e-7 * col.norm().max(1e-3),
+                    "{}: {col} vs {fine}",
+                    p.coefs()[k].name()
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_mirror_inverse_round_trips_through_the_evaluator() {
+        let p = mirror_params();
+        let eval = p.evaluator();
+        for q in readings() {
+            let r = q.reading();
+            let face = r.face();
+            let x = eval.point(q, &Links::new(q));
+            let back = eval.reading_of(&x, face).unwrap();
+            let y = p.point(back.joints());
+            assert!((x - y).norm() < 1e-9, "{r:?}: {}", (x - y).norm());
+            assert_eq!(back.face(), face);
+        }
+    }
+
+    #[test]
+    fn a_parameter_set_is_of_one_model() {
+        let dx1 = Coef::parse("dx1").unwrap();
+        let tilt = Coef::parse("transit_tilt").unwrap();
+        assert_eq!(tilt.param.tracker(), handle());
+        assert_eq!(Coef::parse("transit_tilt.sin1"), None);
+        assert!(ErrorParams::tracker_of(&[dx1, tilt]).is_err());
+        assert_eq!(
+            ErrorParams::tracker_of(&[tilt]),
+            Ok(handle())
+        );
+        let m = ErrorModel::of(handle());
+        assert_eq!(m.coefs().len(), PARAMS.len());
+        assert!(m.clone().with_shape(dx1.param, Shape::Poly(1)).is_err());
+        assert!(m.with_shape(tilt.param, Shape::Fourier(1)).is_err());
     }
 }
