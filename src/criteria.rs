@@ -53,6 +53,10 @@ pub struct Criterion {
     pub overall: Stat,
     /// Every term: `(station m, station n, reflectors…, error µm)`, for plots.
     pub terms: Vec<Term>,
+    /// Eq. (17) only: whether the registration it compares after reached
+    /// its tolerance ([`crate::calibrate::register::Alignment::converged`]);
+    /// `None` for criteria without a registration.
+    pub registration_converged: Option<bool>,
 }
 
 /// One compared quantity.
@@ -77,6 +81,7 @@ fn summarise(n_stations: usize, terms: Vec<Term>) -> Criterion {
         per_station: per.iter().map(|v| Stat::of(v)).collect(),
         overall: Stat::of(&all),
         terms,
+        registration_converged: None,
     }
 }
 
@@ -131,7 +136,10 @@ pub fn coordinates(net: &Network, params: &ErrorParams) -> Option<Criterion> {
             }
         }
     }
-    Some(summarise(reg.len(), terms))
+    Some(Criterion {
+        registration_converged: Some(a.converged),
+        ..summarise(reg.len(), terms)
+    })
 }
 
 /// Distances against the distances of the reference coordinates (Table 4,

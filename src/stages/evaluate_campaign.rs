@@ -14,7 +14,9 @@
 //! * `criteria` — `criterion` (`distances` = Eq. 16, `coordinates` =
 //!   Eq. 17, `reference_distances`, `reference_coordinates`), `station`
 //!   (an id or `all`), `statistic` (`average`, `maximum`), `before_um`,
-//!   `after_um`, `improvement_pct`;
+//!   `after_um`, `improvement_pct`, `registration_converged` (Eq. 17:
+//!   whether both registrations, before and after, reached 1e-10 mm —
+//!   `false` marks numbers not to trust; empty for the other criteria);
 //! * `table5`, `table6` — Eq. (16), Eq. (17) after calibration laid out as
 //!   the paper's Tables 5 and 6: `statistic`, one column per station
 //!   (`<id>_um`), `all_um`, `improvement_pct`;
@@ -118,6 +120,7 @@ impl StageKind for EvaluateCampaignStage {
                 "before_um",
                 "after_um",
                 "improvement_pct",
+                "registration_converged",
             ]),
             "table7" => Some(&[
                 "error",
@@ -160,10 +163,16 @@ impl StageKind for EvaluateCampaignStage {
 
 fn criteria_table(e: &Evaluation) -> Result<DataFrame> {
     let mut rows: Vec<(&str, String, &str, f64, f64)> = Vec::new();
+    let mut converged: Vec<Option<bool>> = Vec::new();
     for (name, b, a) in &e.criteria {
+        let both = b
+            .registration_converged
+            .zip(a.registration_converged)
+            .map(|(b, a)| b && a);
         let mut add = |station: String, sb: &criteria::Stat, sa: &criteria::Stat| {
             rows.push((name, station.clone(), "average", sb.mean_um, sa.mean_um));
             rows.push((name, station, "maximum", sb.max_um, sa.max_um));
+            converged.extend([both, both]);
         };
         for (i, s) in e.stations.iter().enumerate() {
             add(s.clone(), &b.per_station[i], &a.per_station[i]);
@@ -183,6 +192,7 @@ fn criteria_table(e: &Evaluation) -> Result<DataFrame> {
             "improvement_pct",
             rows.iter().map(|r| improvement_pct(r.3, r.4)).collect(),
         )
+        .opt_bool("registration_converged", converged)
         .build()
 }
 
