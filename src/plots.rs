@@ -508,6 +508,70 @@ pub fn residuals_by_factor(
     })
 }
 
+/// A fitted shape with its standard uncertainty (the "what is left" of a
+/// diagnosis): each point's value with a ±2u bar, joined by a line along a
+/// numeric x, or one bar per named column (`categories`) — with the zero
+/// line, against which a shape is judged.
+pub fn fitted_shape(
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    categories: Option<&[String]>,
+    points: &[(f64, f64, f64)],
+) -> Result<String> {
+    let ok: Vec<(f64, f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|p| p.0.is_finite() && p.1.is_finite())
+        .map(|(x, v, u)| (x, v, if u.is_finite() { 2.0 * u } else { 0.0 }))
+        .collect();
+    let (x0, x1) = match categories {
+        Some(c) => (-0.5, c.len() as f64 - 0.5),
+        None => bounds(ok.iter().map(|p| p.0)),
+    };
+    let (y0, y1) = bounds(ok.iter().flat_map(|p| [p.1 - p.2, p.1 + p.2]).chain([0.0]));
+    figure((1000, 560), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .margin(20)
+            .caption(title, ("sans-serif", 20))
+            .x_label_area_size(if categories.is_some() { 70 } else { 45 })
+            .y_label_area_size(70)
+            .build_cartesian_2d(span(x0, x1)?, span(y0, y1)?)
+            .map_err(err)?;
+        let cats = categories.map(|c| c.to_vec());
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(format!("fitted value ({y_label}), bars ± 2u"))
+            .x_labels(categories.map_or(8, |c| c.len().min(24)))
+            .x_label_formatter(&move |v| match &cats {
+                Some(c) => c.get(v.round() as usize).cloned().unwrap_or_default(),
+                None => format!("{v:.0}"),
+            })
+            .label_style(("sans-serif", 12))
+            .draw()
+            .map_err(err)?;
+        let colour = RGBColor(30, 90, 200);
+        chart
+            .draw_series(LineSeries::new([(x0, 0.0), (x1, 0.0)], BLACK.mix(0.4)))
+            .map_err(err)?;
+        if categories.is_none() {
+            chart
+                .draw_series(LineSeries::new(
+                    ok.iter().map(|p| (p.0, p.1)),
+                    colour.stroke_width(2),
+                ))
+                .map_err(err)?;
+        }
+        chart
+            .draw_series(ok.iter().map(|p| {
+                ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, colour.filled(), 6)
+            }))
+            .map_err(err)?;
+        Ok(())
+    })
+}
+
 /// A diverging colour map for signed values: blue (0) through white (0.5)
 /// to red (1).
 pub fn diverging(t: f64) -> RGBColor {

@@ -502,6 +502,10 @@ pub fn report(d: &Diagnosis) -> String {
                 l.p_adjusted
             );
         }
+        let _ = writeln!(
+            s,
+            "\nThe first factor's fitted shape, with ±2u bars: `unexplained.svg`."
+        );
         if left[0].hypothesis.is_some() {
             let _ = writeln!(
                 s,
@@ -649,6 +653,34 @@ pub fn figures(d: &Diagnosis) -> Result<Figures> {
                 Some(u) => out
                     .notes
                     .push(format!("No figure of the residuals by {}: {u}.", f.name)),
+                None => return Err(e),
+            },
+        }
+    }
+    // What is left: the first significant factor's fitted shape.
+    if let Some(l) = d.unexplained.iter().find(|l| l.significant) {
+        let labels: Vec<String> = l.shape.iter().map(|p| p.at.clone()).collect();
+        let categorical = l.shape_x == "column";
+        let drawn = plots::fitted_shape(
+            &format!(
+                "{}: what is left along {} — {}",
+                d.campaign, l.factor, l.basis
+            ),
+            if categorical { "" } else { &l.shape_x },
+            &l.shape_unit,
+            categorical.then_some(&labels[..]),
+            &l.shape
+                .iter()
+                .map(|p| (p.x, p.value, p.u))
+                .collect::<Vec<_>>(),
+        );
+        match drawn {
+            Ok(svg) => out.files.push(("unexplained.svg".into(), svg.into_bytes())),
+            Err(e) => match e.downcast_ref::<plots::Undrawable>() {
+                Some(u) => out.notes.push(format!(
+                    "No figure of what is left along {}: {u}.",
+                    l.factor
+                )),
                 None => return Err(e),
             },
         }

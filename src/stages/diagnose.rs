@@ -26,7 +26,8 @@
 //! `chi2_p`, `noise_stated`, `noise_floor_um`, `tried`, `blunder_tests`,
 //! `explanation`, `set_rms_before_um`, `set_rms_after_um`,
 //! `set_gap_shrink_pct`, `verdict`), `skipped` (`effect`, `reason`); files
-//! `diagnosis.csv`, `report.md` and `residuals-<factor>.svg`.
+//! `diagnosis.csv`, `report.md`, `residuals-<factor>.svg` and, when a
+//! factor localises what is left, `unexplained.svg` (its fitted shape).
 
 use super::{Context, Invalid, Slot, StageFile, StageInputs, StageKind, StageOutput, fitting};
 use crate::campaign::{self, Campaign};

@@ -108,6 +108,16 @@ fn a_discovered_cyclic_error_written_as_a_hypothesis_removes_it_on_a_fresh_campa
         .parse()
         .unwrap();
     assert!((period - 900.0).abs() < 0.05 * 900.0, "{period}");
+    // … drawn: the fitted cycle over one period, its title naming it.
+    let figures = diagnose::output::figures(&found).unwrap();
+    let (_, svg) = figures
+        .files
+        .iter()
+        .find(|(name, _)| name == "unexplained.svg")
+        .expect("a figure of what is left");
+    let svg = String::from_utf8_lossy(svg);
+    assert!(svg.contains("what is left along range"), "{svg}");
+    assert!(svg.contains("d mod period (mm)"));
     let text = localise::discovered(&found.campaign, &found.unexplained).unwrap();
     let hyps = hypothesis::parse(Source::new("discovered.toml", text.as_str())).unwrap();
     assert_eq!(hyps.len(), 1);
