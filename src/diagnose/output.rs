@@ -357,10 +357,18 @@ pub fn verdict(d: &Diagnosis) -> String {
             b.magnitude,
             plus_minus(b.magnitude_u),
             b.unit,
-            if b.score.is_finite() {
-                format!("{:.1} % of the held-out residual explained", b.score)
-            } else {
-                "the held-out residual before it not measurable".to_string()
+            // The one measure of "how far" the report uses everywhere: the
+            // held-out gap over the noise floor.
+            match (b.step.is_some(), b.rms_before_um.is_finite()) {
+                (_, false) => "the held-out residual before it not measurable".to_string(),
+                (true, true) => format!(
+                    "{:.1} % of the gap over the noise floor removed",
+                    set_numbers(d).2
+                ),
+                (false, true) => format!(
+                    "{:.1} % of the gap over the noise floor removed",
+                    b.gap_shrink_pct
+                ),
             }
         )
     }
