@@ -509,9 +509,26 @@ pub(super) struct Rest<'a> {
     pub alpha: f64,
 }
 
-/// Every basis fitted beside `members`: the χ² the members explain, and
-/// each basis's fit.
-fn fits(lm: &LinearModel, members: &Signature, all: &[Basis]) -> (f64, Vec<super::linear::Fit>) {
+/// Every basis of every factor fitted beside the members of one model
+/// state: what [`structure`] (at each step) and [`localise`] (at the end)
+/// both read, computed once per state — ~450 fits on a big network.
+pub(super) struct Fitted {
+    all: Vec<Basis>,
+    /// The χ² the members explain.
+    members_chi2: f64,
+    /// Each basis's fit beside the members, in the order of `all`.
+    fits: Vec<super::linear::Fit>,
+}
+
+/// [`Fitted`] for the model `lm` with `members`.
+pub(super) fn fitted(
+    lm: &LinearModel,
+    members: &Signature,
+    infos: &[ReadingInfo],
+    stations: &[String],
+    targets: &[String],
+) -> Fitted {
+    let all = bases(infos, stations, targets);
     let members_chi2 = if members.ncols() == 0 {
         0.0
     } else {
@@ -521,7 +538,11 @@ fn fits(lm: &LinearModel, members: &Signature, all: &[Basis]) -> (f64, Vec<super
         .par_iter()
         .map(|b| lm.fit(&Signature::concat(members, &b.columns)))
         .collect();
-    (members_chi2, fits)
+    Fitted {
+        all,
+        members_chi2,
+        fits,
+    }
 }
 
 /// The F test of a basis of `k` columns gaining `delta` of the `chi2`
@@ -564,16 +585,19 @@ impl Structure {
 /// over every basis) and gains: what the diagnosis tests candidates and
 /// readings against when it explains more than any of them.
 pub(super) fn structure(
+    fitted: &Fitted,
     lm: &LinearModel,
     members: &Signature,
     dof: usize,
     alpha: f64,
     infos: &[ReadingInfo],
-    stations: &[String],
-    targets: &[String],
 ) -> Option<Structure> {
-    let all = bases(infos, stations, targets);
-    let (members_chi2, fits) = fits(lm, members, &all);
+    let Fitted {
+        all,
+        members_chi2,
+        fits,
+    } = fitted;
+    let members_chi2 = *members_chi2;
     let chi2 = lm.chi2() - members_chi2;
     if chi2 / (dof.max(1) as f64) < ROUNDING_CHI2_PER_DOF {
         return None;
@@ -581,7 +605,7 @@ pub(super) fn structure(
     let ln_m = (lm.rows() as f64).ln();
     let (best, delta_bic) = all
         .iter()
-        .zip(&fits)
+        .zip(fits)
         .enumerate()
         .filter_map(|(i, (b, f))| {
             let k = b.columns.ncols();
@@ -603,21 +627,20 @@ pub(super) fn structure(
 }
 
 /// Every factor's best basis, most significant first (then by Δχ²).
-pub(super) fn localise(
-    rest: &Rest,
-    infos: &[ReadingInfo],
-    stations: &[String],
-    targets: &[String],
-) -> Vec<Localised> {
-    let all = bases(infos, stations, targets);
+pub(super) fn localise(rest: &Rest, fitted: &Fitted, infos: &[ReadingInfo]) -> Vec<Localised> {
+    let Fitted {
+        all,
+        members_chi2,
+        fits,
+    } = fitted;
+    let members_chi2 = *members_chi2;
     let k_m = rest.members.ncols();
-    let (members_chi2, fits) = fits(rest.lm, rest.members, &all);
     let gain = |f: &super::linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
     let tried = all.len();
     let rounding = rest.chi2 / (rest.dof.max(1) as f64) < ROUNDING_CHI2_PER_DOF;
     // Each factor once, in the order its first basis was built.
     let mut factors: Vec<&'static str> = Vec::new();
-    for b in &all {
+    for b in all {
         if !factors.contains(&b.factor) {
             factors.push(b.factor);
         }

@@ -559,9 +559,8 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             floor_um: floor,
             alpha: s.alpha,
         },
+        final_state.bases(),
         &final_state.infos,
-        &final_state.net.stations,
-        &final_state.net.targets,
     );
     rows.extend(model);
     rows.push(none_row(
@@ -923,9 +922,26 @@ struct State {
     /// Coordinates rejected as blunders: `(reading, coordinate)`.
     rejected: Vec<(usize, usize)>,
     lm: LinearModel,
+    /// Every localisation basis fitted beside the members, when first
+    /// asked for ([`State::bases`]).
+    bases: std::sync::OnceLock<localise::Fitted>,
 }
 
 impl State {
+    /// Every localisation basis fitted beside the members: once per state,
+    /// for the step's structure and, on the final state, the localisation.
+    fn bases(&self) -> &localise::Fitted {
+        self.bases.get_or_init(|| {
+            localise::fitted(
+                &self.lm,
+                &self.members,
+                &self.infos,
+                &self.net.stations,
+                &self.net.targets,
+            )
+        })
+    }
+
     /// χ² the members' columns still explain (zero once the refit has
     /// converged, to [`REFIT_TOL_CHI2`]).
     fn members_chi2(&self) -> f64 {
@@ -1147,6 +1163,7 @@ impl StepContext<'_> {
                 members: sig,
                 rejected: rejected.clone(),
                 lm,
+                bases: std::sync::OnceLock::new(),
             });
         }
     }
@@ -1593,13 +1610,12 @@ impl StepContext<'_> {
     fn score(&self, st: &State, members: &[Member], step: usize, floor: f64) -> Scored {
         let mut plain = self.score_against(st, members, step, floor, None);
         let Some(structure) = localise::structure(
+            st.bases(),
             &st.lm,
             &st.members,
             st.dof(),
             self.settings.alpha,
             &st.infos,
-            &st.net.stations,
-            &st.net.targets,
         ) else {
             return plain;
         };
