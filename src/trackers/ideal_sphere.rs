@@ -9,8 +9,8 @@
 //! left out on purpose: it turns every station about its vertical, which
 //! the station's pose absorbs, so no campaign determines it.
 
-use super::{Evaluate, Misalignment, Model, Param};
-use crate::error_model::{Coef, ErrorParams, Links};
+use super::{Evaluate, Model, Param};
+use crate::error_model::{ErrorParams, Links};
 use crate::kinematics::{Joints, Reading, nominal_point};
 use nalgebra::Vector3;
 
@@ -57,31 +57,6 @@ impl Model for IdealSphere {
             d0_mm: v[0] * 1e-3,
             el0_rad: v[1] * 1e-6,
         })
-    }
-
-    fn misalignments(&self) -> Vec<Misalignment> {
-        PARAMS
-            .iter()
-            .map(|p| Misalignment {
-                id: p.id,
-                unit: if p.angular { "µrad" } else { "µm" },
-                meaning: p.meaning,
-                coef: Coef::parse(p.id).expect("a parameter is a coefficient"),
-                sign: 1.0,
-            })
-            .collect()
-    }
-
-    fn misaligned(&self, given: &[(&str, f64)]) -> Result<Vec<(Coef, f64)>, String> {
-        given
-            .iter()
-            .map(|&(id, v)| {
-                Coef::parse(id)
-                    .filter(|c| c.param.tracker().id() == self.id())
-                    .map(|c| (c, v))
-                    .ok_or_else(|| id.to_string())
-            })
-            .collect()
     }
 }
 

@@ -59,8 +59,8 @@
 //! (`evaluator_tests::mirror_derivatives_match_a_finer_difference`). The
 //! B89 stage reports and accepts the misalignments themselves.
 
-use super::{Evaluate, Misalignment, Model, Param};
-use crate::error_model::{Coef, ErrorParams, Links};
+use super::{Evaluate, Model, Param};
+use crate::error_model::{ErrorParams, Links};
 use crate::kinematics::{Joints, Reading};
 use nalgebra::{Rotation3, Vector3};
 
@@ -209,31 +209,6 @@ impl Model for MirrorTracker {
                 .map(|k| [tracker(Some((k, STEP))), tracker(Some((k, -STEP)))])
                 .collect(),
         })
-    }
-
-    fn misalignments(&self) -> Vec<Misalignment> {
-        PARAMS
-            .iter()
-            .map(|p| Misalignment {
-                id: p.id,
-                unit: if p.angular { "µrad" } else { "µm" },
-                meaning: p.meaning,
-                coef: Coef::parse(p.id).expect("a mirror misalignment is a coefficient"),
-                sign: 1.0,
-            })
-            .collect()
-    }
-
-    fn misaligned(&self, given: &[(&str, f64)]) -> Result<Vec<(Coef, f64)>, String> {
-        given
-            .iter()
-            .map(|&(id, v)| {
-                Coef::parse(id)
-                    .filter(|c| c.param.tracker().id() == self.id())
-                    .map(|c| (c, v))
-                    .ok_or_else(|| id.to_string())
-            })
-            .collect()
     }
 }
 
@@ -463,7 +438,7 @@ mod tests {
 #[cfg(test)]
 mod evaluator_tests {
     use super::*;
-    use crate::error_model::{ErrorModel, Shape};
+    use crate::error_model::{Coef, ErrorModel, Shape};
     use crate::trackers::TrackerModel;
 
     fn handle() -> TrackerModel {

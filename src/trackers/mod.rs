@@ -92,11 +92,34 @@ pub trait Model: Sync {
     /// Its forward model and derivatives for `params` (a set of this model).
     fn evaluate<'a>(&self, params: &'a ErrorParams) -> Box<dyn Evaluate + 'a>;
     /// The misalignments the B89 stage reports and accepts, each a
-    /// direction in the coefficients of [`Model::b89_model`].
-    fn misalignments(&self) -> Vec<Misalignment>;
+    /// direction in the coefficients of [`Model::b89_model`]. By default a
+    /// model's parameters are its misalignments, each a constant.
+    fn misalignments(&self) -> Vec<Misalignment> {
+        self.params()
+            .iter()
+            .map(|p| Misalignment {
+                id: p.id,
+                unit: if p.angular { "µrad" } else { "µm" },
+                meaning: p.meaning,
+                coef: Coef::parse(p.id).expect("a parameter is a coefficient"),
+                sign: 1.0,
+            })
+            .collect()
+    }
     /// The coefficients and values of misalignment settings `(id, value)`,
     /// every other coefficient zero; `Err(id)` names the first unknown one.
-    fn misaligned(&self, given: &[(&str, f64)]) -> Result<Vec<(Coef, f64)>, String>;
+    /// By default each id is one of the model's parameters.
+    fn misaligned(&self, given: &[(&str, f64)]) -> Result<Vec<(Coef, f64)>, String> {
+        given
+            .iter()
+            .map(|&(id, v)| {
+                Coef::parse(id)
+                    .filter(|c| c.param.tracker().id() == self.id())
+                    .map(|c| (c, v))
+                    .ok_or_else(|| id.to_string())
+            })
+            .collect()
+    }
     /// The B89 stage's coefficients when they are not every parameter as a
     /// constant (`None`): the DH chain's harmonics, which its physical
     /// misalignments need.
