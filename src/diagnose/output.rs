@@ -287,9 +287,7 @@ pub fn verdict(d: &Diagnosis) -> String {
     let b = d.best();
     // What the set leaves when it is more than the stated noise: no member
     // is then presented as the whole cause.
-    let left = d
-        .rest()
-        .filter(|r| !r.significant && b.effect != "none");
+    let left = d.rest().filter(|r| !r.significant && b.effect != "none");
     if let Some(rest) = left {
         let (_, _, shrink) = set_numbers(d);
         let what = match (
