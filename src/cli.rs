@@ -1,5 +1,8 @@
 //! The command line: `ltcal run`, `status`, `verify`, `task`, `plan`, `explain`, `graph`, `snapshot`,
-//! `show`, `kinds`.
+//! `show`, `diagnose`, `kinds`, `completions`. What a script reads (tables,
+//! results) goes to stdout, progress and notes to stderr, and every command
+//! exits with the README's codes: 0 success, 1 the work did not succeed, 2
+//! the input is wrong.
 
 use crate::pipeline::{
     self, InputError, cache::Store, cluster, explain, graph, plan, published, resolve::Override,
@@ -8,7 +11,7 @@ use crate::pipeline::{
 use crate::stages;
 use crate::table;
 use anyhow::{Context as _, Result, bail};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, CommandFactory as _, Parser, Subcommand, ValueEnum};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -149,7 +152,16 @@ enum Command {
         #[command(flatten)]
         p: PipelineArgs,
         table: String,
-        /// Decimal places of numbers.
+        /// Aligned text for reading, or CSV or JSON (an array of records)
+        /// for scripts: those print the table alone on stdout, numbers at
+        /// full precision, missing values empty (CSV) or null (JSON).
+        #[arg(long, value_enum, default_value_t = ShowFormat::Table)]
+        format: ShowFormat,
+        /// Print the first N rows only (with `--format table`, stderr says
+        /// how many were left out).
+        #[arg(long, value_name = "N")]
+        limit: Option<usize>,
+        /// Decimal places of numbers in `--format table`.
         #[arg(long, default_value_t = 6)]
         digits: usize,
     },
@@ -183,6 +195,12 @@ enum Command {
     },
     /// List the stage kinds.
     Kinds,
+    /// Print the completion script of a shell (README, "Shell completions"
+    /// says where each shell reads it from).
+    Completions {
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
 }
 
 /// The most worker threads `-j` accepts: far beyond any machine's cores,
@@ -207,6 +225,13 @@ fn thread_count() -> clap::builder::RangedU64ValueParser<usize> {
 enum Executor {
     Local,
     Slurm,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, ValueEnum)]
+enum ShowFormat {
+    Table,
+    Csv,
+    Json,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -426,7 +451,7 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
         return Ok(ExitCode::SUCCESS);
     }
     let checks = snapshot::check(&pipeline, snap, &tables, dir)?;
-    print_out(&snapshot::Report(&checks).to_string())?;
+    print_out(snapshot::Report(&checks).to_string())?;
     let bad = checks
         .iter()
         .filter(|c| !matches!(c.outcome, snapshot::Outcome::Same { .. }))
@@ -599,13 +624,28 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
         }
         Command::Status { p } => {
             let pipeline = load(&p)?;
+            if pipeline.sweep.is_none() {
+                // No points, no cluster jobs: what a status can still say is
+                // where the stages stand — and asking is no failure (exit 1
+                // says a stage failed).
+                let items = plan::plan(&pipeline, &store(&p, &pipeline));
+                let cached = items.iter().filter(|i| i.status == Status::Cached).count();
+                print_out(format!(
+                    "{}: no [sweep], so no points or cluster jobs; {cached} of {} stages cached \
+                     (`ltcal plan {}` says which would run and why)\n",
+                    pipeline.name,
+                    items.len(),
+                    p.pipeline.display()
+                ))?;
+                return Ok(ExitCode::SUCCESS);
+            }
             let opts = run::RunOptions {
                 results_root: p.results.clone(),
                 keep_going: false,
                 progress: false,
                 not_computed: None,
             };
-            print_out(&cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
+            print_out(cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { p, repair } => {
@@ -670,7 +710,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let pipeline = load(&p)?;
             let items = plan::plan(&pipeline, &store(&p, &pipeline));
             if json {
-                print_out(&format!("{}\n", serde_json::to_string_pretty(&items)?))?;
+                print_out(format!("{}\n", serde_json::to_string_pretty(&items)?))?;
             } else {
                 let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
                 let mut text = String::new();
@@ -684,7 +724,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                     text += line.trim_end();
                     text += "\n";
                 }
-                print_out(&text)?;
+                print_out(text)?;
             }
             let stale = items.iter().filter(|i| i.status != Status::Cached).count();
             if check && stale > 0 {
@@ -702,9 +742,9 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let pipeline = load(&p)?;
             let e = explain::explain(&pipeline, &store(&p, &pipeline), &stage, point)?;
             if json {
-                print_out(&format!("{}\n", serde_json::to_string_pretty(&e)?))?;
+                print_out(format!("{}\n", serde_json::to_string_pretty(&e)?))?;
             } else {
-                print_out(&e.to_string())?;
+                print_out(e.to_string())?;
             }
             Ok(ExitCode::SUCCESS)
         }
@@ -714,7 +754,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 .into_iter()
                 .map(|i| (i.stage, i.status))
                 .collect();
-            print_out(&match format {
+            print_out(match format {
                 GraphFormat::Dot => graph::dot(&pipeline, &statuses),
                 GraphFormat::Mermaid => graph::mermaid(&pipeline, &statuses),
                 GraphFormat::Svg => graph::svg(&pipeline, &statuses)?,
@@ -722,7 +762,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Snapshot { p, check, dir } => snapshot_command(&p, check, &dir),
-        Command::Show { p, table, digits } => show(&p, &table, digits),
+        Command::Show {
+            p,
+            table,
+            format,
+            limit,
+            digits,
+        } => show(&p, &table, format, limit, digits),
         Command::Diagnose {
             campaign,
             out,
@@ -750,7 +796,15 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 .into_iter()
                 .map(|(k, s)| format!("{k:10}  {s}\n"))
                 .collect();
-            print_out(&kinds)?;
+            print_out(kinds)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Completions { shell } => {
+            // Generated from the same definition clap parses with, so the
+            // completions cannot fall behind the commands.
+            let mut script = Vec::new();
+            clap_complete::generate(shell, &mut Cli::command(), "ltcal", &mut script);
+            print_out(script)?;
             Ok(ExitCode::SUCCESS)
         }
     }
@@ -759,7 +813,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
 /// `ltcal show`: a published table, checked against the cache entry it
 /// came from, so that an edited or damaged file or a stale result is never
 /// shown as current.
-fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
+fn show(
+    p: &PipelineArgs,
+    table: &str,
+    format: ShowFormat,
+    limit: Option<usize>,
+    digits: usize,
+) -> Result<ExitCode> {
     let pipeline = load(p)?;
     let dir = run::pipeline_dir(&p.results, &pipeline);
     let (stage, name) = match table.split_once('.') {
@@ -779,15 +839,33 @@ fn show(p: &PipelineArgs, table: &str, digits: usize) -> Result<ExitCode> {
             path.display()
         )
     })?;
-    print_out(&table::to_text(&df, digits))?;
+    let rows = df.height();
+    let df = match limit {
+        Some(n) if n < rows => df.head(Some(n)),
+        _ => df,
+    };
+    match format {
+        ShowFormat::Table => {
+            print_out(table::to_text(&df, digits))?;
+            if df.height() < rows {
+                eprintln!(
+                    "({} of {rows} rows not shown: --limit {})",
+                    rows - df.height(),
+                    df.height()
+                );
+            }
+        }
+        ShowFormat::Csv => print_out(table::to_csv(&df)?)?,
+        ShowFormat::Json => print_out(table::to_json(&df))?,
+    }
     Ok(ExitCode::SUCCESS)
 }
 
 /// Writes to standard output; a closed pipe (`ltcal show … | head`) ends
 /// the output quietly instead of panicking as `print!` does.
-fn print_out(text: &str) -> Result<()> {
+fn print_out(text: impl AsRef<[u8]>) -> Result<()> {
     use std::io::Write;
-    match std::io::stdout().lock().write_all(text.as_bytes()) {
+    match std::io::stdout().lock().write_all(text.as_ref()) {
         Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
         _ => Ok(()),
     }

@@ -106,7 +106,7 @@ impl std::error::Error for SourceError {}
 /// where it points when toml knows no place.
 pub fn toml_error(src: &Source, e: toml::de::Error, fallback: Range<usize>) -> SourceError {
     let span = e.span().unwrap_or(fallback);
-    src.error(span, e.message().trim().to_string())
+    src.error(span, crate::suggest::serde_message(e.message().trim()))
 }
 
 /// One problem with what the user gave ltcal.

@@ -32,6 +32,7 @@ pub mod sensitivity;
 pub mod simulate;
 pub mod solver;
 pub mod stages;
+pub mod suggest;
 pub mod table;
 pub mod trackers;
 

@@ -303,6 +303,63 @@ pub fn to_text(df: &DataFrame, digits: usize) -> String {
     out
 }
 
+/// Renders a table as CSV for scripts (`ltcal show --format csv`): a header
+/// of the column names, numbers at full precision (the shortest text that
+/// reads back to the same number), missing values as empty fields, and
+/// quoting where a value holds a comma, quote or line break — what pandas,
+/// polars and spreadsheets read without options.
+pub fn to_csv(df: &DataFrame) -> Result<Vec<u8>> {
+    let mut buf = Vec::new();
+    CsvWriter::new(&mut buf)
+        .include_header(true)
+        .finish(&mut df.clone())
+        .map_err(|e| anyhow!("writing CSV: {e}"))?;
+    Ok(buf)
+}
+
+/// Renders a table as JSON for scripts (`ltcal show --format json`): an
+/// array of records, one per row and one line each, keyed by column name
+/// in the table's order. Numbers are JSON numbers at full precision;
+/// missing values are `null`, and so are NaN and the infinities, which JSON
+/// cannot hold. A value of any other type is given as its text.
+pub fn to_json(df: &DataFrame) -> String {
+    use serde_json::Value;
+    let keys: Vec<String> = df
+        .get_column_names()
+        .iter()
+        .map(|n| Value::from(n.as_str()).to_string())
+        .collect();
+    let mut out = String::from("[");
+    for i in 0..df.height() {
+        out.push_str(if i == 0 { "\n{" } else { ",\n{" });
+        for (j, (c, key)) in df.columns().iter().zip(&keys).enumerate() {
+            let v = match c.get(i).unwrap_or(AnyValue::Null) {
+                AnyValue::Null => Value::Null,
+                AnyValue::Boolean(b) => Value::from(b),
+                AnyValue::String(s) => Value::from(s),
+                AnyValue::StringOwned(s) => Value::from(s.as_str()),
+                AnyValue::Float64(x) => Value::from(x),
+                AnyValue::Float32(x) => Value::from(x),
+                v if v.is_integer() => v
+                    .extract::<i64>()
+                    .map(Value::from)
+                    .or_else(|| v.extract::<u64>().map(Value::from))
+                    .unwrap_or(Value::Null),
+                other => Value::from(other.to_string()),
+            };
+            if j > 0 {
+                out.push(',');
+            }
+            out.push_str(key);
+            out.push(':');
+            out.push_str(&v.to_string());
+        }
+        out.push('}');
+    }
+    out.push_str(if df.height() == 0 { "]\n" } else { "\n]\n" });
+    out
+}
+
 /// One cell as text; floats with a fixed number of decimals, `-0` printed as `0`.
 pub fn cell_text(v: &AnyValue, digits: usize) -> String {
     match v {

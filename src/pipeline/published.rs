@@ -42,8 +42,10 @@ pub fn read(
             let names = sw.table_names();
             let Some(name) = name.filter(|n| names.iter().any(|g| g == n)) else {
                 return Err(InputError::arg(format!(
-                    "the sweep gathers {}: show one as `sweep.<stage>.<table>`",
-                    names.join(", ")
+                    "the sweep gathers {}: show one as `sweep.<stage>.<table>`{}",
+                    names.join(", "),
+                    name.map(|n| crate::suggest::hint(n, names.iter().map(String::as_str)))
+                        .unwrap_or_default()
                 )));
             };
             let expected = plan::gathered_now(sw, store)
@@ -65,8 +67,9 @@ pub fn read(
             let name = name.unwrap_or(outputs[0]);
             if !outputs.contains(&name) {
                 return Err(InputError::arg(format!(
-                    "stage `{stage}` has no table `{name}`; its tables are: {}",
-                    outputs.join(", ")
+                    "stage `{stage}` has no table `{name}`; its tables are: {}{}",
+                    outputs.join(", "),
+                    crate::suggest::hint(name, outputs.iter().copied())
                 )));
             }
             let item = plan::plan(pipeline, store)

@@ -303,7 +303,11 @@ fn parse_stage(
         None => {
             errors.push(src.error(
                 kind_span,
-                format!("unknown stage kind `{kind}`; one of: {}", KINDS.join(", ")),
+                format!(
+                    "unknown stage kind `{kind}`; one of: {}{}",
+                    KINDS.join(", "),
+                    crate::suggest::hint(&kind, KINDS.iter().copied())
+                ),
             ));
             None
         }

@@ -313,8 +313,9 @@ impl Pipeline {
         self.stages.iter().find(|s| s.name == name).ok_or_else(|| {
             let names: Vec<&str> = self.stages.iter().map(|s| s.name.as_str()).collect();
             super::InputError::arg(format!(
-                "the pipeline has no stage `{name}`; its stages are: {}",
-                names.join(", ")
+                "the pipeline has no stage `{name}`; its stages are: {}{}",
+                names.join(", "),
+                crate::suggest::hint(name, names.iter().copied())
             ))
         })
     }
@@ -339,7 +340,9 @@ pub fn resolve_checking(
         match o.path.as_slice() {
             [s, name, _, ..] if s == "stages" => {
                 if !raw.stages.iter().any(|st| &st.name == name) {
-                    problems.push(o.problem(src, format!("the pipeline has no stage `{name}`")));
+                    let hint =
+                        crate::suggest::hint(name, raw.stages.iter().map(|st| st.name.as_str()));
+                    problems.push(o.problem(src, format!("the pipeline has no stage `{name}`{hint}")));
                 }
             }
             [e, s, _] if e == "executor" && s == "slurm" => {}
@@ -625,10 +628,11 @@ fn check_graph(
                 problems.push(Problem::At(src.error(
                     at(&s.name, slot, false),
                     format!(
-                        "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}",
+                        "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}{}",
                         s.name,
                         r.stage,
-                        names.join(", ")
+                        names.join(", "),
+                        crate::suggest::hint(&r.stage, names.iter().copied())
                     ),
                 )));
                 continue;
@@ -673,11 +677,12 @@ fn check_graph(
                 problems.push(Problem::At(src.error(
                     at(&s.name, slot, false),
                     format!(
-                        "stage `{}` ({}) has no table `{}`; its tables are: {}",
+                        "stage `{}` ({}) has no table `{}`; its tables are: {}{}",
                         producer.name,
                         producer.config.kind(),
                         r.table,
-                        tables.join(", ")
+                        tables.join(", "),
+                        crate::suggest::hint(&r.table, tables.iter().copied())
                     ),
                 )));
             }

@@ -306,7 +306,11 @@ fn execute_stages(
                     })
             })
             .collect();
-        let run_one = |&i: &usize| {
+        // Progress lines come in the plan's order (`ltcal plan`'s), whichever
+        // thread finishes first: a finished stage's line waits for those
+        // before it in its level, so that two runs print alike.
+        let lines = Mutex::new((0, vec![None; ready.len()]));
+        let run_one = |(pos, &i): (usize, &usize)| {
             let inputs = {
                 let done = produced.lock().expect("no panics hold this lock");
                 stages[i]
@@ -320,14 +324,20 @@ fn execute_stages(
             };
             let (report, out) = execute(runner, &stages[i], inputs);
             if runner.progress {
-                progress_line(&report);
+                let mut lines = lines.lock().expect("no panics hold this lock");
+                let (next, waiting) = &mut *lines;
+                waiting[pos] = Some(progress_line(&report));
+                while let Some(line) = waiting.get_mut(*next).and_then(Option::take) {
+                    eprintln!("{line}");
+                    *next += 1;
+                }
             }
             (i, report, out)
         };
         let results: Vec<(usize, StageReport, Option<Produced>)> = if runner.parallel {
-            ready.par_iter().map(run_one).collect()
+            ready.par_iter().enumerate().map(run_one).collect()
         } else {
-            ready.iter().map(run_one).collect()
+            ready.iter().enumerate().map(run_one).collect()
         };
         for (i, report, out) in results {
             if report.status == Status::Failed && !runner.keep_going {
@@ -769,13 +779,13 @@ pub fn point_label(sw: &Sweep, values: &[serde_json::Value]) -> String {
         .join(", ")
 }
 
-fn progress_line(r: &StageReport) {
+fn progress_line(r: &StageReport) -> String {
     let detail = match r.status {
         Status::Cached => String::new(),
         Status::Ran => format!("  {:.2} s  ({})", r.seconds, r.reason),
         _ => format!("  ({})", r.reason),
     };
-    eprintln!("{:>8}  {}{detail}", r.status, r.stage);
+    format!("{:>8}  {}{detail}", r.status, r.stage)
 }
 
 type Wired = Vec<(String, super::resolve::InputRef, Arc<Produced>)>;

@@ -89,9 +89,10 @@ pub fn resolve(
             err(
                 span,
                 format!(
-                    "`{}` names no stage `{stage}`; the stages are: {}",
+                    "`{}` names no stage `{stage}`; the stages are: {}{}",
                     t.get_ref(),
-                    names.join(", ")
+                    names.join(", "),
+                    crate::suggest::hint(stage, names.iter().copied())
                 ),
             );
             continue;
@@ -102,9 +103,10 @@ pub fn resolve(
             err(
                 span,
                 format!(
-                    "stage `{stage}` ({}) has no table `{table}`; its tables are: {}",
+                    "stage `{stage}` ({}) has no table `{table}`; its tables are: {}{}",
                     s.config.kind(),
-                    outputs.join(", ")
+                    outputs.join(", "),
+                    crate::suggest::hint(table, outputs.iter().copied())
                 ),
             );
             continue;

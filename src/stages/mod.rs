@@ -309,7 +309,7 @@ macro_rules! stage_kinds {
             pub fn from_json(kind: &str, v: serde_json::Value) -> Result<StageConfig> {
                 StageConfig::deserialize(kind, v)
                     .ok_or_else(|| anyhow!("unknown stage kind `{kind}`"))?
-                    .map_err(|e| anyhow!("{e}"))
+                    .map_err(|e| anyhow!("{}", crate::suggest::serde_message(&e.to_string())))
             }
         }
 

@@ -6,6 +6,7 @@ mod calibration;
 mod campaign_io;
 mod cli;
 mod columns;
+mod conventions;
 mod diagnose;
 mod effects;
 mod errors;
