@@ -4,6 +4,7 @@
 
 use anyhow::{Result, anyhow};
 use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
@@ -444,6 +445,38 @@ pub fn sensitivity_directions(title: &str, d_mm: f64, rows: &[DirectionCurves]) 
     })
 }
 
+/// The x range of points along a numeric `x`, or of one slot per category
+/// (centred on 0, 1, …).
+fn x_range(categories: Option<&[String]>, x: impl Iterator<Item = f64>) -> (f64, f64) {
+    match categories {
+        Some(c) => (-0.5, c.len() as f64 - 0.5),
+        None => bounds(x),
+    }
+}
+
+/// The axes and their titles; along categories, their names under the
+/// axis (at most 24 labels), else numbers.
+fn category_mesh<'a>(
+    chart: &mut ChartContext<'a, SVGBackend<'a>, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    x_label: &str,
+    y_label: &str,
+    categories: Option<&[String]>,
+) -> Result<()> {
+    let cats = categories.map(|c| c.to_vec());
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc(y_label)
+        .x_labels(categories.map_or(8, |c| c.len().min(24)))
+        .x_label_formatter(&move |v| match &cats {
+            Some(c) => c.get(v.round() as usize).cloned().unwrap_or_default(),
+            None => format!("{v:.0}"),
+        })
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(err)
+}
+
 /// Residuals against one factor (the "where" of a diagnosis): three
 /// stacked panels, az and el in µrad and d in µm, against the factor's
 /// value — or its group, with the group names under the axis.
@@ -460,11 +493,7 @@ pub fn residuals_by_factor(
             .filter(|x| x.is_finite())
             .collect::<Vec<f64>>()
     };
-    let xs = finite(x);
-    let (x0, x1) = match categories {
-        Some(c) => (-0.5, c.len() as f64 - 0.5),
-        None => bounds(xs.into_iter()),
-    };
+    let (x0, x1) = x_range(categories, finite(x).into_iter());
     figure((900, 820), |root| {
         let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
         for (area, (label, values)) in root.split_evenly((3, 1)).iter().zip(panels) {
@@ -479,19 +508,7 @@ pub fn residuals_by_factor(
                 .y_label_area_size(70)
                 .build_cartesian_2d(span(x0, x1)?, span(-m, m)?)
                 .map_err(err)?;
-            let cats = categories.map(|c| c.to_vec());
-            chart
-                .configure_mesh()
-                .x_desc(x_label)
-                .y_desc(label)
-                .x_labels(categories.map_or(8, |c| c.len().min(24)))
-                .x_label_formatter(&move |v| match &cats {
-                    Some(c) => c.get(v.round() as usize).cloned().unwrap_or_default(),
-                    None => format!("{v:.0}"),
-                })
-                .label_style(("sans-serif", 12))
-                .draw()
-                .map_err(err)?;
+            category_mesh(&mut chart, x_label, label, categories)?;
             chart
                 .draw_series(
                     x.iter()
@@ -525,10 +542,7 @@ pub fn fitted_shape(
         .filter(|p| p.0.is_finite() && p.1.is_finite())
         .map(|(x, v, u)| (x, v, if u.is_finite() { 2.0 * u } else { 0.0 }))
         .collect();
-    let (x0, x1) = match categories {
-        Some(c) => (-0.5, c.len() as f64 - 0.5),
-        None => bounds(ok.iter().map(|p| p.0)),
-    };
+    let (x0, x1) = x_range(categories, ok.iter().map(|p| p.0));
     let (y0, y1) = bounds(ok.iter().flat_map(|p| [p.1 - p.2, p.1 + p.2]).chain([0.0]));
     figure((1000, 560), |root| {
         let mut chart = ChartBuilder::on(root)
@@ -538,19 +552,12 @@ pub fn fitted_shape(
             .y_label_area_size(70)
             .build_cartesian_2d(span(x0, x1)?, span(y0, y1)?)
             .map_err(err)?;
-        let cats = categories.map(|c| c.to_vec());
-        chart
-            .configure_mesh()
-            .x_desc(x_label)
-            .y_desc(format!("fitted value ({y_label}), bars ± 2u"))
-            .x_labels(categories.map_or(8, |c| c.len().min(24)))
-            .x_label_formatter(&move |v| match &cats {
-                Some(c) => c.get(v.round() as usize).cloned().unwrap_or_default(),
-                None => format!("{v:.0}"),
-            })
-            .label_style(("sans-serif", 12))
-            .draw()
-            .map_err(err)?;
+        category_mesh(
+            &mut chart,
+            x_label,
+            &format!("fitted value ({y_label}), bars ± 2u"),
+            categories,
+        )?;
         let colour = RGBColor(30, 90, 200);
         chart
             .draw_series(LineSeries::new([(x0, 0.0), (x1, 0.0)], BLACK.mix(0.4)))
