@@ -31,6 +31,8 @@ pub mod schema;
 pub mod sensitivity;
 pub mod simulate;
 pub mod solver;
+#[cfg(test)]
+mod source_scan;
 pub mod stages;
 pub mod suggest;
 pub mod table;

@@ -157,26 +157,9 @@ mod tests {
     /// catalogue. Every other source file is blind to it.
     #[test]
     fn the_toy_effect_takes_its_file_and_one_registry_line() {
-        let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-        let mut mentions = Vec::new();
-        let mut stack = vec![src.clone()];
-        while let Some(dir) = stack.pop() {
-            for e in std::fs::read_dir(dir).unwrap().flatten() {
-                let p = e.path();
-                if p.is_dir() {
-                    stack.push(p);
-                } else if p.extension().is_some_and(|x| x == "rs") && !p.ends_with("effects/toy.rs")
-                {
-                    let text = std::fs::read_to_string(&p).unwrap();
-                    for (n, line) in text.lines().enumerate() {
-                        let l = line.to_lowercase();
-                        if l.contains("toy") {
-                            mentions.push(format!("{}:{}: {line}", p.display(), n + 1));
-                        }
-                    }
-                }
-            }
-        }
+        let mentions = crate::source_scan::mentions_outside("effects/toy.rs", |line| {
+            line.to_lowercase().contains("toy")
+        });
         assert_eq!(mentions.len(), 1, "{mentions:#?}");
         assert!(mentions[0].contains("effects/mod.rs"), "{mentions:?}");
         assert!(mentions[0].contains("\"toy-range\" => toy_range: toy::ToyRange"));

@@ -235,30 +235,12 @@ mod tests {
     /// of the registry. Every other source file is blind to it.
     #[test]
     fn the_ideal_sphere_takes_its_file_and_one_registry_line() {
-        let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-        let mut mentions = Vec::new();
-        let mut stack = vec![src.clone()];
-        while let Some(dir) = stack.pop() {
-            for e in std::fs::read_dir(dir).unwrap().flatten() {
-                let p = e.path();
-                if p.is_dir() {
-                    stack.push(p);
-                } else if p.extension().is_some_and(|x| x == "rs")
-                    && !p.ends_with("trackers/ideal_sphere.rs")
-                {
-                    let text = std::fs::read_to_string(&p).unwrap();
-                    for (n, line) in text.lines().enumerate() {
-                        let l = line.to_lowercase().replace(['-', '_'], "");
-                        if ["idealsphere", "distancezero", "elevationindex"]
-                            .iter()
-                            .any(|w| l.contains(w))
-                        {
-                            mentions.push(format!("{}:{}: {line}", p.display(), n + 1));
-                        }
-                    }
-                }
-            }
-        }
+        let mentions = crate::source_scan::mentions_outside("trackers/ideal_sphere.rs", |line| {
+            let l = line.to_lowercase().replace(['-', '_'], "");
+            ["idealsphere", "distancezero", "elevationindex"]
+                .iter()
+                .any(|w| l.contains(w))
+        });
         assert_eq!(mentions.len(), 1, "{mentions:#?}");
         assert!(mentions[0].contains("trackers/mod.rs"), "{mentions:?}");
         assert!(mentions[0].contains("#[cfg(test)] ideal_sphere::IdealSphere,"));
