@@ -420,19 +420,14 @@ pub(super) fn signal(
 }
 
 /// The effect's Δχ² on the readings once the base adjustment has absorbed
-/// what it can: `‖P⊥·W·Δ‖²` with Δ the noise-free difference of the
-/// readings with and without the effect.
-pub(super) fn signal_chi2(
-    d: &Diagnosis,
-    with: &Campaign,
-    without: &Campaign,
-    readings: &[CampaignReading],
-) -> f64 {
+/// what it can: `‖P⊥·W·Δ‖²` with Δ its [`signal`], the noise-free
+/// difference of the readings with and without the effect.
+pub(super) fn signal_chi2(d: &Diagnosis, signal: &[Vector3<f64>]) -> f64 {
     let Some(lin) = &d.calibration.linearisation else {
         return 0.0;
     };
     let mut delta = DVector::zeros(lin.jacobian.nrows());
-    for (i, x) in signal(with, without, readings).iter().enumerate() {
+    for (i, x) in signal.iter().enumerate() {
         let s = d.sigma[i];
         delta[3 * i] = x.x / s.x;
         delta[3 * i + 1] = x.y / s.y;
@@ -519,9 +514,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         let with = simulate(spec, errors, Noise::default(), one, seed, how)?;
         Ok(signal_chi2(
             &d,
-            &with.campaign,
-            &clean_without.campaign,
-            readings,
+            &signal(&with.campaign, &clean_without.campaign, readings),
         ))
     };
     let mut members: Vec<Member> = Vec::new();

@@ -240,16 +240,18 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let d = blind::diagnose_blind(&noisy.campaign, plan.campaigns.tracker, plan.mc_draws, seed)?;
     let readings = &noisy.campaign.readings;
     let unknown_clean = apply(&clean)?;
-    let signal = blind::signal_chi2(&d, &unknown_clean.campaign, &clean.campaign, readings);
+    let delta = blind::signal(&unknown_clean.campaign, &clean.campaign, readings);
+    let signal = blind::signal_chi2(&d, &delta);
     let beyond = super::beyond_catalogue(
         &noisy.campaign,
         &blind::settings(plan.campaigns.tracker, plan.mc_draws, seed),
-        &blind::signal(&unknown_clean.campaign, &clean.campaign, readings),
+        &delta,
     )?;
     let known = match known {
         Some(truth) => {
             let with = sim(Noise::default(), &fx.only(&truth.0))?;
-            let signal_chi2 = blind::signal_chi2(&d, &with.campaign, &clean.campaign, readings);
+            let delta = blind::signal(&with.campaign, &clean.campaign, readings);
+            let signal_chi2 = blind::signal_chi2(&d, &delta);
             Some(score_known(&d, truth, signal_chi2, plan.detect_chi2))
         }
         None => None,
