@@ -484,7 +484,11 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
             break;
         }
         let id = random::pick(&mut rng, &allowed).clone();
-        let cx = DrawContext { stations, targets };
+        let cx = DrawContext {
+            stations,
+            targets,
+            size: 1.0,
+        };
         truths.push(draw_effect(&mut rng, &id, &cx, &mut fx));
     }
     let clean_without = simulate(

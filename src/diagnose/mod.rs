@@ -470,11 +470,15 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             open,
         },
     };
+    // `still_open`: the last step could still admit a member (a set at its
+    // cap leaves its significant rows out, unflagged); the models are
+    // compared whenever the diagnosis explains at all — a full set is the
+    // very sign of a wrong model.
     let Path {
         rows: set_rows,
         state: final_state,
         scored,
-        open,
+        open: still_open,
     } = path;
     // With the explanation set's effects taken off the readings, another
     // model may fit where the effects hid it.
@@ -488,13 +492,15 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             }
         }
     }
+    // Members of the set, blunders included.
+    let set_size = set_rows.len();
     let mut rows = set_rows;
     rows.extend(scored.rows.into_iter().map(|mut r| {
-        r.significant &= open;
+        r.significant &= still_open;
         r
     }));
     rows.extend(scored.blunder.map(|mut b| {
-        b.row.significant &= open;
+        b.row.significant &= still_open;
         b.row
     }));
     let final_residuals = residual_rows(c, &net0, &final_state.cal, &final_state.infos, &[]);
@@ -504,12 +510,14 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         s.alpha,
     );
     // A large effect can hide a wrong model (the model row above must beat
-    // it on the raw readings): while the set leaves the residual
-    // unexplained, every other model gets its own explanation set, and a
-    // model that with its set explains the readings, by a lower BIC, is
-    // the answer.
+    // it on the raw readings), and a wrong model breeds members (an
+    // encoder harmonic, a target shift, blunders where the beam path
+    // differs): while the set leaves the residual unexplained, or needs
+    // more than one member to explain it, every other model gets its own
+    // explanation set, and a model that with its set explains the
+    // readings, by a lower BIC, is the answer.
     let left_chi2_p = final_state.chi2_p();
-    if compare && open && left_chi2_p < s.alpha {
+    if compare && open && (left_chi2_p < s.alpha || set_size > 1) {
         let ln_m = (final_state.lm.rows() as f64).ln();
         let rank_of = |m: crate::trackers::TrackerModel| {
             models.iter().find(|f| f.model == m).map(|f| f.rank as f64)

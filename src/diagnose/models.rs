@@ -181,6 +181,15 @@ pub struct BlindCase {
 /// diagnosis's Δχ² ≥ 25 (a five-σ signal).
 pub const DETECTABLE_CHI2: f64 = 25.0;
 
+/// The χ² `tracker`'s model, every coefficient free, leaves on a
+/// noise-free campaign read with its stated σ: how far the campaign's
+/// readings lie from any that model can make (Δχ² ≥ [`DETECTABLE_CHI2`]:
+/// another model made them, detectably).
+pub(super) fn model_leaves_chi2(clean: &Campaign, tracker: TrackerModel) -> Result<f64> {
+    let net = Network::from_campaign(clean)?;
+    Ok(adjust(&net, tracker)?.1.residuals.norm_squared())
+}
+
 /// The blind check of the model choice: `cases` campaigns of `layout`, each
 /// made by a tracker model drawn at random with every parameter drawn from
 /// N(0, s²), the scale `s` log-uniform in 0.03 … 10 µm / µrad (from errors
@@ -237,11 +246,9 @@ pub fn blind_check(
             clean.meta.tracker = noisy.campaign.meta.tracker.clone();
             // The closest other model's χ² alone: no held-out residual is
             // needed.
-            let net = Network::from_campaign(&clean)?;
             let mut noise_free_chi2 = f64::INFINITY;
             for other in TrackerModel::ALL.into_iter().filter(|&m| m != truth) {
-                noise_free_chi2 =
-                    noise_free_chi2.min(adjust(&net, other)?.1.residuals.norm_squared());
+                noise_free_chi2 = noise_free_chi2.min(model_leaves_chi2(&clean, other)?);
             }
             Ok(BlindCase {
                 case,

@@ -53,6 +53,21 @@
 //! on the distinguishable cases they measure the diagnosis; on the rest
 //! naming the catalogue effect is what the data say.
 //!
+//! # A wrong model under a large effect
+//!
+//! `wrong-model-and-effect` cases carry no open-world effect: their
+//! trackers are of another model than the campaign declares (a mirror
+//! tracker declared `api-tracker3`), measured in both faces, with a
+//! catalogue effect at 2–4 times the blind check's size (`large_size`). A
+//! large effect can hide a wrong model, and a wrong model can inflate an
+//! effect or breed blunders; the right answer names the mismatch
+//! ([`super::MODEL`] at the true model) and the effect at its magnitude,
+//! and no blunder. Such a case is detectable when the declared model,
+//! fitted to the noise-free campaign without the effect, leaves
+//! χ² ≥ `detect_chi2`; its rates (`mismatch_named`, the effect's and the
+//! blunders') are counted apart from the honesty rates above, which
+//! concern the open-world effects alone.
+//!
 //! Cases draw their layout, stations, noise and kinematic errors as the
 //! catalogue check does ([`super::blind::Setting`]), each from its own
 //! stream (`open-world-<case>`), so the result does not depend on the number
@@ -62,12 +77,16 @@
 
 use super::Diagnosis;
 use super::blind::{self, Campaigns, Measuring, Setting};
+use crate::campaign::Campaign;
 use crate::effects::{self, DrawContext, Effects};
+use crate::error_model::{ErrorModel, ErrorParams};
 use crate::noise::Noise;
 use crate::open_world::{self, OpenEffect};
 use crate::random;
 use crate::simulate::SimulatedCampaign;
+use crate::trackers::TrackerModel;
 use anyhow::{Result, anyhow};
+use rand::rngs::ChaCha8Rng;
 use rayon::prelude::*;
 
 /// What a case holds besides the campaign's setting.
@@ -80,16 +99,30 @@ pub enum CaseKind {
     Unknown,
     /// One open-world effect and one catalogue effect.
     UnknownAndEffect,
+    /// Trackers of another model than declared, and a large catalogue
+    /// effect (see the module doc).
+    WrongModelAndEffect,
 }
 
 impl CaseKind {
-    pub const ALL: [CaseKind; 2] = [CaseKind::Unknown, CaseKind::UnknownAndEffect];
+    pub const ALL: [CaseKind; 3] = [
+        CaseKind::Unknown,
+        CaseKind::UnknownAndEffect,
+        CaseKind::WrongModelAndEffect,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             CaseKind::Unknown => "unknown",
             CaseKind::UnknownAndEffect => "unknown-and-effect",
+            CaseKind::WrongModelAndEffect => "wrong-model-and-effect",
         }
+    }
+
+    /// Whether its cases carry a catalogue effect (drawn from the plan's
+    /// `effects`).
+    fn has_effect(self) -> bool {
+        self != CaseKind::Unknown
     }
 }
 
@@ -108,8 +141,14 @@ pub struct Plan {
     pub kinds: Vec<CaseKind>,
     /// Open-world effects to draw from.
     pub unknowns: Vec<open_world::Kind>,
-    /// Catalogue effect ids to draw from in `unknown-and-effect` cases.
+    /// Catalogue effect ids to draw from in `unknown-and-effect` and
+    /// `wrong-model-and-effect` cases.
     pub effects: Vec<String>,
+    /// The trackers' true model in `wrong-model-and-effect` cases (the
+    /// campaigns declare `campaigns.tracker`), and the range of their
+    /// effect's size, in multiples of the blind check's.
+    pub wrong_model: TrackerModel,
+    pub large_size: (f64, f64),
     pub detect_chi2: f64,
     /// Monte Carlo draws per diagnosis.
     pub mc_draws: usize,
@@ -164,6 +203,9 @@ pub struct Case {
     pub signal_beyond_catalogue_chi2: f64,
     pub distinguishable: bool,
     pub known: Option<Known>,
+    /// In `wrong-model-and-effect` cases: the mismatch named at the true
+    /// model.
+    pub mismatch_named: Option<bool>,
     pub not_explained: bool,
     pub catalogue_as_cause: bool,
     /// The first significant entry of `unexplained` (empty: none).
@@ -190,38 +232,31 @@ pub fn run(plan: &Plan) -> Result<Vec<Case>> {
 
 /// Runs one case.
 fn run_case(plan: &Plan, case: usize) -> Result<Case> {
-    let needs_effects = plan.kinds.contains(&CaseKind::UnknownAndEffect);
+    let needs_effects = plan.kinds.iter().any(|k| k.has_effect());
     if plan.kinds.is_empty() || plan.unknowns.is_empty() || needs_effects && plan.effects.is_empty()
     {
         return Err(anyhow!(
-            "an open-world check needs kinds, unknowns and (for unknown-and-effect) effects"
+            "an open-world check needs kinds, unknowns and (for a kind with a catalogue effect) effects"
         ));
     }
     let mut rng = random::stream(plan.seed, &format!("open-world-{case}"));
     let setting = Setting::draw(&mut rng, &plan.campaigns);
     let kind = *random::pick(&mut rng, &plan.kinds);
     let unknown_kind = *random::pick(&mut rng, &plan.unknowns);
+    if kind == CaseKind::WrongModelAndEffect {
+        return wrong_model_case(plan, case, &setting, rng);
+    }
     let how = Measuring {
         two_face: false,
         timed: true,
     };
     let seed = blind::case_seed(plan.seed, case);
-    // The catalogue effect, drawn through its plug-in as the catalogue
-    // check draws it.
     let mut fx = Effects::default();
-    let mut known = None;
-    if kind == CaseKind::UnknownAndEffect {
-        let id = random::pick(&mut rng, &plan.effects).clone();
-        let draw = effects::kind(&id)
-            .ok_or_else(|| anyhow!("`{id}` is not an effect of the catalogue"))?
-            .draw;
-        let cx = DrawContext {
-            stations: &setting.station_ids,
-            targets: &setting.target_ids,
-        };
-        let (place, magnitude, has_place) = draw(&mut rng, &cx, &mut fx);
-        known = Some((id, place, magnitude, has_place));
-    }
+    let known = if kind == CaseKind::UnknownAndEffect {
+        Some(draw_known(&mut rng, plan, &setting, 1.0, &mut fx)?)
+    } else {
+        None
+    };
     let sim = |noise: Noise, fx: &Effects| {
         blind::simulate(&setting.spec, &setting.errors, noise, fx, seed, how)
     };
@@ -297,6 +332,127 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         named_set: super::output::explanation(&d),
         verdict: super::output::verdict(&d),
         known,
+        mismatch_named: None,
+    })
+}
+
+/// The catalogue effect of a case, drawn through its plug-in as the
+/// catalogue check draws it, at `size` times its size: its id, place,
+/// magnitude and whether it has a place.
+fn draw_known(
+    rng: &mut ChaCha8Rng,
+    plan: &Plan,
+    setting: &Setting,
+    size: f64,
+    fx: &mut Effects,
+) -> Result<(String, String, f64, bool)> {
+    let id = random::pick(rng, &plan.effects).clone();
+    let draw = effects::kind(&id)
+        .ok_or_else(|| anyhow!("`{id}` is not an effect of the catalogue"))?
+        .draw;
+    let cx = DrawContext {
+        stations: &setting.station_ids,
+        targets: &setting.target_ids,
+        size,
+    };
+    let (place, magnitude, has_place) = draw(rng, &cx, fx);
+    Ok((id, place, magnitude, has_place))
+}
+
+/// A `wrong-model-and-effect` case (see the module doc): the trackers'
+/// kinematic errors drawn for the true model at the plan's σ, the campaign
+/// declaring the plan's tracker model, both faces measured.
+fn wrong_model_case(
+    plan: &Plan,
+    case: usize,
+    setting: &Setting,
+    mut rng: ChaCha8Rng,
+) -> Result<Case> {
+    let declared = plan.campaigns.tracker;
+    let mut errors = ErrorParams::zero(&ErrorModel::of(plan.wrong_model));
+    for v in errors.values_mut() {
+        *v = plan.campaigns.tracker_sigma * random::normal(&mut rng);
+    }
+    let size = random::between(&mut rng, plan.large_size);
+    let mut fx = Effects::default();
+    let truth = draw_known(&mut rng, plan, setting, size, &mut fx)?;
+    let how = Measuring {
+        two_face: true,
+        timed: true,
+    };
+    let seed = blind::case_seed(plan.seed, case);
+    let measured = blind::simulate(&setting.spec, &errors, setting.noise, &fx, seed, how)?;
+    let mut noisy = measured.campaign;
+    noisy.meta.tracker.model = declared.id().into();
+    // Noise-free campaigns read with the stated σ, as the diagnosis reads
+    // the noisy one.
+    let clean_of = |fx: &Effects| -> Result<Campaign> {
+        let mut c = blind::simulate(&setting.spec, &errors, Noise::default(), fx, seed, how)?;
+        c.campaign.meta.tracker = noisy.meta.tracker.clone();
+        Ok(c.campaign)
+    };
+    let clean = clean_of(&Effects::default())?;
+    let d = blind::diagnose_blind(&noisy, declared, plan.mc_draws, seed)?;
+    let signal = super::models::model_leaves_chi2(&clean, declared)?;
+    let with = clean_of(&fx.only(&truth.0))?;
+    let readings = &noisy.readings;
+    let known_chi2 = blind::signal_chi2(&d, &blind::signal(&with, &clean, readings));
+    let known = score_known(&d, truth, known_chi2, plan.detect_chi2);
+    let named: Vec<&super::Row> = d.explanation().collect();
+    let is_mismatch = |r: &super::Row| r.effect == super::MODEL;
+    let is_known =
+        |r: &super::Row| r.effect == known.effect && (!known.has_place || r.place == known.place);
+    let effects_named = named
+        .iter()
+        .filter(|r| r.effect != "blunder" && !is_mismatch(r))
+        .count();
+    Ok(Case {
+        case,
+        kind: CaseKind::WrongModelAndEffect,
+        layout: setting.layout_name(),
+        stations: setting.stations,
+        readings: readings.len(),
+        sigma_angle_urad: setting.noise.sigma_angle_urad,
+        sigma_range_um: setting.noise.sigma_range_um,
+        unknown: plan.wrong_model.id(),
+        // A model, not a structure along one factor.
+        unknown_factor: "",
+        unknown_description: format!(
+            "a {} tracker declared {}, its errors 1 σ = {} µm and µrad; {} at {:.1} × the blind check's size",
+            plan.wrong_model.id(),
+            declared.id(),
+            plan.campaigns.tracker_sigma,
+            known.effect,
+            size
+        ),
+        signal_chi2: signal,
+        detectable: signal >= plan.detect_chi2,
+        signal_beyond_catalogue_chi2: f64::NAN,
+        distinguishable: false,
+        mismatch_named: Some(
+            named
+                .iter()
+                .any(|r| is_mismatch(r) && r.place == plan.wrong_model.id()),
+        ),
+        not_explained: !d.explained(),
+        catalogue_as_cause: effects_named > 0
+            && d.explained()
+            && !named.iter().any(|r| is_mismatch(r)),
+        top_factor: d
+            .unexplained
+            .iter()
+            .find(|l| l.significant)
+            .map_or(String::new(), |l| l.factor.to_string()),
+        factor_correct: false,
+        false_blunders: named.iter().filter(|r| r.effect == "blunder").count(),
+        clean_readings: readings.len(),
+        spurious_effects: named
+            .iter()
+            .filter(|r| r.effect != "blunder" && !is_mismatch(r) && !is_known(r))
+            .count(),
+        named_set: super::output::explanation(&d),
+        verdict: super::output::verdict(&d),
+        known: Some(known),
     })
 }
 
@@ -336,10 +492,13 @@ fn score_known(
 pub struct Rates {
     pub cases: usize,
     pub detectable_cases: usize,
-    /// Of the detectable cases: …
+    /// Of the detectable cases: those carrying an open-world effect, and
+    /// of them …
+    pub unknown_cases: usize,
     pub not_explained: usize,
     pub catalogue_as_cause: usize,
     pub factor_correct: usize,
+    /// … of every detectable case: …
     pub false_blunders: usize,
     pub clean_readings: usize,
     pub spurious_effects: usize,
@@ -358,6 +517,10 @@ pub struct Rates {
     pub distinguishable_not_explained: usize,
     pub distinguishable_catalogue_as_cause: usize,
     pub distinguishable_factor_correct: usize,
+    /// The detectable `wrong-model-and-effect` cases, and how many name
+    /// the mismatch.
+    pub mismatch_cases: usize,
+    pub mismatch_named: usize,
 }
 
 impl Rates {
@@ -369,12 +532,18 @@ impl Rates {
                 continue;
             }
             a.detectable_cases += 1;
-            a.not_explained += c.not_explained as usize;
-            a.catalogue_as_cause += c.catalogue_as_cause as usize;
-            a.factor_correct += c.factor_correct as usize;
             a.false_blunders += c.false_blunders;
             a.clean_readings += c.clean_readings;
             a.spurious_effects += c.spurious_effects;
+            if let Some(named) = c.mismatch_named {
+                a.mismatch_cases += 1;
+                a.mismatch_named += named as usize;
+            } else {
+                a.unknown_cases += 1;
+                a.not_explained += c.not_explained as usize;
+                a.catalogue_as_cause += c.catalogue_as_cause as usize;
+                a.factor_correct += c.factor_correct as usize;
+            }
             if c.distinguishable {
                 a.distinguishable_cases += 1;
                 a.distinguishable_not_explained += c.not_explained as usize;
@@ -400,14 +569,19 @@ impl Rates {
             n as f64 / of as f64
         }
     }
+    /// Of the detectable cases with an open-world effect.
     pub fn not_explained_rate(&self) -> f64 {
-        Rates::share(self.not_explained, self.detectable_cases)
+        Rates::share(self.not_explained, self.unknown_cases)
     }
     pub fn catalogue_as_cause_rate(&self) -> f64 {
-        Rates::share(self.catalogue_as_cause, self.detectable_cases)
+        Rates::share(self.catalogue_as_cause, self.unknown_cases)
     }
     pub fn factor_correct_rate(&self) -> f64 {
-        Rates::share(self.factor_correct, self.detectable_cases)
+        Rates::share(self.factor_correct, self.unknown_cases)
+    }
+    /// Of the detectable wrong-model cases.
+    pub fn mismatch_named_rate(&self) -> f64 {
+        Rates::share(self.mismatch_named, self.mismatch_cases)
     }
     /// The three rates above on the distinguishable cases.
     pub fn distinguishable_not_explained_rate(&self) -> f64 {

@@ -114,14 +114,16 @@ impl Effect for AirRefraction {
 
     /// A swing of 0.5–2.5 K over 10–40 min and a drift of up to 1.5 K/h;
     /// the physics fixes the coefficient the diagnosis reports: −0.93 ppm/K.
-    fn draw(rng: &mut ChaCha8Rng, _: &DrawContext) -> Drawn<Self> {
+    fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
         let effect = AirRefraction {
             t0_c: 20.0,
             offset_c: 0.0,
-            amplitude_c: random::log_uniform(rng, 0.5, 2.5, false),
+            // Its magnitude is the fixed coefficient (ppm/°C): a larger
+            // effect is a larger swing of the air's temperature.
+            amplitude_c: cx.size * random::log_uniform(rng, 0.5, 2.5, false),
             period_s: random::between(rng, (600.0, 2400.0)),
             phase_deg: 360.0 * random::uniform(rng),
-            drift_c_per_h: random::between(rng, (-1.5, 1.5)),
+            drift_c_per_h: cx.size * random::between(rng, (-1.5, 1.5)),
         };
         Drawn {
             effect,

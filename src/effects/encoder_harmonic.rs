@@ -99,13 +99,13 @@ impl Effect for EncoderHarmonic {
     }
 
     /// Either axis, order 2–4, 3–25 µrad, any phase.
-    fn draw(rng: &mut ChaCha8Rng, _: &DrawContext) -> Drawn<Self> {
+    fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
         let axis = if random::uniform(rng) < 0.5 {
             Axis::Az
         } else {
             Axis::El
         };
-        let amp = random::log_uniform(rng, 3.0, 25.0, false);
+        let amp = cx.size * random::log_uniform(rng, 3.0, 25.0, false);
         let effect = EncoderHarmonic {
             axis,
             order: 2 + (random::uniform(rng) * 3.0) as u32 % 3,

@@ -96,8 +96,8 @@ impl Effect for Incidence {
     }
 
     /// An axial offset of 30–300 µm, side offsets within ±20 % of it.
-    fn draw(rng: &mut ChaCha8Rng, _: &DrawContext) -> Drawn<Self> {
-        let e = random::log_uniform(rng, 30.0, 300.0, false);
+    fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
+        let e = cx.size * random::log_uniform(rng, 30.0, 300.0, false);
         let effect = Incidence {
             e_axial_um: e,
             e_h_um: 0.2 * e * (2.0 * random::uniform(rng) - 1.0),

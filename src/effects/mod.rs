@@ -146,6 +146,11 @@ pub struct DrawContext<'a> {
     /// Station ids in the measuring order.
     pub stations: &'a [String],
     pub targets: &'a [String],
+    /// The effect's size as a multiple of the blind check's draw (1: as the
+    /// blind check draws it; the open-world check's wrong-model cases draw
+    /// larger effects). An effect without a free size (a fixed table)
+    /// ignores it.
+    pub size: f64,
 }
 
 /// One effect of the catalogue: everything ltcal knows about it.

@@ -106,7 +106,7 @@ impl Effect for RangeScale {
     /// One station, 2–12 ppm either way.
     fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
         let s = random::pick(rng, cx.stations).clone();
-        let ppm = random::log_uniform(rng, 2.0, 12.0, true);
+        let ppm = cx.size * random::log_uniform(rng, 2.0, 12.0, true);
         Drawn {
             effect: RangeScale {
                 ppm: BTreeMap::from([(s.clone(), ppm)]),

@@ -100,7 +100,7 @@ impl Effect for StationDrift {
     /// One station, 2–15 µm/min in a random direction.
     fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
         let s = random::pick(rng, cx.stations).clone();
-        let v = random::direction(rng) * random::log_uniform(rng, 2.0, 15.0, false);
+        let v = random::direction(rng) * (cx.size * random::log_uniform(rng, 2.0, 15.0, false));
         Drawn {
             effect: StationDrift {
                 station: Some(s.clone()),

@@ -112,7 +112,7 @@ impl Effect for TargetShift {
     fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
         let t = random::pick(rng, cx.targets).clone();
         let from = random::pick(rng, &cx.stations[1..]).clone();
-        let s = random::direction(rng) * random::log_uniform(rng, 30.0, 200.0, false);
+        let s = random::direction(rng) * (cx.size * random::log_uniform(rng, 30.0, 200.0, false));
         Drawn {
             effect: TargetShift {
                 target: t.clone(),

@@ -43,8 +43,8 @@ impl Effect for ToyRange {
         out.push(Self::ID, "all", c, Arc::new(first), "µm");
     }
 
-    fn draw(rng: &mut ChaCha8Rng, _: &DrawContext) -> Drawn<Self> {
-        let a = random::log_uniform(rng, 20.0, 60.0, true);
+    fn draw(rng: &mut ChaCha8Rng, cx: &DrawContext) -> Drawn<Self> {
+        let a = cx.size * random::log_uniform(rng, 20.0, 60.0, true);
         Drawn {
             effect: ToyRange { amplitude_um: a },
             place: "all".into(),

@@ -15,11 +15,14 @@
 //! stations = [4, 6]                    # inclusive range
 //! noise_angle_urad = [0.5, 1.5]        # range of σ
 //! noise_range_um = [1.0, 3.0]
-//! kinds = ["unknown", "unknown-and-effect"]
+//! kinds = ["unknown", "unknown-and-effect", "wrong-model-and-effect"]
 //! unknowns = ["tripod-knock", "adm-cyclic", "part-expansion", "axis-wobble",
 //!             "beam-bending", "two-smr-kinds", "adm-reset"]   # open_world's ids
 //! effects = ["incidence", "range-scale", …]   # the catalogue's, but those drawn only alone
-//! model = "api-tracker3"
+//! model = "api-tracker3"               # the model the campaigns declare
+//! wrong_model = "mirror-tracker"       # the true model of wrong-model cases
+//!                                      # (default: the first other model)
+//! large_size = [2.0, 4.0]              # their effect, × the blind check's size
 //! tracker_sigma = 5.0                  # µm / µrad of the kinematic errors
 //! detect_chi2 = 25.0
 //! mc_draws = 20
@@ -32,12 +35,14 @@
 //! [`crate::diagnose::open_check`]); the catalogue effect `known_effect`, `known_where`,
 //! `known_true_magnitude`, `known_signal_chi2`, `known_detectable`, `known_named`,
 //! `known_named_magnitude`, `known_magnitude_u`, `known_unit`,
-//! `magnitude_within_3u` (empty or null without one); the diagnosis
+//! `magnitude_within_3u` (empty or null without one); `mismatch_named`
+//! (wrong-model cases; null in others); the diagnosis
 //! `not_explained`, `catalogue_as_cause`, `top_factor`, `factor_correct`,
 //! `false_blunders`, `clean_readings`, `spurious_effects`, `named_set`,
 //! `verdict`) and `summary` (rows per kind over every unknown, over all
 //! cases, and per unknown over every kind: `kind`, `unknown`, `cases`,
-//! `detectable_cases`, and on detectable cases `not_explained_pct`,
+//! `detectable_cases`, and on detectable cases with an open-world effect
+//! `not_explained_pct`,
 //! `catalogue_as_cause_pct`, `factor_correct_pct`,
 //! `false_blunders_per_1000` clean readings, `spurious_effects_per_case`,
 //! `with_known`, `catalogue_named_pct` of those with a catalogue effect,
@@ -46,7 +51,9 @@
 //! `magnitude_within_3u_pct` of those named; `distinguishable_cases` and on
 //! them `not_explained_distinguishable_pct`,
 //! `catalogue_as_cause_distinguishable_pct`,
-//! `factor_correct_distinguishable_pct`; NaN where nothing is counted).
+//! `factor_correct_distinguishable_pct`; `mismatch_cases` — the detectable
+//! wrong-model cases — and on them `mismatch_named_pct`; NaN where nothing
+//! is counted).
 //!
 //! A case is drawn from `seed` and its number alone, as in `blind_check`;
 //! the check is not split into sweep blocks (no summary stage reads its
@@ -94,6 +101,10 @@ pub struct OpenWorldCheckStage {
     pub effects: Vec<String>,
     #[serde(default)]
     pub model: TrackerModel,
+    #[serde(default)]
+    pub wrong_model: Option<TrackerModel>,
+    #[serde(default = "default_large_size")]
+    pub large_size: [f64; 2],
     #[serde(default = "default_tracker")]
     pub tracker_sigma: f64,
     #[serde(default = "default_detect")]
@@ -104,6 +115,9 @@ pub struct OpenWorldCheckStage {
 
 fn default_kinds() -> Vec<CaseKind> {
     CaseKind::ALL.to_vec()
+}
+fn default_large_size() -> [f64; 2] {
+    [2.0, 4.0]
 }
 fn default_unknowns() -> Vec<String> {
     open_world::KINDS.iter().map(|k| k.to_string()).collect()
@@ -131,6 +145,17 @@ impl OpenWorldCheckStage {
         }
     }
 
+    /// The true model of wrong-model cases: as set, or the registry's
+    /// first model other than the declared one.
+    fn wrong_model(&self) -> TrackerModel {
+        self.wrong_model.unwrap_or_else(|| {
+            TrackerModel::ALL
+                .into_iter()
+                .find(|&m| m != self.model)
+                .unwrap_or(self.model)
+        })
+    }
+
     /// The plan of the settings (after [`StageKind::validate`]: every
     /// unknown id parses).
     pub fn plan(&self) -> Plan {
@@ -146,6 +171,8 @@ impl OpenWorldCheckStage {
                 .filter_map(|u| open_world::parse(u))
                 .collect(),
             effects: self.effects.clone(),
+            wrong_model: self.wrong_model(),
+            large_size: (self.large_size[0], self.large_size[1]),
             detect_chi2: self.detect_chi2,
             mc_draws: self.mc_draws,
         }
@@ -177,6 +204,7 @@ const CASES: &[&str] = &[
     "known_magnitude_u",
     "known_unit",
     "magnitude_within_3u",
+    "mismatch_named",
     "not_explained",
     "catalogue_as_cause",
     "top_factor",
@@ -207,6 +235,8 @@ const SUMMARY: &[&str] = &[
     "not_explained_distinguishable_pct",
     "catalogue_as_cause_distinguishable_pct",
     "factor_correct_distinguishable_pct",
+    "mismatch_cases",
+    "mismatch_named_pct",
 ];
 
 impl StageKind for OpenWorldCheckStage {
@@ -247,10 +277,26 @@ impl StageKind for OpenWorldCheckStage {
             }
         }
         out.extend(invalid_effects(&self.effects));
-        if self.effects.is_empty() && self.kinds.contains(&CaseKind::UnknownAndEffect) {
+        if self.effects.is_empty() && self.kinds.iter().any(|k| *k != CaseKind::Unknown) {
             out.push(Invalid::new(
                 "effects",
-                "`effects` needs at least one effect for `unknown-and-effect` cases",
+                "`effects` needs at least one effect for `unknown-and-effect` and `wrong-model-and-effect` cases",
+            ));
+        }
+        if self.kinds.contains(&CaseKind::WrongModelAndEffect) && self.wrong_model() == self.model {
+            out.push(Invalid::new(
+                "wrong_model",
+                format!(
+                    "`wrong_model` must differ from `model` (`{}`): the campaigns declare `model`",
+                    self.model
+                ),
+            ));
+        }
+        let [lo, hi] = self.large_size;
+        if !(lo.is_finite() && hi.is_finite() && 0.0 < lo && lo <= hi) {
+            out.push(Invalid::new(
+                "large_size",
+                "`large_size` must be two finite sizes 0 < low ≤ high",
             ));
         }
         out.extend(invalid_scoring(self.tracker_sigma, self.detect_chi2));
@@ -327,6 +373,8 @@ fn summary_table(cases: &[Case]) -> Result<DataFrame> {
             "factor_correct_distinguishable_pct",
             pct(Rates::distinguishable_factor_correct_rate),
         )
+        .i64("mismatch_cases", n(|r| r.mismatch_cases))
+        .f64("mismatch_named_pct", pct(Rates::mismatch_named_rate))
         .build()
 }
 
@@ -388,6 +436,10 @@ fn cases_table(cases: &[Case]) -> Result<DataFrame> {
         .opt_f64("known_magnitude_u", known_opt(|k| k.named_magnitude_u))
         .str("known_unit", &known_s(|k| k.unit.clone()))
         .opt_bool("magnitude_within_3u", known_flag(|k| k.within_3u))
+        .opt_bool(
+            "mismatch_named",
+            cases.iter().map(|c| c.mismatch_named).collect(),
+        )
         .bool("not_explained", b(|c| c.not_explained))
         .bool("catalogue_as_cause", b(|c| c.catalogue_as_cause))
         .str("top_factor", &s(|c| c.top_factor.clone()))

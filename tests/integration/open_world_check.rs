@@ -2,12 +2,13 @@
 //! outside the catalogue, diagnosed blind. These tests hold its
 //! bookkeeping — factors, counts, determinism, the stage's tables and
 //! settings — and print the honesty rates; the rates' targets are asserted
-//! once the localisation of what is left (`Diagnosis::unexplained`) lands.
+//! in `open_world.rs`.
 
 use ltcal::diagnose::open_check::{self, Case, CaseKind, Rates};
 use ltcal::open_world;
 use ltcal::stages::open_world_check::OpenWorldCheckStage;
 use ltcal::stages::{Context, StageInputs, StageKind};
+use ltcal::trackers::TrackerModel;
 use std::path::Path;
 use std::process::Command;
 
@@ -36,13 +37,26 @@ fn open_world_cases_carry_their_unknown_and_add_up() {
         (0..30).collect::<Vec<_>>()
     );
     for c in &cases {
+        assert!(c.signal_chi2.is_finite() && c.signal_chi2 >= 0.0);
+        assert_eq!(c.detectable, c.signal_chi2 >= 25.0);
+        assert_eq!(c.kind != CaseKind::Unknown, c.known.is_some());
+        if c.kind == CaseKind::WrongModelAndEffect {
+            // The true model is the unknown; the campaigns declare the
+            // default model.
+            let truth = TrackerModel::parse(c.unknown).unwrap();
+            assert_ne!(truth, TrackerModel::default());
+            assert!(
+                c.unknown_description
+                    .starts_with(&format!("a {} tracker", c.unknown))
+            );
+            assert!(c.mismatch_named.is_some() && !c.distinguishable);
+            continue;
+        }
+        assert!(c.mismatch_named.is_none());
         let kind = open_world::parse(c.unknown).unwrap();
         assert_eq!(c.unknown_factor, kind.factor(), "case {}", c.case);
         assert!(open_world::FACTORS.contains(&c.unknown_factor));
         assert!(c.unknown_description.starts_with(c.unknown));
-        assert!(c.signal_chi2.is_finite() && c.signal_chi2 >= 0.0);
-        assert_eq!(c.detectable, c.signal_chi2 >= 25.0);
-        assert_eq!(c.kind == CaseKind::UnknownAndEffect, c.known.is_some());
         // Never both: "not explained" and "consistent with noise".
         assert!(
             !(c.not_explained && c.catalogue_as_cause),
@@ -64,10 +78,17 @@ fn open_world_cases_carry_their_unknown_and_add_up() {
         .iter()
         .map(|k| Rates::of(cases.iter().filter(|c| c.kind == *k)))
         .collect();
-    let by_unknown: Vec<Rates> = open_world::KINDS
+    let mut by_unknown: Vec<Rates> = open_world::KINDS
         .iter()
         .map(|u| Rates::of(cases.iter().filter(|c| c.unknown == *u)))
         .collect();
+    let wrong = Rates::of(
+        cases
+            .iter()
+            .filter(|c| c.kind == CaseKind::WrongModelAndEffect),
+    );
+    assert!(wrong.cases > 0 && wrong.mismatch_cases == wrong.detectable_cases);
+    by_unknown.push(wrong);
     for parts in [&by_kind, &by_unknown] {
         let sum = |f: fn(&Rates) -> usize| parts.iter().map(f).sum::<usize>();
         assert_eq!(sum(|r| r.cases), all.cases);
@@ -77,6 +98,8 @@ fn open_world_cases_carry_their_unknown_and_add_up() {
         assert_eq!(sum(|r| r.false_blunders), all.false_blunders);
         assert_eq!(sum(|r| r.spurious_effects), all.spurious_effects);
         assert_eq!(sum(|r| r.known_named), all.known_named);
+        assert_eq!(sum(|r| r.unknown_cases), all.unknown_cases);
+        assert_eq!(sum(|r| r.mismatch_named), all.mismatch_named);
     }
     assert_eq!(by_kind[0].with_known, 0);
     assert!(all.known_named <= all.with_known && all.within_3u <= all.known_named);
@@ -226,7 +249,19 @@ fn open_world_check_refuses_unknown_effects_and_kinds_at_their_place() {
     let (code, err) = plan_errors("[stages.o]\nkind = \"open_world_check\"\neffects = []\n");
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("bad.toml:3:"), "{err}");
-    assert!(err.contains("for `unknown-and-effect` cases"), "{err}");
+    assert!(
+        err.contains("for `unknown-and-effect` and `wrong-model-and-effect` cases"),
+        "{err}"
+    );
+    // The wrong model must be another than the one declared.
+    let (code, err) =
+        plan_errors("[stages.o]\nkind = \"open_world_check\"\nwrong_model = \"api-tracker3\"\n");
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("bad.toml:3:15"), "{err}");
+    assert!(
+        err.contains("`wrong_model` must differ from `model`"),
+        "{err}"
+    );
     let (code, err) = plan_errors(
         "[stages.o]\nkind = \"open_world_check\"\neffects = []\nkinds = [\"unknown\"]\n",
     );
