@@ -4,7 +4,7 @@
 //! ```toml
 //! [stages.campaign]
 //! kind = "import_campaign"
-//! path = "../shared/data/campaigns/example-00-none"   # relative to the current directory
+//! path = "examples/campaigns/example-00-none"   # relative to the current directory
 //! ```
 //!
 //! Outputs `readings`, `targets`, `gauge`, `meta` ([`crate::campaign::TABLES`];

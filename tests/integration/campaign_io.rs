@@ -16,7 +16,7 @@ use std::process::Command;
 use std::sync::Arc;
 
 fn examples_dir() -> PathBuf {
-    root().join("../shared/data/campaigns")
+    root().join("examples/campaigns")
 }
 
 fn bad_dir() -> PathBuf {

@@ -72,7 +72,7 @@ fn the_diagnosis_tables_have_their_declared_columns() {
     let folder = out.path().join("d");
     let status = Command::new(env!("CARGO_BIN_EXE_ltcal"))
         .arg("diagnose")
-        .arg(root().join("../shared/data/campaigns/example-01-incidence"))
+        .arg(root().join("examples/campaigns/example-01-incidence"))
         .arg("--out")
         .arg(&folder)
         .output()

@@ -8,7 +8,7 @@ use ltcal::stages::blind_check::BlindCheckStage;
 use std::path::PathBuf;
 
 fn examples() -> Vec<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns");
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns");
     let mut v: Vec<PathBuf> = std::fs::read_dir(&dir)
         .unwrap()
         .flatten()
@@ -562,8 +562,7 @@ fn a_later_diagnosis_removes_the_temporary_a_killed_one_left_beside_out() {
         std::fs::create_dir(d).unwrap();
         std::fs::write(d.join("residuals-az.svg"), "partial").unwrap();
     }
-    let good =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns/example-00-none");
+    let good = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns/example-00-none");
     let o = crate::cli::ltcal(
         tmp.path(),
         &["diagnose", good.to_str().unwrap(), "--out", "out"],

@@ -143,7 +143,7 @@ fn key_of(results: &Path, name: &str, stage: &str) -> String {
 fn export_campaign_overwrite_refuses_a_folder_that_is_not_a_campaign() {
     let tmp = tempfile::tempdir().unwrap();
     let campaign =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns/example-00-none");
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns/example-00-none");
     let mine = tmp.path().join("mine");
     std::fs::create_dir_all(mine.join("sub")).unwrap();
     std::fs::write(mine.join("thesis.tex"), "\\chapter{One}").unwrap();

@@ -58,7 +58,7 @@ pub(crate) const VALUES: &[&str] = &[
 ];
 
 fn examples() -> Vec<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns");
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns");
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
         .unwrap()
         .flatten()

@@ -13,7 +13,7 @@ pub fn mutated_example(
     edit: impl FnOnce(&str) -> String,
 ) -> PathBuf {
     let src = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/campaigns")
+        .join("examples/campaigns")
         .join(example);
     let dst = dir.join(example);
     std::fs::create_dir_all(&dst).unwrap();
@@ -27,8 +27,7 @@ pub fn mutated_example(
 
 /// The text of one of example-00's files.
 fn example_text(file: &str) -> String {
-    let dir =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns/example-00-none");
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns/example-00-none");
     std::fs::read_to_string(dir.join(file)).unwrap()
 }
 
@@ -189,8 +188,7 @@ fn diagnose_writes_its_out_folder_atomically() {
     assert_code(&fails, 2);
     assert!(!tmp.path().join("out").exists());
 
-    let good =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/campaigns/example-00-none");
+    let good = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns/example-00-none");
     let out = tmp.path().join("out");
     std::fs::create_dir(&out).unwrap();
     std::fs::write(out.join("diagnosis.csv"), "stale").unwrap();

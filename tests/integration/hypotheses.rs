@@ -37,7 +37,7 @@ fn write(path: &Path, text: &str) {
 }
 
 fn example(name: &str) -> PathBuf {
-    root().join("../shared/data/campaigns").join(name)
+    root().join("examples/campaigns").join(name)
 }
 
 fn cyclic() -> Vec<Hypothesis> {

@@ -16,10 +16,10 @@ fn csv_rows(text: &str) -> Vec<Vec<String>> {
         .collect()
 }
 
-/// Table 9 as paper.md prints it: the header row of α_h and nine rows
+/// Table 9 as paper.md prints it (`docs/paper-table9.md`, its excerpt): the header row of α_h and nine rows
 /// `α_v, nine readings`, each led by a tab.
 fn paper_table9() -> Vec<Vec<String>> {
-    let paper = std::fs::read_to_string(root().join("../shared/paper/paper.md")).unwrap();
+    let paper = std::fs::read_to_string(root().join("docs/paper-table9.md")).unwrap();
     let lines: Vec<&str> = paper.lines().collect();
     let caption = lines
         .iter()

@@ -23,6 +23,7 @@ mod open_world_check;
 mod report;
 mod runner;
 mod sensitivity;
+mod shared_copies;
 mod slurm;
 mod snapshots;
 mod sweep;
