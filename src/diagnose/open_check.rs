@@ -64,9 +64,12 @@
 //! ([`super::MODEL`] at the true model) and the effect at its magnitude,
 //! and no blunder. Such a case is detectable when the declared model,
 //! fitted to the noise-free campaign without the effect, leaves
-//! χ² ≥ `detect_chi2`; its rates (`mismatch_named`, the effect's and the
-//! blunders') are counted apart from the honesty rates above, which
-//! concern the open-world effects alone.
+//! χ² ≥ `detect_chi2`, and distinguishable when the mismatch's signature
+//! beyond the catalogue's nearest single effect is still that large (a
+//! one-station range scale can take up a weak mismatch); its rates
+//! (`mismatch_named`, the effect's and the blunders') are counted apart
+//! from the honesty rates above, which concern the open-world effects
+//! alone.
 //!
 //! Cases draw their layout, stations, noise and kinematic errors as the
 //! catalogue check does ([`super::blind::Setting`]), each from its own
@@ -381,21 +384,37 @@ fn wrong_model_case(
         timed: true,
     };
     let seed = blind::case_seed(plan.seed, case);
-    let measured = blind::simulate(&setting.spec, &errors, setting.noise, &fx, seed, how)?;
-    let mut noisy = measured.campaign;
-    noisy.meta.tracker.model = declared.id().into();
+    let simulate = |errors: &ErrorParams, noise: Noise, fx: &Effects| -> Result<Campaign> {
+        let mut c = blind::simulate(&setting.spec, errors, noise, fx, seed, how)?.campaign;
+        c.meta.tracker.model = declared.id().into();
+        Ok(c)
+    };
+    let noisy = simulate(&errors, setting.noise, &fx)?;
     // Noise-free campaigns read with the stated σ, as the diagnosis reads
     // the noisy one.
-    let clean_of = |fx: &Effects| -> Result<Campaign> {
-        let mut c = blind::simulate(&setting.spec, &errors, Noise::default(), fx, seed, how)?;
-        c.campaign.meta.tracker = noisy.meta.tracker.clone();
-        Ok(c.campaign)
+    let clean_of = |errors: &ErrorParams, fx: &Effects| -> Result<Campaign> {
+        let mut c = simulate(errors, Noise::default(), fx)?;
+        c.meta.tracker = noisy.meta.tracker.clone();
+        Ok(c)
     };
-    let clean = clean_of(&Effects::default())?;
+    let clean = clean_of(&errors, &Effects::default())?;
     let d = blind::diagnose_blind(&noisy, declared, plan.mc_draws, seed)?;
     let signal = super::models::model_leaves_chi2(&clean, declared)?;
-    let with = clean_of(&fx.only(&truth.0))?;
+    let with = clean_of(&errors, &fx.only(&truth.0))?;
     let readings = &noisy.readings;
+    // The mismatch's signature — what the true model's errors change in
+    // the readings — beyond the declared model's base adjustment and the
+    // catalogue's nearest single effect: a one-station range scale can
+    // take up a weak mismatch, and then the readings say no more.
+    let ideal = clean_of(
+        &ErrorParams::zero(&ErrorModel::of(plan.wrong_model)),
+        &Effects::default(),
+    )?;
+    let beyond = super::beyond_catalogue(
+        &noisy,
+        &blind::settings(declared, plan.mc_draws, seed),
+        &blind::signal(&clean, &ideal, readings),
+    )?;
     let known_chi2 = blind::signal_chi2(&d, &blind::signal(&with, &clean, readings));
     let known = score_known(&d, truth, known_chi2, plan.detect_chi2);
     let named: Vec<&super::Row> = d.explanation().collect();
@@ -427,8 +446,8 @@ fn wrong_model_case(
         ),
         signal_chi2: signal,
         detectable: signal >= plan.detect_chi2,
-        signal_beyond_catalogue_chi2: f64::NAN,
-        distinguishable: false,
+        signal_beyond_catalogue_chi2: beyond,
+        distinguishable: signal >= plan.detect_chi2 && beyond >= plan.detect_chi2,
         mismatch_named: Some(
             named
                 .iter()
@@ -518,9 +537,11 @@ pub struct Rates {
     pub distinguishable_catalogue_as_cause: usize,
     pub distinguishable_factor_correct: usize,
     /// The detectable `wrong-model-and-effect` cases, and how many name
-    /// the mismatch.
+    /// the mismatch; the same on those also distinguishable.
     pub mismatch_cases: usize,
     pub mismatch_named: usize,
+    pub mismatch_distinguishable_cases: usize,
+    pub mismatch_distinguishable_named: usize,
 }
 
 impl Rates {
@@ -538,17 +559,21 @@ impl Rates {
             if let Some(named) = c.mismatch_named {
                 a.mismatch_cases += 1;
                 a.mismatch_named += named as usize;
+                if c.distinguishable {
+                    a.mismatch_distinguishable_cases += 1;
+                    a.mismatch_distinguishable_named += named as usize;
+                }
             } else {
                 a.unknown_cases += 1;
                 a.not_explained += c.not_explained as usize;
                 a.catalogue_as_cause += c.catalogue_as_cause as usize;
                 a.factor_correct += c.factor_correct as usize;
-            }
-            if c.distinguishable {
-                a.distinguishable_cases += 1;
-                a.distinguishable_not_explained += c.not_explained as usize;
-                a.distinguishable_catalogue_as_cause += c.catalogue_as_cause as usize;
-                a.distinguishable_factor_correct += c.factor_correct as usize;
+                if c.distinguishable {
+                    a.distinguishable_cases += 1;
+                    a.distinguishable_not_explained += c.not_explained as usize;
+                    a.distinguishable_catalogue_as_cause += c.catalogue_as_cause as usize;
+                    a.distinguishable_factor_correct += c.factor_correct as usize;
+                }
             }
             if let Some(k) = &c.known {
                 a.with_known += 1;
@@ -582,6 +607,13 @@ impl Rates {
     /// Of the detectable wrong-model cases.
     pub fn mismatch_named_rate(&self) -> f64 {
         Rates::share(self.mismatch_named, self.mismatch_cases)
+    }
+    /// Of the distinguishable wrong-model cases.
+    pub fn mismatch_named_distinguishable_rate(&self) -> f64 {
+        Rates::share(
+            self.mismatch_distinguishable_named,
+            self.mismatch_distinguishable_cases,
+        )
     }
     /// The three rates above on the distinguishable cases.
     pub fn distinguishable_not_explained_rate(&self) -> f64 {

@@ -52,8 +52,9 @@
 //! them `not_explained_distinguishable_pct`,
 //! `catalogue_as_cause_distinguishable_pct`,
 //! `factor_correct_distinguishable_pct`; `mismatch_cases` — the detectable
-//! wrong-model cases — and on them `mismatch_named_pct`; NaN where nothing
-//! is counted).
+//! wrong-model cases — and on them `mismatch_named_pct`;
+//! `mismatch_distinguishable_cases` and on them
+//! `mismatch_named_distinguishable_pct`; NaN where nothing is counted).
 //!
 //! A case is drawn from `seed` and its number alone, as in `blind_check`;
 //! the check is not split into sweep blocks (no summary stage reads its
@@ -237,6 +238,8 @@ const SUMMARY: &[&str] = &[
     "factor_correct_distinguishable_pct",
     "mismatch_cases",
     "mismatch_named_pct",
+    "mismatch_distinguishable_cases",
+    "mismatch_named_distinguishable_pct",
 ];
 
 impl StageKind for OpenWorldCheckStage {
@@ -375,6 +378,14 @@ fn summary_table(cases: &[Case]) -> Result<DataFrame> {
         )
         .i64("mismatch_cases", n(|r| r.mismatch_cases))
         .f64("mismatch_named_pct", pct(Rates::mismatch_named_rate))
+        .i64(
+            "mismatch_distinguishable_cases",
+            n(|r| r.mismatch_distinguishable_cases),
+        )
+        .f64(
+            "mismatch_named_distinguishable_pct",
+            pct(Rates::mismatch_named_distinguishable_rate),
+        )
         .build()
 }
 

@@ -307,9 +307,10 @@ fn a_wrong_model_under_a_large_effect_is_named() {
 /// Issue 30, item 3: the open-world check's `wrong-model-and-effect`
 /// cases — a mirror tracker declared `api-tracker3`, both faces, a range
 /// scale or a drift at 2–4 times the blind check's size, on every layout.
-/// The mismatch is named (every clearly detectable case; most of the
-/// barely detectable ones, whose Δχ² hardly exceeds the other model's
-/// BIC penalty), the effect at its magnitude, no blunder bred.
+/// The mismatch is named wherever the readings can tell it from the
+/// catalogue (its signature beyond the nearest single effect still
+/// Δχ² ≥ 25; a one-station scale can take up a weak mismatch), the effect
+/// at its magnitude, no blunder bred.
 #[test]
 fn the_open_world_checks_wrong_model_cases_name_the_mismatch_and_the_effect() {
     let stage = OpenWorldCheckStage {
@@ -322,27 +323,24 @@ fn the_open_world_checks_wrong_model_cases_name_the_mismatch_and_the_effect() {
     };
     let cases = open_check::run(&stage.plan()).unwrap();
     let all = Rates::of(cases.iter());
-    let clear: Vec<_> = cases.iter().filter(|c| c.signal_chi2 >= 100.0).collect();
-    let clear_named = clear
-        .iter()
-        .filter(|c| c.mismatch_named == Some(true))
-        .count();
     eprintln!(
-        "{} detectable: mismatch named {:.1} % ({clear_named}/{} with Δχ² ≥ 100), effect within 3u {:.1} %, \
+        "{} detectable, {} distinguishable: mismatch named {:.1} % / {:.1} %, effect within 3u {:.1} %, \
          false blunders {:.2}/1000",
         all.mismatch_cases,
+        all.mismatch_distinguishable_cases,
         100.0 * all.mismatch_named_rate(),
-        clear.len(),
+        100.0 * all.mismatch_named_distinguishable_rate(),
         100.0 * all.magnitude_within_3u_rate(),
         all.false_blunders_per_1000(),
     );
     assert_eq!(all.mismatch_cases, all.detectable_cases);
     assert!(all.mismatch_cases >= 25, "{}", all.mismatch_cases);
+    assert!(all.mismatch_distinguishable_cases >= 20);
+    assert!(all.mismatch_named_distinguishable_rate() >= 0.9);
     assert!(all.mismatch_named_rate() >= 0.8);
-    assert!(clear.len() >= 15 && clear_named as f64 >= 0.9 * clear.len() as f64);
     assert!(all.catalogue_named_rate() >= 0.9);
     assert!(all.magnitude_within_3u_rate() >= 0.8);
     assert!(all.false_blunders_per_1000() <= 1.0);
     // The honesty rates concern the open-world effects alone.
-    assert!(all.not_explained_rate().is_nan());
+    assert!(all.not_explained_rate().is_nan() && all.distinguishable_cases == 0);
 }

@@ -49,7 +49,8 @@ fn open_world_cases_carry_their_unknown_and_add_up() {
                 c.unknown_description
                     .starts_with(&format!("a {} tracker", c.unknown))
             );
-            assert!(c.mismatch_named.is_some() && !c.distinguishable);
+            assert!(c.mismatch_named.is_some());
+            assert!(!c.distinguishable || c.signal_beyond_catalogue_chi2 >= 25.0);
             continue;
         }
         assert!(c.mismatch_named.is_none());
