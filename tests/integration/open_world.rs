@@ -202,7 +202,9 @@ fn an_effect_outside_the_catalogue_is_declared_not_explained_and_localised() {
     assert!(all.distinguishable_catalogue_as_cause_rate() <= 0.1);
     assert!(all.distinguishable_factor_correct_rate() >= 0.8);
     assert!(all.false_blunders_per_1000() <= 3.0);
-    assert!(all.magnitude_within_3u_rate() >= 0.85);
+    // Estimated beside the structure the unknown effect leaves (93 % of
+    // the pipeline's 500 cases before, 99 % after).
+    assert!(all.magnitude_within_3u_rate() >= 0.95);
 }
 
 /// Issue 30: air-refraction's constant scale is the sum of range-scale's
