@@ -34,6 +34,50 @@ pub fn viridis(t: f64) -> RGBColor {
     RGBColor(lerp(a.0, b.0), lerp(a.1, b.1), lerp(a.2, b.2))
 }
 
+/// A column name as an axis title or legend entry: words, and the unit
+/// its suffix names in parentheses (the project's units-in-names
+/// convention read backwards): `sigma_angle_urad` → `σ angle (µrad)`,
+/// `improvement_pct` → `improvement (%)`, `time_s` → `time (s)`. A name
+/// without a known unit keeps its words.
+pub fn axis_title(column: &str) -> String {
+    // Longest suffixes first: `_um_per_min` before `_min`.
+    const UNITS: [(&str, &str); 14] = [
+        ("_um_per_min", "µm/min"),
+        ("_ppm_per_c", "ppm/°C"),
+        ("_urad", "µrad"),
+        ("_ppm", "ppm"),
+        ("_pct", "%"),
+        ("_deg", "°"),
+        ("_min", "min"),
+        ("_um", "µm"),
+        ("_mm", "mm"),
+        ("_nm", "nm"),
+        ("_m", "m"),
+        ("_s", "s"),
+        ("_h", "h"),
+        ("_c", "°C"),
+    ];
+    let (stem, unit) = UNITS
+        .iter()
+        .find_map(|(suffix, unit)| {
+            column
+                .strip_suffix(suffix)
+                .filter(|stem| !stem.is_empty())
+                .map(|stem| (stem, Some(*unit)))
+        })
+        .unwrap_or((column, None));
+    let words: Vec<&str> = stem
+        .split('_')
+        .filter(|w| !w.is_empty())
+        .map(|w| if w == "sigma" { "σ" } else { w })
+        .collect();
+    let words = words.join(" ");
+    match unit {
+        Some(u) => format!("{words} ({u})"),
+        None => words,
+    }
+}
+
 fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing the figure: {e}")
 }
@@ -1294,6 +1338,17 @@ pub fn metric_lines(
                     0.3
                 } * 0.9,
             );
+            // A marker shape per line as well as a colour: ten viridis
+            // lines cannot be told apart in greyscale, or by many readers.
+            let marker = k % 4;
+            let shape = move |(x, y): (f64, f64), c: RGBColor| -> DynElement<'static, SVGBackend, (f64, f64)> {
+                match marker {
+                    0 => Circle::new((x, y), 4, c.filled()).into_dyn(),
+                    1 => TriangleMarker::new((x, y), 5, c.filled()).into_dyn(),
+                    2 => Cross::new((x, y), 4, c.stroke_width(2)).into_dyn(),
+                    _ => Rectangle::new([(x, y), (x, y)], c.stroke_width(7)).into_dyn(),
+                }
+            };
             chart
                 .draw_series(LineSeries::new(
                     line.points.iter().map(|p| (p.0, p.1)),
@@ -1302,8 +1357,18 @@ pub fn metric_lines(
                 .map_err(err)?
                 .label(line.name.clone())
                 .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                    EmptyElement::at((x, y))
+                        + PathElement::new(vec![(0, 0), (20, 0)], colour.stroke_width(2))
+                        + match marker {
+                            0 => Circle::new((10, 0), 4, colour.filled()).into_dyn(),
+                            1 => TriangleMarker::new((10, 0), 5, colour.filled()).into_dyn(),
+                            2 => Cross::new((10, 0), 4, colour.stroke_width(2)).into_dyn(),
+                            _ => Rectangle::new([(7, -3), (13, 3)], colour.filled()).into_dyn(),
+                        }
                 });
+            chart
+                .draw_series(line.points.iter().map(|p| shape((p.0, p.1), colour)))
+                .map_err(err)?;
             chart
                 .draw_series(line.points.iter().map(|p| {
                     ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, colour.filled(), 6)
@@ -1466,6 +1531,18 @@ pub fn sensitivity_matrix(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn axis_titles_read_the_unit_from_the_column_name() {
+        assert_eq!(axis_title("sigma_angle_urad"), "σ angle (µrad)");
+        assert_eq!(axis_title("improvement_pct"), "improvement (%)");
+        assert_eq!(axis_title("time_s"), "time (s)");
+        assert_eq!(axis_title("velocity_um_per_min"), "velocity (µm/min)");
+        assert_eq!(axis_title("table7_coordinates"), "table7 coordinates");
+        // A bare unit is a word, not an empty stem.
+        assert_eq!(axis_title("s"), "s");
+        assert_eq!(axis_title("face"), "face");
+    }
 
     /// An ellipse 3 × 1 turned by 30°: its covariance `R·diag(9, 1)·Rᵀ`
     /// gives back the axes and the angle.

@@ -96,7 +96,10 @@ impl PlotStage {
         let series: Vec<String> = match self.series.as_deref() {
             Some(c) => match t.str(c) {
                 Ok(v) => v,
-                Err(_) => t.f64(c)?.iter().map(|v| format!("{c} = {v}")).collect(),
+                Err(_) => {
+                    let name = plots::axis_title(c);
+                    t.f64(c)?.iter().map(|v| format!("{name} = {v}")).collect()
+                }
             },
             None => vec![yc.to_string(); t.height()],
         };
@@ -138,7 +141,12 @@ impl PlotStage {
                     .collect(),
             })
             .collect();
-        plots::metric_lines(&self.title, xc, yc, &lines)
+        plots::metric_lines(
+            &self.title,
+            &plots::axis_title(xc),
+            &plots::axis_title(yc),
+            &lines,
+        )
     }
 }
 
