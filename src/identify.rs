@@ -193,8 +193,11 @@ impl VarianceComponents {
 /// Relative change of both components below which the estimation stops.
 pub const VC_TOL: f64 = 1e-6;
 /// Most rounds of the estimation: it converges in a handful on any real
-/// noise; round-off-level residuals (exact data) never settle.
+/// noise.
 pub const VC_MAX_ITERS: u64 = 50;
+/// σ (µrad, µm) below which both components are taken for round-off
+/// (exact readings): a millionth of any tracker's noise.
+pub const VC_ROUND_OFF: f64 = 1e-6;
 /// Least redundancy a group needs for its component to mean anything:
 /// below one reading's worth, `u(σ²)/σ² = √(2/r)` exceeds 140 %.
 const VC_MIN_REDUNDANCY: f64 = 1.0;
@@ -457,12 +460,19 @@ pub fn identify(
     } else {
         match variance_components(obs, start, free, settings) {
             Ok(c) => {
-                let note = (!c.converged).then(|| {
-                    format!(
-                        "the variance components did not settle in {VC_MAX_ITERS} rounds \
-                         (residuals at round-off level?): the last round's are used"
-                    )
-                });
+                let round_off = c.sigma_angle_urad.max(c.sigma_range_um) < VC_ROUND_OFF;
+                let note = match (c.converged, round_off) {
+                    (true, _) => None,
+                    (false, true) => Some(
+                        "the residuals are round-off (exact readings): so are the variance \
+                         components"
+                            .to_string(),
+                    ),
+                    (false, false) => Some(format!(
+                        "the variance components did not settle in {VC_MAX_ITERS} rounds: \
+                         the last round's are used"
+                    )),
+                };
                 (Some(c.noise()), Some(c), note)
             }
             Err(e) if settings.weighting == Weighting::Unweighted => (
@@ -563,6 +573,10 @@ pub fn variance_components(
         }
         converged = (na / s2a - 1.0).abs().max((nr / s2r - 1.0).abs()) < VC_TOL;
         (s2a, s2r) = (na, nr);
+        if s2a.max(s2r) < VC_ROUND_OFF * VC_ROUND_OFF {
+            // Exact readings: the residuals are round-off, which never settles.
+            break;
+        }
     }
     Ok(components(s2a, s2r, ra, rr, round, converged))
 }

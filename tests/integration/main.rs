@@ -29,3 +29,4 @@ mod sweep;
 mod synthetic;
 mod trackers;
 mod util;
+mod variance_components;
