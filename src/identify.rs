@@ -16,10 +16,9 @@
 //! Eq. (11) weighs every coordinate alike, but the reading noise does not:
 //! an angular σ moves a point by `d·σ`, so far points scatter more, and
 //! across the line of sight more than along it. The textbook covariance
-//! `s²·(JᵀJ)⁻¹` assumes the opposite and misstates the uncertainty (the
-//! spread over noise seeds of the sphere is 0.77–1.70 times what it
-//! reports). The uncertainty is instead that of the estimator actually
-//! used, given the reading noise:
+//! `s²·(JᵀJ)⁻¹` assumes the opposite and misstates the uncertainty (by up
+//! to 1.7× on the sphere). The uncertainty is instead that of the estimator
+//! actually used, given the reading noise:
 //! - `Weighting::Unweighted` (Eq. 11 as printed): the sandwich
 //!   `(JᵀJ)⁻¹·(Σᵢ Jᵢᵀ·Σᵢ·Jᵢ)·(JᵀJ)⁻¹`, `Σᵢ = J_nom·diag(σ²)·J_nomᵀ` the
 //!   covariance of point i's coordinates that its reading's noise causes;
@@ -556,7 +555,8 @@ pub fn variance_components(
         let [(qa, ra_now), (qr, rr_now)] = group_sums(&f)?;
         (ra, rr) = (ra_now, rr_now);
         for (group, r) in [("angle", ra), ("range", rr)] {
-            if !(r >= VC_MIN_REDUNDANCY) {
+            // NaN included: only a number at or above the least will do.
+            if r.is_nan() || r < VC_MIN_REDUNDANCY {
                 bail!(
                     "the {group} readings have a redundancy of {r:.3} (at least \
                      {VC_MIN_REDUNDANCY} needed): the fit absorbs their noise"
@@ -620,10 +620,10 @@ fn group_sums(f: &Fitted) -> Result<[(f64, f64); 2]> {
         }
     };
     let mut sums = [(0.0, 0.0); 2];
-    for k in 0..n {
+    for (k, (v, h)) in f.r.iter().zip(&leverage).enumerate() {
         let g = usize::from(k % 3 == 2);
-        sums[g].0 += f.r[k] * f.r[k];
-        sums[g].1 += 1.0 - leverage[k];
+        sums[g].0 += v * v;
+        sums[g].1 += 1.0 - h;
     }
     Ok(sums)
 }
