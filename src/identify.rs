@@ -16,9 +16,9 @@
 //! Eq. (11) weighs every coordinate alike, but the reading noise does not:
 //! an angular σ moves a point by `d·σ`, so far points scatter more, and
 //! across the line of sight more than along it. The textbook covariance
-//! `s²·(JᵀJ)⁻¹` assumes the opposite and misstates the uncertainty (by up to
-//! 1.7× on the sphere). With the reading noise stated, the uncertainty is
-//! that of the estimator actually used:
+//! `s²·(JᵀJ)⁻¹` assumes the opposite and misstates the uncertainty (by up
+//! to 1.7× on the sphere). The uncertainty is instead that of the estimator
+//! actually used, given the reading noise:
 //! - `Weighting::Unweighted` (Eq. 11 as printed): the sandwich
 //!   `(JᵀJ)⁻¹·(Σᵢ Jᵢᵀ·Σᵢ·Jᵢ)·(JᵀJ)⁻¹`, `Σᵢ = J_nom·diag(σ²)·J_nomᵀ` the
 //!   covariance of point i's coordinates that its reading's noise causes;
@@ -26,8 +26,33 @@
 //!   diag(1/σ)·J_nom⁻¹` — the maximum-likelihood fit, whose covariance
 //!   `(J_wᵀJ_w)⁻¹` is the Cramér–Rao bound.
 //!
-//! Without a stated noise, only the unweighted fit is possible and its
-//! uncertainty comes from the residuals' scatter, as before.
+//! The noise is the stated one when it is known (the stage's `noise`, or the
+//! one the readings carry from their `measure` stage). When it is not, it
+//! is estimated from the residuals themselves by Helmert's variance
+//! component estimation, in Förstner's iterated form, with two groups of
+//! readings — the angles (az and el share `σ_angle`) and the ranges
+//! (`σ_range`). The misses are in coordinates, three per point, but the
+//! noise is on the readings, so each miss is taken back to reading space
+//! by the same `J_nom⁻¹` the weighting uses, where each of its three
+//! components belongs to one group:
+//!
+//! ```text
+//! vᵢ   = diag(1/σ)·J_nom,ᵢ⁻¹·(P(qᵢ; p̂) − Xᵢ)      whitened (az, el, d) of point i
+//! A    = ∂v/∂z                                  (3n × rank, z: the determined directions)
+//! H    = A·(AᵀA)⁻¹·Aᵀ,   r_g = Σ_{k∈g} (1 − H_kk)  redundancy of group g, Σ_g r_g = 3n − rank
+//! σ²_g ← σ²_g · (Σ_{k∈g} v_k²) / r_g              i.e. v_gᵀ·P_g·v_g / r_g, P_g = I/σ²_g
+//! u(σ²_g) ≈ σ²_g·√(2/r_g)  ⇒  u(σ_g) ≈ σ_g/√(2·r_g)
+//! ```
+//!
+//! iterated (a weighted fit, the redundancies from its hat matrix, the new
+//! components) until neither changes by more than 1e-6 relatively, at most
+//! 50 times. The estimate is then used exactly as a stated noise would be:
+//! for the sandwich of the unweighted fit, or for the weights. Where it
+//! cannot be made — a group with (almost) no redundancy, a component that
+//! comes out zero, a point read on the standing axis — the unweighted fit
+//! falls back to the residuals' scatter and says why ([`StdFrom::ScatterFallback`]).
+//! The textbook `s²·(JᵀJ)⁻¹` is otherwise only had on request
+//! ([`StdMethod::ResidualScatter`]).
 
 use crate::determined::{Determined, Estimate};
 use crate::error_model::{ErrorParams, Links};
@@ -54,7 +79,8 @@ pub enum Weighting {
     /// Eq. (11) as printed: every coordinate alike.
     #[default]
     Unweighted,
-    /// By the stated reading noise: the maximum-likelihood fit.
+    /// By the reading noise (stated, or else estimated): the
+    /// maximum-likelihood fit.
     Noise,
 }
 
@@ -67,15 +93,34 @@ impl Weighting {
     }
 }
 
+/// How the standard uncertainties are to be had (the stage's `std`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StdMethod {
+    /// From the reading noise: the stated one, or else the one estimated
+    /// from the residuals by variance components.
+    #[default]
+    Noise,
+    /// The textbook `s²·(JᵀJ)⁻¹`, on request only: it pools the angular and
+    /// range noise into one scatter and misstates the uncertainty.
+    ResidualScatter,
+}
+
 /// Where the reported standard uncertainties come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StdFrom {
-    /// `s²·(JᵀJ)⁻¹` with `s²` the residuals' scatter: no noise was stated.
+    /// `s²·(JᵀJ)⁻¹` with `s²` the residuals' scatter, as requested.
     ResidualScatter,
     /// The unweighted estimator's sandwich covariance with the stated noise.
     Sandwich,
-    /// `(J_wᵀJ_w)⁻¹` of the noise-weighted fit.
+    /// `(J_wᵀJ_w)⁻¹` of the fit weighted by the stated noise.
     StatedNoise,
+    /// The noise estimated by variance components, used as a stated one:
+    /// the sandwich unweighted, `(J_wᵀJ_w)⁻¹` weighted.
+    VarianceComponents,
+    /// `s²·(JᵀJ)⁻¹` because the variance components could not be estimated
+    /// ([`Identification::note`] says why).
+    ScatterFallback,
 }
 
 impl StdFrom {
@@ -84,6 +129,8 @@ impl StdFrom {
             StdFrom::ResidualScatter => "residual-scatter",
             StdFrom::Sandwich => "sandwich",
             StdFrom::StatedNoise => "stated-noise",
+            StdFrom::VarianceComponents => "variance-components",
+            StdFrom::ScatterFallback => "residual-scatter-fallback",
         }
     }
 }
@@ -95,8 +142,9 @@ pub struct Settings {
     pub rank_tol: f64,
     pub max_iters: u64,
     pub weighting: Weighting,
-    /// The readings' noise, 1 σ, when known (required by `Weighting::Noise`).
+    /// The readings' noise, 1 σ, when known; otherwise it is estimated.
     pub noise: Option<Noise>,
+    pub std: StdMethod,
 }
 
 impl Default for Settings {
@@ -106,9 +154,52 @@ impl Default for Settings {
             max_iters: 100,
             weighting: Weighting::Unweighted,
             noise: None,
+            std: StdMethod::Noise,
         }
     }
 }
+
+/// The reading noise estimated from the residuals (see the module doc).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VarianceComponents {
+    /// σ of az and of el, µrad, and its standard uncertainty.
+    pub sigma_angle_urad: f64,
+    pub sigma_angle_urad_u: f64,
+    /// σ of d, µm, and its standard uncertainty.
+    pub sigma_range_um: f64,
+    pub sigma_range_um_u: f64,
+    /// The groups' redundancy numbers `r_g` at the last round.
+    pub redundancy_angle: f64,
+    pub redundancy_range: f64,
+    /// Rounds of estimation, and whether the last changed the components by
+    /// less than [`VC_TOL`].
+    pub iterations: u64,
+    pub converged: bool,
+}
+
+impl VarianceComponents {
+    /// The estimate as a reading noise (no range-proportional part: the two
+    /// groups have one component each).
+    pub fn noise(&self) -> Noise {
+        Noise {
+            sigma_angle_urad: self.sigma_angle_urad,
+            sigma_range_um: self.sigma_range_um,
+            sigma_range_ppm: 0.0,
+        }
+    }
+}
+
+/// Relative change of both components below which the estimation stops.
+pub const VC_TOL: f64 = 1e-6;
+/// Most rounds of the estimation: it converges in a handful on any real
+/// noise.
+pub const VC_MAX_ITERS: u64 = 50;
+/// σ (µrad, µm) below which both components are taken for round-off
+/// (exact readings): a millionth of any tracker's noise.
+pub const VC_ROUND_OFF: f64 = 1e-6;
+/// Least redundancy a group needs for its component to mean anything:
+/// below one reading's worth, `u(σ²)/σ² = √(2/r)` exceeds 140 %.
+const VC_MIN_REDUNDANCY: f64 = 1.0;
 
 /// What the identification found.
 #[derive(Clone, Debug)]
@@ -123,6 +214,14 @@ pub struct Identification {
     pub n_observations: usize,
     pub weighting: Weighting,
     pub std_from: StdFrom,
+    /// The reading noise in hand — stated, or estimated — which the
+    /// uncertainty (unless from the scatter) and any weights come from.
+    pub noise: Option<Noise>,
+    /// The variance components, when the noise was estimated.
+    pub components: Option<VarianceComponents>,
+    /// What the reader should know about the uncertainty: why the
+    /// components could not be estimated, or that they did not settle.
+    pub note: Option<String>,
 }
 
 /// A known point prepared for repeated evaluation: its joints, nominal
@@ -135,17 +234,21 @@ struct Prepared {
     /// `diag(1/σ)·J_nom⁻¹` (units of σ) weighted.
     weight: Matrix3<f64>,
     /// The covariance of the point's coordinates its reading's noise
-    /// causes (µm²), when the noise is stated.
+    /// causes (µm²), when the noise is known.
     cov_um2: Option<Matrix3<f64>>,
 }
 
-fn prepare(obs: &[KnownPoint], settings: &Settings) -> Result<Vec<Prepared>> {
+fn prepare(
+    obs: &[KnownPoint],
+    weighting: Weighting,
+    noise: Option<Noise>,
+) -> Result<Vec<Prepared>> {
     obs.iter()
         .enumerate()
         .map(|(i, o)| {
             let q = o.reading.joints();
             // σ of az, el (rad) and d (mm) at this reading.
-            let sigma = settings.noise.map(|n| {
+            let sigma = noise.map(|n| {
                 Vector3::new(
                     n.sigma_angle_urad * 1e-6,
                     n.sigma_angle_urad * 1e-6,
@@ -153,10 +256,10 @@ fn prepare(obs: &[KnownPoint], settings: &Settings) -> Result<Vec<Prepared>> {
                 )
             });
             let j_nom = nominal_jacobian(o.reading);
-            let weight = match (settings.weighting, sigma) {
+            let weight = match (weighting, sigma) {
                 (Weighting::Unweighted, _) => Matrix3::identity() * 1e3,
                 (Weighting::Noise, None) => {
-                    bail!("weighting by the noise needs the readings' noise stated")
+                    bail!("weighting by the noise needs the readings' noise")
                 }
                 (Weighting::Noise, Some(s)) => {
                     let inv = j_nom
@@ -185,7 +288,6 @@ fn prepare(obs: &[KnownPoint], settings: &Settings) -> Result<Vec<Prepared>> {
         })
         .collect()
 }
-
 /// Residuals `W·(P(qᵢ; p) − Xᵢ)`, three per point (`cartesian`: the
 /// misses themselves, in µm, whatever the weighting).
 fn residuals(params: &ErrorParams, obs: &[Prepared], cartesian: bool) -> DVector<f64> {
@@ -280,6 +382,65 @@ impl Jacobian for Eq11<'_> {
     }
 }
 
+/// One least-squares solution of Eq. (11) under a weighting and noise.
+struct Fitted {
+    obs: Vec<Prepared>,
+    det: Determined,
+    params: ErrorParams,
+    /// The residuals at the solution (weighted as the fit was).
+    r: DVector<f64>,
+    /// Their Jacobian in the determined directions.
+    jz: Option<DMatrix<f64>>,
+    iterations: u64,
+    stop_reason: &'static str,
+}
+
+fn fit(
+    obs: &[KnownPoint],
+    start: &ErrorParams,
+    free: &[bool],
+    settings: &Settings,
+    weighting: Weighting,
+    noise: Option<Noise>,
+) -> Result<Fitted> {
+    let obs = prepare(obs, weighting, noise)?;
+    let r0 = residuals(start, &obs, false);
+    let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
+    let det = Determined::analyse(
+        &jacobian(start, &obs, &free_index),
+        start,
+        free,
+        settings.rank_tol,
+    )?;
+    let rank = det.rank();
+    let problem = Eq11 {
+        start,
+        obs: &obs,
+        det: &det,
+    };
+    let (z, r, iterations, stop_reason) = if rank == 0 {
+        (DVector::zeros(0), r0, 0, "nothing-to-estimate")
+    } else {
+        // The problem is nearly linear: start with little damping.
+        let fit = LevenbergMarquardt::new()
+            .with_initial_lambda(1e-6)
+            .and_then(|lm| lm.minimize(problem, DVector::zeros(rank), settings.max_iters))
+            .map_err(|e| anyhow::anyhow!("identification failed: {e}"))?;
+        (fit.x, fit.residuals, fit.iterations, fit.reason)
+    };
+    let params = det.params(start, &z);
+    let jz = (rank > 0).then(|| jacobian(&params, &obs, &free_index) * det.basis());
+    Ok(Fitted {
+        obs,
+        det,
+        params,
+        r,
+        jz,
+        iterations,
+        stop_reason,
+    })
+}
+
 /// Identifies the free coefficients of `start` from known points.
 pub fn identify(
     obs: &[KnownPoint],
@@ -290,62 +451,181 @@ pub fn identify(
     if obs.is_empty() {
         bail!("no readings to identify from");
     }
-    let obs = &prepare(obs, settings)?[..];
-    let r0 = residuals(start, obs, false);
-    let free_index: Vec<usize> = (0..free.len()).filter(|&i| free[i]).collect();
-    let det = Determined::analyse(
-        &jacobian(start, obs, &free_index),
-        start,
-        free,
-        settings.rank_tol,
-    )?;
-    let basis = det.basis();
-    let rank = det.rank();
-
-    let problem = Eq11 {
-        start,
-        obs,
-        det: &det,
-    };
-    let (z, r, iterations, stop_reason) = if rank == 0 {
-        (DVector::zeros(0), r0.clone(), 0, "nothing-to-estimate")
+    // The noise is estimated when something needs it and none is known.
+    let estimate_noise = settings.noise.is_none()
+        && (settings.weighting == Weighting::Noise || settings.std == StdMethod::Noise);
+    let (noise, components, mut note) = if !estimate_noise {
+        (settings.noise, None, None)
     } else {
-        // The problem is nearly linear: start with little damping.
-        let fit = LevenbergMarquardt::new()
-            .with_initial_lambda(1e-6)
-            .and_then(|lm| lm.minimize(problem, DVector::zeros(rank), settings.max_iters))
-            .map_err(|e| anyhow::anyhow!("identification failed: {e}"))?;
-        (fit.x, fit.residuals, fit.iterations, fit.reason)
-    };
-    let params = det.params(start, &z);
-    let std_from = match (settings.weighting, settings.noise) {
-        (Weighting::Noise, _) => StdFrom::StatedNoise,
-        (Weighting::Unweighted, Some(_)) => StdFrom::Sandwich,
-        (Weighting::Unweighted, None) => StdFrom::ResidualScatter,
-    };
-    let cov_z = (rank > 0)
-        .then(|| {
-            let jz = jacobian(&params, obs, &free_index) * basis;
-            match std_from {
-                StdFrom::ResidualScatter => det.scatter_covariance(&jz, &r),
-                StdFrom::StatedNoise => (jz.transpose() * &jz).try_inverse(),
-                StdFrom::Sandwich => sandwich(&jz, obs),
+        match variance_components(obs, start, free, settings) {
+            Ok(c) => {
+                let round_off = c.sigma_angle_urad.max(c.sigma_range_um) < VC_ROUND_OFF;
+                let note = match (c.converged, round_off) {
+                    (true, _) => None,
+                    (false, true) => Some(
+                        "the residuals are round-off (exact readings): so are the variance \
+                         components"
+                            .to_string(),
+                    ),
+                    (false, false) => Some(format!(
+                        "the variance components did not settle in {VC_MAX_ITERS} rounds: \
+                         the last round's are used"
+                    )),
+                };
+                (Some(c.noise()), Some(c), note)
             }
-        })
-        .flatten();
+            Err(e) if settings.weighting == Weighting::Unweighted => (
+                None,
+                None,
+                Some(format!(
+                    "the reading noise could not be estimated from the residuals ({e:#}): \
+                     std from the residuals' scatter"
+                )),
+            ),
+            Err(e) => bail!(
+                "weighting by the noise needs the readings' noise; none is stated and it \
+                 could not be estimated from the residuals: {e:#}"
+            ),
+        }
+    };
+    let f = fit(obs, start, free, settings, settings.weighting, noise)?;
+    let std_from = match (settings.std, noise, components) {
+        (StdMethod::ResidualScatter, ..) => StdFrom::ResidualScatter,
+        (StdMethod::Noise, None, _) => StdFrom::ScatterFallback,
+        (StdMethod::Noise, Some(_), Some(_)) => StdFrom::VarianceComponents,
+        (StdMethod::Noise, Some(_), None) => match settings.weighting {
+            Weighting::Noise => StdFrom::StatedNoise,
+            Weighting::Unweighted => StdFrom::Sandwich,
+        },
+    };
+    let cov_z =
+        f.jz.as_ref()
+            .and_then(|jz| match (std_from, settings.weighting) {
+                (StdFrom::ResidualScatter | StdFrom::ScatterFallback, _) => {
+                    f.det.scatter_covariance(jz, &f.r)
+                }
+                (_, Weighting::Noise) => (jz.transpose() * jz).try_inverse(),
+                (_, Weighting::Unweighted) => sandwich(jz, &f.obs),
+            });
+    if f.jz.is_some() && cov_z.is_none() {
+        note.get_or_insert_with(|| "the normal matrix is singular: no std".to_string());
+    }
     // The RMS in µm whatever the weighting: the coordinates' misses.
-    let (r0, r) = (residuals(start, obs, true), residuals(&params, obs, true));
+    let r0 = residuals(start, &f.obs, true);
+    let r = residuals(&f.params, &f.obs, true);
     let rms = |r: &DVector<f64>| (r.norm_squared() / obs.len() as f64).sqrt();
     Ok(Identification {
-        estimate: det.estimate(params, free, cov_z.as_ref()),
+        estimate: f.det.estimate(f.params, free, cov_z.as_ref()),
         rms_before_um: rms(&r0),
         rms_after_um: rms(&r),
-        iterations,
-        stop_reason,
+        iterations: f.iterations,
+        stop_reason: f.stop_reason,
         n_observations: obs.len(),
         weighting: settings.weighting,
         std_from,
+        noise,
+        components,
+        note,
     })
+}
+
+/// Helmert's variance component estimation of `σ_angle` and `σ_range`
+/// (module doc): weighted fits, each group's `vᵀPv` over its redundancy
+/// number, until the components settle. Fails, saying why, when a group has
+/// no redundancy or a component comes out zero or not finite.
+pub fn variance_components(
+    obs: &[KnownPoint],
+    start: &ErrorParams,
+    free: &[bool],
+    settings: &Settings,
+) -> Result<VarianceComponents> {
+    // Any positive start: only the ratio of the two shapes the first fit,
+    // and the first round already puts both on their scale.
+    let (mut s2a, mut s2r) = (1.0_f64, 1.0_f64);
+    let (mut ra, mut rr) = (0.0, 0.0);
+    let (mut round, mut converged) = (0, false);
+    while round < VC_MAX_ITERS && !converged {
+        round += 1;
+        let noise = Noise {
+            sigma_angle_urad: s2a.sqrt(),
+            sigma_range_um: s2r.sqrt(),
+            sigma_range_ppm: 0.0,
+        };
+        let f = fit(obs, start, free, settings, Weighting::Noise, Some(noise))?;
+        let [(qa, ra_now), (qr, rr_now)] = group_sums(&f)?;
+        (ra, rr) = (ra_now, rr_now);
+        for (group, r) in [("angle", ra), ("range", rr)] {
+            // NaN included: only a number at or above the least will do.
+            if r.is_nan() || r < VC_MIN_REDUNDANCY {
+                bail!(
+                    "the {group} readings have a redundancy of {r:.3} (at least \
+                     {VC_MIN_REDUNDANCY} needed): the fit absorbs their noise"
+                );
+            }
+        }
+        // Förstner's update: the group's vᵀPv over its redundancy is the
+        // factor by which its prior variance was off.
+        let (na, nr) = (s2a * qa / ra, s2r * qr / rr);
+        for (group, v) in [("angle", na), ("range", nr)] {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("the {group} variance component came out {v:e}: the residuals carry none");
+            }
+        }
+        converged = (na / s2a - 1.0).abs().max((nr / s2r - 1.0).abs()) < VC_TOL;
+        (s2a, s2r) = (na, nr);
+        if s2a.max(s2r) < VC_ROUND_OFF * VC_ROUND_OFF {
+            // Exact readings: the residuals are round-off, which never settles.
+            break;
+        }
+    }
+    Ok(components(s2a, s2r, ra, rr, round, converged))
+}
+
+/// The components with Helmert's uncertainty `u(σ²) ≈ σ²·√(2/r)`, carried
+/// to σ: `u(σ) = u(σ²)/(2σ) = σ/√(2r)`.
+fn components(
+    s2a: f64,
+    s2r: f64,
+    ra: f64,
+    rr: f64,
+    iterations: u64,
+    converged: bool,
+) -> VarianceComponents {
+    let (sa, sr) = (s2a.sqrt(), s2r.sqrt());
+    VarianceComponents {
+        sigma_angle_urad: sa,
+        sigma_angle_urad_u: sa / (2.0 * ra).sqrt(),
+        sigma_range_um: sr,
+        sigma_range_um_u: sr / (2.0 * rr).sqrt(),
+        redundancy_angle: ra,
+        redundancy_range: rr,
+        iterations,
+        converged,
+    }
+}
+
+/// `(Σ_{k∈g} v_k², r_g)` for the angle group (az, el: rows 3i, 3i+1) and
+/// the range group (d: row 3i+2) of a noise-weighted fit, whose residuals
+/// are the whitened readings: `r_g = Σ_{k∈g} (1 − H_kk)`, `H = A·(AᵀA)⁻¹·Aᵀ`.
+fn group_sums(f: &Fitted) -> Result<[(f64, f64); 2]> {
+    let n = f.r.len();
+    let leverage: Vec<f64> = match &f.jz {
+        None => vec![0.0; n],
+        Some(jz) => {
+            let inv = (jz.transpose() * jz)
+                .try_inverse()
+                .ok_or_else(|| anyhow::anyhow!("the weighted normal matrix is singular"))?;
+            let m = jz * inv;
+            (0..n).map(|k| m.row(k).dot(&jz.row(k))).collect()
+        }
+    };
+    let mut sums = [(0.0, 0.0); 2];
+    for (k, (v, h)) in f.r.iter().zip(&leverage).enumerate() {
+        let g = usize::from(k % 3 == 2);
+        sums[g].0 += v * v;
+        sums[g].1 += 1.0 - h;
+    }
+    Ok(sums)
 }
 
 /// The covariance of the unweighted estimator when each point's
@@ -494,6 +774,170 @@ mod tests {
                 ParamId::from_index(k)
             );
         }
+    }
+
+    /// The sphere's readings with one draw of `noise`.
+    fn noisy(exact: &[KnownPoint], noise: &Noise, seed: u64) -> Vec<KnownPoint> {
+        let mut rng = crate::random::stream(seed, "identify-spread");
+        exact
+            .iter()
+            .map(|o| KnownPoint {
+                reading: noise.apply(o.reading, &mut rng),
+                reference: o.reference,
+            })
+            .collect()
+    }
+
+    const SPHERE_NOISE: Noise = Noise {
+        sigma_angle_urad: 1.0,
+        sigma_range_um: 2.0,
+        sigma_range_ppm: 0.0,
+    };
+
+    fn table3_free() -> Vec<bool> {
+        let fixed = ["dz1", "dy2", "ez3"];
+        (0..18)
+            .map(|i| !fixed.contains(&ParamId::from_index(i).id()))
+            .collect()
+    }
+
+    /// Spread over `seeds` noise draws of each determined coefficient over
+    /// the RMS of the std the fits reported (it varies by seed when the
+    /// noise is estimated).
+    fn spread_over_reported(settings: &Settings, seeds: u64) -> Vec<(ParamId, f64)> {
+        let exact = observe(&ErrorParams::table2(), &sphere());
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let free = table3_free();
+        let fits: Vec<Identification> = (0..seeds)
+            .map(|seed| {
+                let obs = noisy(&exact, &SPHERE_NOISE, seed);
+                identify(&obs, &start, &free, settings).unwrap()
+            })
+            .collect();
+        let n = seeds as f64;
+        (0..18)
+            .filter(|&k| free[k])
+            .filter_map(|k| {
+                let values: Vec<f64> = fits.iter().map(|f| f.estimate.params.values()[k]).collect();
+                let mean = values.iter().sum::<f64>() / n;
+                let spread =
+                    (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+                let std = (fits
+                    .iter()
+                    .map(|f| f.estimate.std[k].unwrap().powi(2))
+                    .sum::<f64>()
+                    / n)
+                    .sqrt();
+                (std >= 1e-9).then(|| (ParamId::from_index(k), spread / std))
+            })
+            .collect()
+    }
+
+    /// Issue 31: without a stated noise, Helmert's variance components of
+    /// the sphere (1 µrad, 2 µm) land within three of their own standard
+    /// uncertainties of the truth, on every one of ten seeds, and the two
+    /// groups' redundancies add up to the fit's: 3n − rank.
+    #[test]
+    fn variance_components_recover_the_sphere_noise() {
+        let exact = observe(&ErrorParams::table2(), &sphere());
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let free = table3_free();
+        for seed in 0..10 {
+            let obs = noisy(&exact, &SPHERE_NOISE, seed);
+            let id = identify(&obs, &start, &free, &Settings::default()).unwrap();
+            assert_eq!(id.std_from, StdFrom::VarianceComponents);
+            assert_eq!(id.note, None);
+            let c = id.components.unwrap();
+            assert!(c.converged && c.iterations <= 20, "{c:?}");
+            let dof = 3.0 * obs.len() as f64 - id.estimate.analysis.rank as f64;
+            assert!(
+                (c.redundancy_angle + c.redundancy_range - dof).abs() < 1e-6,
+                "{c:?} vs {dof}"
+            );
+            // 2n angle readings and n range readings share the 13 unknowns.
+            assert!(
+                c.redundancy_angle > 900.0 && c.redundancy_range > 420.0,
+                "{c:?}"
+            );
+            for (got, u, truth) in [
+                (c.sigma_angle_urad, c.sigma_angle_urad_u, 1.0),
+                (c.sigma_range_um, c.sigma_range_um_u, 2.0),
+            ] {
+                assert!(u > 0.0 && u < 0.05 * truth, "{c:?}");
+                assert!((got - truth).abs() <= 3.0 * u, "seed {seed}: {c:?}");
+            }
+            assert_eq!(id.noise, Some(c.noise()));
+        }
+    }
+
+    /// Issue 31: with the noise estimated rather than stated, the spread of
+    /// every determined coefficient over 200 seeds still matches the std
+    /// reported, for both weightings; the textbook `s²·(JᵀJ)⁻¹`, which the
+    /// default reported before, misses by far more than the spread's own
+    /// uncertainty (±5 %) on some coefficient.
+    #[test]
+    fn estimated_noise_std_matches_the_spread_over_noise_seeds() {
+        let seeds = 200;
+        let range = |ratios: &[(ParamId, f64)]| {
+            let lo = ratios.iter().map(|r| r.1).fold(f64::INFINITY, f64::min);
+            let hi = ratios.iter().map(|r| r.1).fold(0.0, f64::max);
+            (lo, hi)
+        };
+        for weighting in [Weighting::Unweighted, Weighting::Noise] {
+            let settings = Settings {
+                weighting,
+                ..Settings::default()
+            };
+            let ratios = spread_over_reported(&settings, seeds);
+            assert_eq!(ratios.len(), 15, "{ratios:?}");
+            eprintln!(
+                "variance components, {weighting:?}: spread/std in {:?}",
+                range(&ratios)
+            );
+            for (p, ratio) in &ratios {
+                assert!(
+                    (0.85..=1.15).contains(ratio),
+                    "{weighting:?} {p}: spread / reported = {ratio:.3}"
+                );
+            }
+        }
+        let scatter = Settings {
+            std: StdMethod::ResidualScatter,
+            ..Settings::default()
+        };
+        let ratios = spread_over_reported(&scatter, seeds);
+        let (lo, hi) = range(&ratios);
+        eprintln!("residual scatter, unweighted: spread/std in {lo:.3}–{hi:.3}");
+        assert!(lo < 0.85 && hi > 1.5, "{ratios:?}");
+    }
+
+    /// Issue 31: four points leave no redundancy to estimate the noise
+    /// from; the unweighted fit says so and falls back to the scatter, and
+    /// the weighted one, which cannot do without weights, refuses.
+    #[test]
+    fn no_redundancy_falls_back_to_the_scatter_and_says_why() {
+        let exact = observe(&ErrorParams::table2(), &sphere()[..4]);
+        let obs = noisy(&exact, &SPHERE_NOISE, 1);
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let free = table3_free();
+        let id = identify(&obs, &start, &free, &Settings::default()).unwrap();
+        assert_eq!(id.std_from, StdFrom::ScatterFallback);
+        assert_eq!(id.std_from.as_str(), "residual-scatter-fallback");
+        assert_eq!((id.noise, id.components), (None, None));
+        let note = id.note.unwrap();
+        assert!(
+            note.contains("readings have a redundancy of") && note.contains("at least 1 needed"),
+            "{note}"
+        );
+        let weighted = Settings {
+            weighting: Weighting::Noise,
+            ..Settings::default()
+        };
+        let err = identify(&obs, &start, &free, &weighted).unwrap_err();
+        assert!(
+            format!("{err:#}").contains("could not be estimated"),
+            "{err:#}"
+        );
     }
 
     #[test]

@@ -10,11 +10,15 @@
 //! * **readings** (Section 5.1) — `target`, `face` (1 front, 2 back),
 //!   `az_deg`, `el_deg`, `d_mm` (the reading), `x_mm`, `y_mm`, `z_mm` (the
 //!   coordinates the tracker reports: the nominal model at the reading), and
-//!   `x_ref_mm`, `y_ref_mm`, `z_ref_mm` (the true position).
+//!   `x_ref_mm`, `y_ref_mm`, `z_ref_mm` (the true position), then the
+//!   reading noise they were taken with, 1 σ: `sigma_angle_urad`,
+//!   `sigma_range_um`, `sigma_range_ppm` (the same on every row; zero: none
+//!   drawn), so that an identification downstream knows it.
 
 use crate::error_model::{Coef, ErrorParams};
 use crate::kinematics::{Face, Reading, nominal_point};
 use crate::mesh::MeshPoint;
+use crate::noise::Noise;
 use crate::table::{TableBuilder, TableRef};
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
@@ -120,7 +124,7 @@ pub struct KnownReading {
     pub reference: Vector3<f64>,
 }
 
-pub fn readings_table(rows: &[KnownReading]) -> Result<DataFrame> {
+pub fn readings_table(rows: &[KnownReading], noise: &Noise) -> Result<DataFrame> {
     let ids: Vec<&str> = rows.iter().map(|r| r.target.as_str()).collect();
     let reported: Vec<Vector3<f64>> = rows.iter().map(|r| nominal_point(r.reading)).collect();
     let col = |f: &dyn Fn(&KnownReading) -> f64| rows.iter().map(f).collect::<Vec<f64>>();
@@ -136,7 +140,44 @@ pub fn readings_table(rows: &[KnownReading]) -> Result<DataFrame> {
         .f64("x_ref_mm", col(&|r| r.reference.x))
         .f64("y_ref_mm", col(&|r| r.reference.y))
         .f64("z_ref_mm", col(&|r| r.reference.z))
+        .f64("sigma_angle_urad", col(&|_| noise.sigma_angle_urad))
+        .f64("sigma_range_um", col(&|_| noise.sigma_range_um))
+        .f64("sigma_range_ppm", col(&|_| noise.sigma_range_ppm))
         .build()
+}
+
+/// The reading noise a readings table carries: `None` when it has no noise
+/// columns (written before they existed) or no rows; an error when the rows
+/// disagree or a σ is not a number ≥ 0.
+pub fn readings_noise(t: &TableRef) -> Result<Option<Noise>> {
+    const COLS: [&str; 3] = ["sigma_angle_urad", "sigma_range_um", "sigma_range_ppm"];
+    if !COLS.iter().all(|c| t.has(c)) {
+        return Ok(None);
+    }
+    let [a, r, p] = COLS.map(|c| t.f64(c));
+    let (a, r, p) = (a?, r?, p?);
+    if a.is_empty() {
+        return Ok(None);
+    }
+    let noise = Noise {
+        sigma_angle_urad: a[0],
+        sigma_range_um: r[0],
+        sigma_range_ppm: p[0],
+    };
+    if let Err((f, v)) = noise.check() {
+        bail!(
+            "table `{}`, column `{f}`, row 0: must be a number ≥ 0, got {v}",
+            t.name
+        );
+    }
+    if let Some(i) = (0..a.len()).find(|&i| (a[i], r[i], p[i]) != (a[0], r[0], p[0])) {
+        bail!(
+            "table `{}`, row {i}: its reading noise differs from row 0's; \
+             the readings of one identification share one noise",
+            t.name
+        );
+    }
+    Ok(Some(noise))
 }
 
 pub fn readings_from(t: &TableRef) -> Result<Vec<KnownReading>> {

@@ -10,25 +10,40 @@
 //! shapes = { ez1 = "fourier:1" }   # the model to fit; constants by default
 //! rank_tol = 1e-9                  # relative singular-value threshold
 //! noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }   # the readings' noise, when known
-//! weighting = "unweighted"         # Eq. (11) as printed; "noise": weighted by `noise`
+//! weighting = "unweighted"         # Eq. (11) as printed; "noise": weighted by the noise
+//! std = "noise"                    # "residual-scatter": the textbook s²(JᵀJ)⁻¹, on request
 //! ```
 //!
-//! With `noise` stated the reported `std` is that of the estimator used —
-//! the sandwich covariance of the unweighted fit, or the weighted fit's
-//! inverse normal matrix — and holds against the spread over noise seeds;
-//! without it, it comes from the residuals' scatter (see
-//! [`crate::identify`]).
+//! The reported `std` is that of the estimator used — the sandwich
+//! covariance of the unweighted fit, or the weighted fit's inverse normal
+//! matrix — given the reading noise, and holds against the spread over
+//! noise seeds. The noise is, first, the stage's `noise`; else the one the
+//! readings carry from their `measure` stage (its `sigma_*` columns, when
+//! not all zero: a noise-free simulation says nothing of what a model
+//! mismatch leaves); else it is estimated from the residuals by variance
+//! components, one σ for the angles and one for the ranges, each with its
+//! own uncertainty (see [`crate::identify`]). `std_from` says which:
+//! `sandwich` or `stated-noise` (a known noise), `variance-components` (the
+//! estimated one), `residual-scatter-fallback` (it could not be estimated:
+//! `note` says why), `residual-scatter` (requested by `std`, which pools the
+//! angular and range noise into one scatter and misstates the uncertainty
+//! by up to 1.7×).
 //!
 //! Outputs: `params` (the estimate with `free`, `std`, `determined`),
 //! `singular_values` (`index`, `sigma`, `sigma_rel`, `determined`),
 //! `combinations` (`direction`, `determined`, `value`, `sentence`: what the
 //! data cannot separate) and `fit` (one row: `n_readings`, `n_free`, `rank`,
 //! `iterations`, `stop`, `rms_before_um`, `rms_after_um`, `weighting`,
-//! `std_from`).
+//! `std_from`; `noise_from` — `stage`, `readings`, `residuals` or `none` —
+//! and the noise used, `sigma_angle_urad`, `sigma_range_um`,
+//! `sigma_range_ppm`, with the standard uncertainties of the estimated
+//! ones, `sigma_angle_urad_u`, `sigma_range_um_u` (empty when stated);
+//! `vc_iterations`, the rounds of variance component estimation (empty
+//! when none ran); `note`).
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::error_model::{ParamId, Shape};
-use crate::identify::{self, KnownPoint, Settings, Weighting};
+use crate::identify::{self, KnownPoint, Settings, StdMethod, Weighting};
 use crate::noise::Noise;
 use crate::schema;
 use crate::table::TableBuilder;
@@ -52,9 +67,11 @@ pub struct IdentifyStage {
     pub max_iters: u64,
     #[serde(default)]
     pub weighting: Weighting,
-    /// The readings' noise, 1 σ, when known.
+    /// The readings' noise, 1 σ, when known (over what the readings carry).
     #[serde(default)]
     pub noise: Option<Noise>,
+    #[serde(default)]
+    pub std: StdMethod,
 }
 
 impl StageKind for IdentifyStage {
@@ -83,6 +100,14 @@ impl StageKind for IdentifyStage {
                 "rms_after_um",
                 "weighting",
                 "std_from",
+                "noise_from",
+                "sigma_angle_urad",
+                "sigma_angle_urad_u",
+                "sigma_range_um",
+                "sigma_range_um_u",
+                "sigma_range_ppm",
+                "vc_iterations",
+                "note",
             ]),
             _ => fitting::columns(table),
         }
@@ -97,26 +122,31 @@ impl StageKind for IdentifyStage {
             self.max_iters,
         );
         out.extend(self.noise.as_ref().and_then(Invalid::noise));
-        if self.weighting == Weighting::Noise {
-            match self.noise {
-                None => out.push(Invalid::new(
-                    "weighting",
-                    "`weighting = \"noise\"` needs the readings' noise: add `noise = { sigma_angle_urad = …, sigma_range_um = … }`",
-                )),
-                Some(n) if n.sigma_angle_urad <= 0.0 || (n.sigma_range_um <= 0.0 && n.sigma_range_ppm <= 0.0) => {
-                    out.push(Invalid::new(
-                        "noise",
-                        "`weighting = \"noise\"` needs a σ above zero for the angles and for the range",
-                    ))
-                }
-                Some(_) => {}
-            }
+        // Without a stated noise the weights come from the readings' or the
+        // estimated one; a stated one must be usable as weights.
+        if self.weighting == Weighting::Noise
+            && let Some(n) = self.noise
+            && (n.sigma_angle_urad <= 0.0 || (n.sigma_range_um <= 0.0 && n.sigma_range_ppm <= 0.0))
+        {
+            out.push(Invalid::new(
+                "noise",
+                "`weighting = \"noise\"` needs a σ above zero for the angles and for the range",
+            ));
         }
         out
     }
 
     fn run(&self, _: &Context, inputs: &StageInputs) -> Result<StageOutput> {
-        let readings = schema::readings_from(&inputs.get("readings")?)?;
+        let table = inputs.get("readings")?;
+        let readings = schema::readings_from(&table)?;
+        // The stage's own noise wins; a carried noise of zero is no noise
+        // known (it would report an exact fit whatever the model misses).
+        let carried = schema::readings_noise(&table)?.filter(|n| !n.is_zero());
+        let (noise, noise_from) = match (self.noise, carried) {
+            (Some(n), _) => (Some(n), "stage"),
+            (None, Some(n)) => (Some(n), "readings"),
+            (None, None) => (None, "residuals"),
+        };
         let model = fitting::run_model(self.model, &self.shapes, &self.fixed)?;
         let start = fitting::start(&model, Some(inputs))?;
         let free = fitting::free(&start, &self.fixed);
@@ -131,15 +161,22 @@ impl StageKind for IdentifyStage {
             rank_tol: self.rank_tol,
             max_iters: self.max_iters,
             weighting: self.weighting,
-            noise: self.noise,
+            noise,
+            std: self.std,
         };
         let id = identify::identify(&obs, &start, &free, &settings)?;
-        tables(&id)
+        let noise_from = match (&id.noise, &id.components) {
+            (None, _) => "none",
+            (Some(_), Some(_)) => "residuals",
+            (Some(_), None) => noise_from,
+        };
+        tables(&id, noise_from)
     }
 }
 
 /// The four output tables of an identification.
-fn tables(id: &identify::Identification) -> Result<StageOutput> {
+fn tables(id: &identify::Identification, noise_from: &str) -> Result<StageOutput> {
+    let c = id.components.as_ref();
     let [params, singular_values, combinations] = fitting::tables(&id.estimate)?;
     let fit = TableBuilder::new()
         .i64("n_readings", vec![id.n_observations as i64])
@@ -151,6 +188,17 @@ fn tables(id: &identify::Identification) -> Result<StageOutput> {
         .f64("rms_after_um", vec![id.rms_after_um])
         .str("weighting", &[id.weighting.as_str()])
         .str("std_from", &[id.std_from.as_str()])
+        .str("noise_from", &[noise_from])
+        .opt_f64(
+            "sigma_angle_urad",
+            vec![id.noise.map(|n| n.sigma_angle_urad)],
+        )
+        .opt_f64("sigma_angle_urad_u", vec![c.map(|c| c.sigma_angle_urad_u)])
+        .opt_f64("sigma_range_um", vec![id.noise.map(|n| n.sigma_range_um)])
+        .opt_f64("sigma_range_um_u", vec![c.map(|c| c.sigma_range_um_u)])
+        .opt_f64("sigma_range_ppm", vec![id.noise.map(|n| n.sigma_range_ppm)])
+        .opt_i64("vc_iterations", vec![c.map(|c| c.iterations as i64)])
+        .str("note", &[id.note.as_deref().unwrap_or("")])
         .build()?;
     Ok(StageOutput::default()
         .table("params", params)

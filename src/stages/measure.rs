@@ -11,7 +11,8 @@
 //! ```
 //!
 //! Output `readings` (see [`crate::schema`]): the reading of each point in
-//! each face, the coordinates the tracker reports, the true position.
+//! each face, the coordinates the tracker reports, the true position, and
+//! the noise drawn (so that `identify` uses it without being told).
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::kinematics::Face;
@@ -69,8 +70,20 @@ impl StageKind for MeasureStage {
     fn columns(table: &str) -> Option<&'static [&'static str]> {
         match table {
             "readings" => Some(&[
-                "target", "face", "az_deg", "el_deg", "d_mm", "x_mm", "y_mm", "z_mm", "x_ref_mm",
-                "y_ref_mm", "z_ref_mm",
+                "target",
+                "face",
+                "az_deg",
+                "el_deg",
+                "d_mm",
+                "x_mm",
+                "y_mm",
+                "z_mm",
+                "x_ref_mm",
+                "y_ref_mm",
+                "z_ref_mm",
+                "sigma_angle_urad",
+                "sigma_range_um",
+                "sigma_range_ppm",
             ]),
             _ => None,
         }
@@ -102,6 +115,6 @@ impl StageKind for MeasureStage {
                 });
             }
         }
-        Ok(StageOutput::default().table("readings", schema::readings_table(&rows)?))
+        Ok(StageOutput::default().table("readings", schema::readings_table(&rows, &self.noise)?))
     }
 }

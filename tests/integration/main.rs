@@ -30,3 +30,4 @@ mod sweep;
 mod synthetic;
 mod trackers;
 mod util;
+mod variance_components;
