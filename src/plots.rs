@@ -143,6 +143,51 @@ fn legend<'a, CT: CoordTranslate>(
         .map_err(err)
 }
 
+/// The legend in the corner of the plotting area where it hides the
+/// fewest of `points` (data coordinates): its box, estimated from the
+/// labels' lengths at `font_size` (plotters measures no text without system
+/// fonts), is laid at each corner in turn and the points under it counted;
+/// ties go to the upper right, the upper left, the lower right, the lower
+/// left, in that order. A legend in a fixed corner hid ~78 markers of
+/// Figure 8 (noisy) and the ends of the coverage bars.
+fn legend_clear_of<'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, SVGBackend<'a>, CT>,
+    points: impl Iterator<Item = CT::From>,
+    labels: &[&str],
+    font_size: u32,
+) -> Result<()> {
+    let (xs, ys) = chart.plotting_area().get_pixel_range();
+    let chars = labels.iter().map(|l| l.chars().count()).max().unwrap_or(0) as i32;
+    let f = font_size as i32;
+    // Text at ~0.6 em a character, the marker, padding; a row of 1.3 em.
+    let (w, h) = (
+        chars * f * 6 / 10 + 45,
+        labels.len() as i32 * f * 13 / 10 + 12,
+    );
+    let pixels: Vec<(i32, i32)> = points
+        .map(|p| chart.as_coord_spec().translate(&p))
+        .collect();
+    let corners = [
+        (SeriesLabelPosition::UpperRight, xs.end - w, ys.start),
+        (SeriesLabelPosition::UpperLeft, xs.start, ys.start),
+        (SeriesLabelPosition::LowerRight, xs.end - w, ys.end - h),
+        (SeriesLabelPosition::LowerLeft, xs.start, ys.end - h),
+    ];
+    let hidden = |x0: i32, y0: i32| {
+        pixels
+            .iter()
+            .filter(|(x, y)| (x0..=x0 + w).contains(x) && (y0..=y0 + h).contains(y))
+            .count()
+    };
+    let best = corners
+        .into_iter()
+        .enumerate()
+        .min_by_key(|(i, (_, x0, y0))| (hidden(*x0, *y0), *i))
+        .map(|(_, (p, _, _))| p)
+        .unwrap_or(SeriesLabelPosition::UpperRight);
+    legend(chart, best, font_size)
+}
+
 /// One mesh point with its error before and after calibration.
 pub struct PointError {
     pub x_mm: f64,
@@ -276,7 +321,11 @@ fn errors_by_point(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError]) ->
             .label(name)
             .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
     }
-    legend(&mut chart, SeriesLabelPosition::MiddleRight, 14)?;
+    let drawn = pts
+        .iter()
+        .enumerate()
+        .flat_map(|(i, p)| [(i, p.before_um.max(floor)), (i, p.after_um.max(floor))]);
+    legend_clear_of(&mut chart, drawn, &series.map(|(name, _, _)| name), 14)?;
     Ok(())
 }
 
@@ -964,13 +1013,15 @@ pub fn coverage_intervals(title: &str, rows: &[CoverageRow]) -> Result<String> {
         .filter(|v| v.is_finite())
         .fold(2.0f64, f64::max)
         * 1.15;
+    // Room on the right beyond the longest bar, where the legend goes.
+    let (left, right) = (-reach, reach * 1.6);
     figure((900, 90 + 30 * n as u32 + 70), |root| {
         let root = root.titled(title, ("sans-serif", 18)).map_err(err)?;
         let mut chart = ChartBuilder::on(&root)
             .margin(14)
             .x_label_area_size(40)
             .y_label_area_size(70)
-            .build_cartesian_2d(span(-reach, reach)?, (0..n - 1).into_segmented())
+            .build_cartesian_2d(span(left, right)?, (0..n - 1).into_segmented())
             .map_err(err)?;
         chart
             .configure_mesh()
@@ -1022,7 +1073,16 @@ pub fn coverage_intervals(title: &str, rows: &[CoverageRow]) -> Result<String> {
             .map_err(err)?
             .label("Monte Carlo")
             .legend(move |(x, y)| Rectangle::new([(x, y - 3), (x + 14, y + 3)], mc.filled()));
-        legend(&mut chart, SeriesLabelPosition::UpperRight, 12)?;
+        let ends = rows.iter().rev().enumerate().flat_map(|(i, r)| {
+            [r.low_u, r.high_u, -r.linear_u, r.linear_u]
+                .into_iter()
+                .flat_map(move |x| [(x, SegmentValue::Exact(i)), (x, SegmentValue::Exact(i + 1))])
+        });
+        let linear_label = format!(
+            "linear: ±{:.2} u",
+            rows.first().map_or(1.96, |r| r.linear_u)
+        );
+        legend_clear_of(&mut chart, ends, &[&linear_label, "Monte Carlo"], 12)?;
         Ok(())
     })
 }
@@ -1341,7 +1401,9 @@ pub fn metric_lines(
             // A marker shape per line as well as a colour: ten viridis
             // lines cannot be told apart in greyscale, or by many readers.
             let marker = k % 4;
-            let shape = move |(x, y): (f64, f64), c: RGBColor| -> DynElement<'static, SVGBackend, (f64, f64)> {
+            let shape = move |(x, y): (f64, f64),
+                              c: RGBColor|
+                  -> DynElement<'static, SVGBackend, (f64, f64)> {
                 match marker {
                     0 => Circle::new((x, y), 4, c.filled()).into_dyn(),
                     1 => TriangleMarker::new((x, y), 5, c.filled()).into_dyn(),
@@ -1375,7 +1437,15 @@ pub fn metric_lines(
                 }))
                 .map_err(err)?;
         }
-        legend(&mut chart, SeriesLabelPosition::MiddleRight, 14)?;
+        let names: Vec<&str> = lines.iter().map(|l| l.name.as_str()).collect();
+        legend_clear_of(
+            &mut chart,
+            lines
+                .iter()
+                .flat_map(|l| l.points.iter().map(|p| (p.0, p.1))),
+            &names,
+            14,
+        )?;
         Ok(())
     })
 }

@@ -643,11 +643,7 @@ pub fn figures(d: &Diagnosis) -> Result<Figures> {
             .collect();
         let categorical = matches!(f.name, "station" | "reflector" | "face");
         let drawn = plots::residuals_by_factor(
-            &format!(
-                "{}: residuals by {}",
-                d.campaign,
-                plots::axis_title(f.name)
-            ),
+            &format!("{}: residuals by {}", d.campaign, plots::axis_title(f.name)),
             &plots::axis_title(f.name),
             categorical.then_some(&f.labels[..]),
             &f.x,

@@ -324,7 +324,9 @@ impl StageKind for LayoutDesignStage {
         let sigma_min: Vec<f64> = o.iter().map(|o| o.o3).collect();
         let o1: Vec<f64> = o.iter().map(|o| o.o1).collect();
         let svg = plots::layout_bars(
-            "Layout design: identifiability of the error parameters with free station poses",
+            &format!(
+                "Layout design ({tracker}): identifiability of the error parameters with free station poses"
+            ),
             &names,
             &[
                 ("σ_min (σ of residual per µm or µrad)", &sigma_min),
