@@ -551,10 +551,15 @@ fn runs_command(file: &Path, results: &Path) -> Result<ExitCode> {
         text += "\n";
     }
     print_out(text)?;
-    let damaged = listed
-        .iter()
-        .filter(|l| l.status.starts_with("damaged"))
-        .count();
+    let damaged: Vec<&experiment::Listed> = listed.iter().filter(|l| l.problem.is_some()).collect();
+    for l in &damaged {
+        eprintln!(
+            "experiment `{}`: {}",
+            l.name,
+            l.problem.as_deref().unwrap_or_default()
+        );
+    }
+    let damaged = damaged.len();
     Ok(if damaged == 0 {
         ExitCode::SUCCESS
     } else {

@@ -168,14 +168,32 @@ pub fn recorded(dir: &Path) -> Result<Option<Vec<String>>> {
     Ok(Some(r.set))
 }
 
+/// Whether two lists of overrides (as typed) are the same experiment:
+/// the same overrides, in any order that cannot matter.
+fn equivalent(a: &[String], b: &[String]) -> bool {
+    let parse = |v: &[String]| -> Option<Vec<Override>> {
+        v.iter().map(|t| Override::parse(t).ok()).collect()
+    };
+    match (parse(a), parse(b)) {
+        (Some(x), Some(y)) => hash_name(&x) == hash_name(&y),
+        _ => a == b,
+    }
+}
+
 /// Writes the experiment's `overrides.toml` in its folder `dir` (before
-/// it runs, so that a killed run's folder still says what it is); returns
-/// the overrides it recorded before, when they differ (the name was given
-/// to other overrides).
-pub fn record(dir: &Path, e: &Experiment) -> Result<Option<Vec<String>>> {
+/// it runs, so that a killed run's folder still says what it is), unless
+/// it records the same overrides already. Returns the experiment as
+/// recorded (the recorded order of the same overrides kept), and the
+/// overrides recorded before when they differ (the name was given to other
+/// overrides).
+pub fn record(dir: &Path, e: &Experiment) -> Result<(Experiment, Option<Vec<String>>)> {
     let before = recorded(dir).ok().flatten();
-    if before.as_ref() == Some(&e.overrides) {
-        return Ok(None);
+    if let Some(b) = before.as_ref().filter(|b| equivalent(b, &e.overrides)) {
+        let kept = Experiment {
+            name: e.name.clone(),
+            overrides: b.clone(),
+        };
+        return Ok((kept, None));
     }
     let body = toml::to_string(&Recorded {
         set: e.overrides.clone(),
@@ -186,7 +204,7 @@ pub fn record(dir: &Path, e: &Experiment) -> Result<Option<Vec<String>>> {
         e.name, e.name
     );
     crate::fs::write_atomic(&dir.join(OVERRIDES_FILE), text.as_bytes())?;
-    Ok(before)
+    Ok((e.clone(), before))
 }
 
 /// One experiment as `ltcal runs` lists it.
@@ -197,9 +215,10 @@ pub struct Listed {
     /// When its last run finished (`run.json`); `None` if it never did.
     pub finished: Option<String>,
     /// `ok`, `failed` (a stage failed or was skipped), `not finished`
-    /// (killed or running: no `run.json` of these overrides), or
-    /// `damaged: <why>` (its `overrides.toml` cannot be read).
+    /// (killed or running: no `run.json` of these overrides), or `damaged`
+    /// (its `overrides.toml` cannot be read: `problem` says why).
     pub status: String,
+    pub problem: Option<String>,
 }
 
 /// The part of a `run.json` a listing reads.
@@ -264,6 +283,7 @@ pub fn list(pipeline_dir: &Path) -> Vec<Listed> {
                 overrides,
                 finished,
                 status,
+                problem: None,
             }
         })
         .collect()
@@ -274,7 +294,8 @@ fn damaged(name: String, why: String) -> Listed {
         name,
         overrides: Vec::new(),
         finished: None,
-        status: format!("damaged: {why}"),
+        status: "damaged".to_string(),
+        problem: Some(why),
     }
 }
 
@@ -353,8 +374,23 @@ mod tests {
             name: "x".into(),
             overrides: vec!["stages.a.path='it''s here'".into(), "stages.a.n=3".into()],
         };
-        assert_eq!(record(dir.path(), &e).unwrap(), None);
+        assert_eq!(record(dir.path(), &e).unwrap(), (e.clone(), None));
         assert_eq!(recorded(dir.path()).unwrap(), Some(e.overrides.clone()));
+        // The same overrides in another order: the record is kept.
+        let swapped = Experiment {
+            name: "x".into(),
+            overrides: e.overrides.iter().rev().cloned().collect(),
+        };
+        assert_eq!(record(dir.path(), &swapped).unwrap(), (e.clone(), None));
+        // Others: recorded, and the earlier ones returned.
+        let other = Experiment {
+            name: "x".into(),
+            overrides: vec!["stages.a.n=4".into()],
+        };
+        assert_eq!(
+            record(dir.path(), &other).unwrap(),
+            (other.clone(), Some(e.overrides.clone()))
+        );
         assert_eq!(
             set_args(&e.overrides),
             r"--set 'stages.a.path='\''it'\'''\''s here'\''' --set stages.a.n=3"

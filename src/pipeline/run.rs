@@ -233,19 +233,21 @@ struct Runner<'a> {
 /// Runs the pipeline (and, with a `[sweep]`, every point of it).
 pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let started = SystemTime::now();
-    let exp = opts.experiment.as_ref();
-    let store = store(&opts.results_root, p, exp);
-    let dir = results_dir(&opts.results_root, p, exp);
+    let mut exp = opts.experiment.clone();
+    let store = store(&opts.results_root, p, exp.as_ref());
+    let dir = results_dir(&opts.results_root, p, exp.as_ref());
     let mut cleaned = store.clean_incomplete();
-    if let Some(e) = exp {
+    if let Some(e) = &mut exp {
         cleaned += cache::clean_temp_files(&dir);
-        if let Some(before) = experiment::record(&dir, e)? {
+        let (recorded, before) = experiment::record(&dir, e)?;
+        if let Some(before) = before {
             eprintln!(
                 "note: experiment `{}` had other overrides ({}); its results are replaced",
                 e.name,
                 experiment::set_args(&before)
             );
         }
+        *e = recorded;
     }
     cleaned += cache::clean_temp_files(&pipeline_dir(&opts.results_root, p));
     let runner = Runner {
@@ -296,7 +298,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let report = RunReport {
         pipeline: p.name.clone(),
         results: dir.clone(),
-        experiment: opts.experiment.clone(),
+        experiment: exp,
         started: timestamp(started),
         finished: timestamp(SystemTime::now()),
         cleaned,
