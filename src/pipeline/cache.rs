@@ -1099,10 +1099,15 @@ impl Store {
         // `verified.json`'s temporaries sit in the root.
         let mut n = clean_temp_files_in(&self.root)
             + clean_temp_files_in(&self.root.join("last"))
-            + self
-                .experiment
-                .as_ref()
-                .map_or(0, |_| clean_temp_files_in(&self.last_dir()))
+            // Every experiment's records (a killed one may never run again).
+            + fs::read_dir(self.root.join("last").join("runs"))
+                .into_iter()
+                .flatten()
+                .flatten()
+                // A link is not followed: it would reach outside.
+                .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+                .map(|e| clean_temp_files_in(&e.path()))
+                .sum::<usize>()
             + clean_temp_files_in(&self.packs_dir());
         let Ok(rd) = fs::read_dir(self.entries()) else {
             return n;

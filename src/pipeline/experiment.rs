@@ -234,8 +234,9 @@ struct StageSummary {
     status: String,
 }
 
-/// The experiments of the pipeline results `pipeline_dir`, by name.
-pub fn list(pipeline_dir: &Path) -> Vec<Listed> {
+/// The names of the experiment folders of the pipeline results
+/// `pipeline_dir`, sorted.
+pub fn names(pipeline_dir: &Path) -> Vec<String> {
     let Ok(rd) = std::fs::read_dir(pipeline_dir.join(DIR)) else {
         return Vec::new();
     };
@@ -248,6 +249,11 @@ pub fn list(pipeline_dir: &Path) -> Vec<Listed> {
         .collect();
     names.sort();
     names
+}
+
+/// The experiments of the pipeline results `pipeline_dir`, by name.
+pub fn list(pipeline_dir: &Path) -> Vec<Listed> {
+    names(pipeline_dir)
         .into_iter()
         .map(|name| {
             let dir = folder(pipeline_dir, &name);

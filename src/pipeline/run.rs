@@ -237,8 +237,14 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let store = store(&opts.results_root, p, exp.as_ref());
     let dir = results_dir(&opts.results_root, p, exp.as_ref());
     let mut cleaned = store.clean_incomplete();
+    // What killed runs left in the published folders: the pipeline's, and
+    // every experiment's (a killed experiment may never be run again).
+    let pdir = pipeline_dir(&opts.results_root, p);
+    cleaned += cache::clean_temp_files(&pdir);
+    for name in experiment::names(&pdir) {
+        cleaned += cache::clean_temp_files(&experiment::folder(&pdir, &name));
+    }
     if let Some(e) = &mut exp {
-        cleaned += cache::clean_temp_files(&dir);
         let (recorded, before) = experiment::record(&dir, e)?;
         if let Some(before) = before {
             eprintln!(
@@ -249,7 +255,6 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         }
         *e = recorded;
     }
-    cleaned += cache::clean_temp_files(&pipeline_dir(&opts.results_root, p));
     let runner = Runner {
         pipeline: &p.name,
         store: &store,
