@@ -460,3 +460,40 @@ fn a_stage_cannot_be_named_like_a_folder_ltcal_writes_beside_the_stages() {
         );
     }
 }
+
+#[test]
+fn a_cluster_coordinator_publishes_an_experiment_to_its_folder() {
+    // Every point cached by a local run first: the coordinator submits
+    // nothing (no Slurm needed) and publishes as the local run would.
+    let dir = tempfile::tempdir().unwrap();
+    let results = dir.path().join("results");
+    let file = crate::util::root().join("tests/data/slurm/sweep.toml");
+    let run = |extra: &[&str]| {
+        let r = results.to_string_lossy().into_owned();
+        let mut args = vec!["run", file.to_str().unwrap(), "--results", &r, "-q"];
+        args.extend(extra);
+        let out = ltcal(dir.path(), &args);
+        assert_code(&out, 0);
+        stderr(&out)
+    };
+    let set = "stages.calibration.max_iters=60";
+    run(&[]);
+    let main = results.join("slurm-sweep");
+    let before = main_files(&main);
+    run(&["--set", set, "--name", "iters"]);
+    let exp = main.join("runs/iters");
+    let gathered = std::fs::read(exp.join("sweep/evaluation.criteria.parquet")).unwrap();
+    std::fs::remove_dir_all(&exp).unwrap();
+    let err = run(&["--set", set, "--name", "iters", "--executor", "slurm"]);
+    assert!(err.contains("0 ran, 5 cached"), "{err}");
+    assert!(
+        err.contains(&exp.join("index.html").display().to_string()),
+        "{err}"
+    );
+    assert_eq!(main_files(&main), before);
+    assert_eq!(
+        std::fs::read(exp.join("sweep/evaluation.criteria.parquet")).unwrap(),
+        gathered
+    );
+    assert!(exp.join("overrides.toml").is_file());
+}
