@@ -913,10 +913,10 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
                 }) {
                     Ok(replaced) => {
                         for (path, name, hash) in replaced {
-                            if !before
+                            let switched_back = before
                                 .as_ref()
-                                .is_some_and(|m| published_hash(m, &name) == Some(&hash))
-                            {
+                                .is_some_and(|m| published_hash(m, &name) == Some(&hash));
+                            if !switched_back {
                                 eprintln!(
                                     "note: restored {}: it differed from the cached result of `{}` \
                                      (edited or damaged)",

@@ -367,7 +367,10 @@ fn explain_compares_with_the_run_it_is_asked_about() {
     assert!(main["experiment"].is_null());
     assert_eq!(main["compared_with"], "main");
     // The experiment, by name or by its overrides: its own last run.
-    for e in [explain(&["--name", "s2"])] {
+    for e in [
+        explain(&["--name", "s2"]),
+        explain(&["--name", "s2", "--set", SEED2]),
+    ] {
         assert_eq!(e["status"], "cached");
         assert_eq!(e["key"], e["last_key"]);
         assert_ne!(e["key"], main["key"]);
