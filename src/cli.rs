@@ -289,10 +289,19 @@ fn overrides(p: &PipelineArgs) -> Result<Vec<Override>> {
 }
 
 /// The pipeline with its overrides, and the experiment the arguments name
-/// (`None`: the pipeline's own results).
+/// (`None`: the pipeline's own results), for a command that runs it: `--name`
+/// with `--set` defines (or redefines) the experiment.
+fn load_to_run(p: &PipelineArgs) -> Result<(pipeline::resolve::Pipeline, Option<Experiment>)> {
+    pipeline::load_target(&p.pipeline, &overrides(p)?, p.name.as_deref(), &p.results)
+}
+
+/// [`load_to_run`] for a command that looks at results: `--name` with
+/// `--set` must be the experiment's recorded overrides.
 fn load(p: &PipelineArgs) -> Result<(pipeline::resolve::Pipeline, Option<Experiment>)> {
-    let (pipeline, e) =
-        pipeline::load_target(&p.pipeline, &overrides(p)?, p.name.as_deref(), &p.results)?;
+    let (pipeline, e) = load_to_run(p)?;
+    if let Some(e) = e.as_ref().filter(|_| p.name.is_some()) {
+        experiment::check_recorded(&run::pipeline_dir(&p.results, &pipeline), e)?;
+    }
     Ok((pipeline, e))
 }
 
@@ -473,7 +482,7 @@ fn task_command(
 /// `ltcal snapshot`: runs the pipeline (cached stages cost nothing), then
 /// records or checks the `[snapshot]` tables.
 fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCode> {
-    let (pipeline, e) = load(p)?;
+    let (pipeline, e) = load_to_run(p)?;
     let snap = snapshot::of(&pipeline).map_err(|e| InputError::arg(e.to_string()))?;
     let report = run::run(
         &pipeline,
@@ -668,7 +677,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             executor,
             detach,
         } => {
-            let (pipeline, e) = load(&p)?;
+            let (pipeline, e) = load_to_run(&p)?;
             if let Some(n) = threads {
                 rayon::ThreadPoolBuilder::new()
                     .num_threads(n)

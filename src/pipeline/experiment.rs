@@ -180,6 +180,21 @@ fn equivalent(a: &[String], b: &[String]) -> bool {
     }
 }
 
+/// For a command that looks at the experiment `e` rather than running it:
+/// refuses overrides other than those its folder records (its tables were
+/// computed with those), exit 2.
+pub fn check_recorded(pipeline_dir: &Path, e: &Experiment) -> Result<()> {
+    match recorded(&folder(pipeline_dir, &e.name))? {
+        Some(r) if !equivalent(&r, &e.overrides) => Err(InputError::arg(format!(
+            "--name {}: the experiment was run with {}, not these overrides; leave out --set to \
+             look at it (a run with --name and --set replaces it)",
+            e.name,
+            set_args(&r)
+        ))),
+        _ => Ok(()),
+    }
+}
+
 /// Writes the experiment's `overrides.toml` in its folder `dir` (before
 /// it runs, so that a killed run's folder still says what it is), unless
 /// it records the same overrides already. Returns the experiment as

@@ -378,6 +378,20 @@ fn explain_compares_with_the_run_it_is_asked_about() {
         assert_eq!(e["experiment"], "s2");
         assert_eq!(e["compared_with"], "experiment");
     }
+    // The name with other overrides than it was run with: refused.
+    let out = cmd(
+        &results,
+        "explain",
+        &["measure_sphere_noisy", "--name", "s2", "--set", SEED3],
+    );
+    assert_code(&out, 2);
+    assert!(
+        stderr(&out).contains(&format!(
+            "--name s2: the experiment was run with --set {SEED2}, not these overrides"
+        )),
+        "{}",
+        stderr(&out)
+    );
     // A new experiment has no run of its own: compared with the main
     // results, its change named.
     let new = explain(&["--set", SEED3]);
