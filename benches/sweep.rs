@@ -59,6 +59,7 @@ fn run_once(file: &Path, results: PathBuf) {
             keep_going: false,
             progress: false,
             not_computed: None,
+            experiment: None,
         },
     )
     .unwrap();
@@ -137,6 +138,7 @@ fn cached_sweep(c: &mut Criterion) {
                     keep_going: false,
                     progress: false,
                     not_computed: None,
+                    experiment: None,
                 },
             )
             .unwrap();

@@ -1,12 +1,12 @@
 //! The command line: `ltcal run`, `status`, `verify`, `task`, `plan`, `explain`, `graph`, `snapshot`,
-//! `show`, `diagnose`, `kinds`, `completions`. What a script reads (tables,
+//! `show`, `runs`, `diagnose`, `kinds`, `completions`. What a script reads (tables,
 //! results) goes to stdout, progress and notes to stderr, and every command
 //! exits with the README's codes: 0 success, 1 the work did not succeed, 2
 //! the input is wrong.
 
 use crate::pipeline::{
-    self, InputError, cache::Store, cluster, explain, graph, plan, published, resolve::Override,
-    run, snapshot, status::Status,
+    self, InputError, cache::Store, cluster, experiment, experiment::Experiment, explain, graph,
+    plan, published, resolve::Override, run, snapshot, status::Status,
 };
 use crate::stages;
 use crate::table;
@@ -33,8 +33,15 @@ struct PipelineArgs {
     /// The pipeline file.
     pipeline: PathBuf,
     /// Override a setting: `stages.<stage>.<field>=<TOML value>` (repeatable).
+    /// A stage override makes the run an experiment, published to
+    /// `results/<pipeline>/runs/<name>/`, not to the pipeline's results.
     #[arg(long = "set", value_name = "PATH=VALUE")]
     set: Vec<String>,
+    /// The experiment's name (default with `--set`: `set-<hash of the
+    /// overrides>`); without `--set`, the experiment of that name with its
+    /// recorded overrides.
+    #[arg(long, value_name = "NAME")]
+    name: Option<String>,
     /// The folder that holds every pipeline's results.
     #[arg(long, default_value = "results")]
     results: PathBuf,
@@ -146,6 +153,15 @@ enum Command {
         /// The folder of recordings: `<dir>/<pipeline>/<stage>.<table>.txt`.
         #[arg(long, default_value = "tests/snapshots")]
         dir: PathBuf,
+    },
+    /// List a pipeline's experiments (runs with `--set`): name, status,
+    /// when its last run finished, its overrides; one a line, by name.
+    Runs {
+        /// The pipeline file.
+        pipeline: PathBuf,
+        /// The folder that holds every pipeline's results.
+        #[arg(long, default_value = "results")]
+        results: PathBuf,
     },
     /// Print a result table: `<stage>` (its first table) or `<stage>.<table>`.
     Show {
@@ -272,12 +288,48 @@ fn overrides(p: &PipelineArgs) -> Result<Vec<Override>> {
         .map_err(|e| InputError::arg(e.to_string()))
 }
 
-fn load(p: &PipelineArgs) -> Result<pipeline::resolve::Pipeline> {
-    pipeline::load(&p.pipeline, &overrides(p)?)
+/// The pipeline with its overrides, and the experiment the arguments name
+/// (`None`: the pipeline's own results), for a command that runs it: `--name`
+/// with `--set` defines (or redefines) the experiment.
+fn load_to_run(p: &PipelineArgs) -> Result<(pipeline::resolve::Pipeline, Option<Experiment>)> {
+    pipeline::load_target(&p.pipeline, &overrides(p)?, p.name.as_deref(), &p.results)
 }
 
-fn store(p: &PipelineArgs, pipeline: &pipeline::resolve::Pipeline) -> Store {
-    Store::new(&run::pipeline_dir(&p.results, pipeline))
+/// [`load_to_run`] for a command that looks at results: `--name` with
+/// `--set` must be the experiment's recorded overrides.
+fn load(p: &PipelineArgs) -> Result<(pipeline::resolve::Pipeline, Option<Experiment>)> {
+    let (pipeline, e) = load_to_run(p)?;
+    if let Some(e) = e.as_ref().filter(|_| p.name.is_some()) {
+        experiment::check_recorded(&run::pipeline_dir(&p.results, &pipeline), e)?;
+    }
+    Ok((pipeline, e))
+}
+
+fn store(
+    p: &PipelineArgs,
+    pipeline: &pipeline::resolve::Pipeline,
+    e: Option<&Experiment>,
+) -> Store {
+    run::store(&p.results, pipeline, e)
+}
+
+/// The command that brings these results up to date, for messages.
+fn rerun(p: &PipelineArgs, e: Option<&Experiment>) -> String {
+    match e {
+        Some(e) => format!("`ltcal run {} --name {}`", p.pipeline.display(), e.name),
+        None => format!("`ltcal run {}`", p.pipeline.display()),
+    }
+}
+
+/// Says which experiment a command is about, when it is one.
+fn say_experiment(e: Option<&Experiment>) {
+    if let Some(e) = e {
+        eprintln!(
+            "experiment `{}` ({})",
+            e.name,
+            experiment::set_args(&e.overrides)
+        );
+    }
 }
 
 /// Prints the run's outcome — counts, recomputed cache entries, skipped
@@ -394,11 +446,14 @@ fn task_command(
         pipeline.name,
         crate::fs::host_name()
     );
+    // A task publishes nothing: the coordinator passes its overrides as
+    // `--set`, and publishes to its experiment, if any.
     let opts = run::RunOptions {
         results_root: p.results.clone(),
         keep_going: true,
         progress: false,
         not_computed: None,
+        experiment: None,
     };
     let report = run::run_task(&pipeline, &opts, &indices, cpus, prefix)?;
     for (i, stage, why) in &report.failed {
@@ -427,7 +482,7 @@ fn task_command(
 /// `ltcal snapshot`: runs the pipeline (cached stages cost nothing), then
 /// records or checks the `[snapshot]` tables.
 fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCode> {
-    let pipeline = load(p)?;
+    let (pipeline, e) = load_to_run(p)?;
     let snap = snapshot::of(&pipeline).map_err(|e| InputError::arg(e.to_string()))?;
     let report = run::run(
         &pipeline,
@@ -436,13 +491,14 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
             keep_going: false,
             progress: false,
             not_computed: None,
+            experiment: e.clone(),
         },
     )?;
     if !report.failed().is_empty() {
         summarize(&report);
         bail!("the pipeline did not complete, so there is nothing to snapshot");
     }
-    let tables = snapshot::collect(&pipeline, snap, &report, &store(p, &pipeline))?;
+    let tables = snapshot::collect(&pipeline, snap, &report, &store(p, &pipeline, e.as_ref()))?;
     if !check {
         let files = snapshot::record(&pipeline, snap, &tables, dir)?;
         for f in &files {
@@ -472,6 +528,56 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
         );
         Ok(ExitCode::from(1))
     }
+}
+
+/// `ltcal runs`: the pipeline's experiments, one a line on stdout, by
+/// name: name, status, when its last run finished, its overrides as the
+/// `--set` arguments that run it again. Exit 1 when an experiment's record
+/// is damaged (listed, with why).
+fn runs_command(file: &Path, results: &Path) -> Result<ExitCode> {
+    let name = pipeline::name(file)?;
+    let listed = experiment::list(&results.join(&name));
+    if listed.is_empty() {
+        eprintln!(
+            "{name}: no experiments in {} (a run with --set makes one)",
+            results.join(&name).join(experiment::DIR).display()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let width = |f: fn(&experiment::Listed) -> usize| listed.iter().map(f).max().unwrap_or(0);
+    let (wn, ws) = (width(|l| l.name.len()), width(|l| l.status.len()));
+    let wf = width(|l| l.finished.as_ref().map_or(1, String::len));
+    let mut text = String::new();
+    for l in &listed {
+        let line = format!(
+            "{:wn$}  {:ws$}  {:wf$}  {}",
+            l.name,
+            l.status,
+            l.finished.as_deref().unwrap_or("-"),
+            experiment::set_args(&l.overrides)
+        );
+        text += line.trim_end();
+        text += "\n";
+    }
+    print_out(text)?;
+    let damaged: Vec<&experiment::Listed> = listed.iter().filter(|l| l.problem.is_some()).collect();
+    for l in &damaged {
+        eprintln!(
+            "experiment `{}`: {}",
+            l.name,
+            l.problem.as_deref().unwrap_or_default()
+        );
+    }
+    let damaged = damaged.len();
+    Ok(if damaged == 0 {
+        ExitCode::SUCCESS
+    } else {
+        eprintln!(
+            "{damaged} experiment record(s) damaged: `ltcal run {} --name <name> --set …` writes one again",
+            file.display()
+        );
+        ExitCode::from(1)
+    })
 }
 
 /// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs published
@@ -571,7 +677,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             executor,
             detach,
         } => {
-            let pipeline = load(&p)?;
+            let (pipeline, e) = load_to_run(&p)?;
             if let Some(n) = threads {
                 rayon::ThreadPoolBuilder::new()
                     .num_threads(n)
@@ -583,7 +689,11 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 keep_going,
                 progress: !quiet,
                 not_computed: None,
+                experiment: e.clone(),
             };
+            if !quiet {
+                say_experiment(e.as_ref());
+            }
             if executor == Executor::Local {
                 if detach {
                     return Err(InputError::arg(
@@ -601,18 +711,29 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                     .and_then(|_| signal_hook::flag::register(sig, interrupted.clone()))
                     .context("watching for Ctrl-C")?;
             }
+            // The tasks compute with every stage override, recorded ones
+            // too (`--name` alone), and the command line's `executor.*`.
+            let mut set_args: Vec<String> =
+                e.iter().flat_map(|e| e.overrides.iter().cloned()).collect();
+            set_args.extend(overrides(&p)?.into_iter().filter_map(|o| {
+                (o.path.first().map(String::as_str) != Some("stages")).then_some(o.text)
+            }));
             let cluster = cluster::ClusterOptions {
                 pipeline_file: p.pipeline.clone(),
-                set_args: p.set.clone(),
+                set_args,
                 detach,
                 interrupted,
             };
             match cluster::run(&pipeline, &opts, &cluster, &cluster::slurm::Slurm)? {
                 cluster::Outcome::Finished(report) => Ok(summarize(&report)),
                 cluster::Outcome::Detached { jobs, points } => {
+                    let named = e
+                        .as_ref()
+                        .map(|e| format!(" --name {}", e.name))
+                        .unwrap_or_default();
                     eprintln!(
                         "{}: {points} points submitted or running as Slurm job {}; \
-                         `ltcal status {}` shows where they stand, `ltcal run {} --executor slurm` picks up",
+                         `ltcal status {}{named}` shows where they stand, `ltcal run {}{named} --executor slurm` picks up",
                         pipeline.name,
                         jobs.join(", "),
                         p.pipeline.display(),
@@ -623,12 +744,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             }
         }
         Command::Status { p } => {
-            let pipeline = load(&p)?;
+            let (pipeline, e) = load(&p)?;
+            say_experiment(e.as_ref());
             if pipeline.sweep.is_none() {
                 // No points, no cluster jobs: what a status can still say is
                 // where the stages stand — and asking is no failure (exit 1
                 // says a stage failed).
-                let items = plan::plan(&pipeline, &store(&p, &pipeline));
+                let items = plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()));
                 let cached = items.iter().filter(|i| i.status == Status::Cached).count();
                 print_out(format!(
                     "{}: no [sweep], so no points or cluster jobs; {cached} of {} stages cached \
@@ -644,13 +766,15 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 keep_going: false,
                 progress: false,
                 not_computed: None,
+                experiment: e,
             };
             print_out(cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { p, repair } => {
-            let pipeline = load(&p)?;
-            let store = store(&p, &pipeline);
+            // The cache is every run's: an experiment's is the pipeline's.
+            let (pipeline, _) = load(&p)?;
+            let store = store(&p, &pipeline, None);
             let v = store.verify();
             for why in &v.problems {
                 eprintln!("  {why}");
@@ -707,8 +831,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             cpus,
         } => task_command(&p, &points, &code, &pipeline_hash, &prefix, cpus),
         Command::Plan { p, json, check } => {
-            let pipeline = load(&p)?;
-            let items = plan::plan(&pipeline, &store(&p, &pipeline));
+            let (pipeline, e) = load(&p)?;
+            let items = plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()));
             if json {
                 print_out(format!("{}\n", serde_json::to_string_pretty(&items)?))?;
             } else {
@@ -739,8 +863,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             point,
             json,
         } => {
-            let pipeline = load(&p)?;
-            let e = explain::explain(&pipeline, &store(&p, &pipeline), &stage, point)?;
+            let (pipeline, e) = load(&p)?;
+            let e = explain::explain(&pipeline, &store(&p, &pipeline, e.as_ref()), &stage, point)?;
             if json {
                 print_out(format!("{}\n", serde_json::to_string_pretty(&e)?))?;
             } else {
@@ -749,11 +873,12 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Graph { p, format } => {
-            let pipeline = load(&p)?;
-            let statuses: graph::Statuses = plan::plan(&pipeline, &store(&p, &pipeline))
-                .into_iter()
-                .map(|i| (i.stage, i.status))
-                .collect();
+            let (pipeline, e) = load(&p)?;
+            let statuses: graph::Statuses =
+                plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()))
+                    .into_iter()
+                    .map(|i| (i.stage, i.status))
+                    .collect();
             print_out(match format {
                 GraphFormat::Dot => graph::dot(&pipeline, &statuses),
                 GraphFormat::Mermaid => graph::mermaid(&pipeline, &statuses),
@@ -762,6 +887,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Snapshot { p, check, dir } => snapshot_command(&p, check, &dir),
+        Command::Runs { pipeline, results } => runs_command(&pipeline, &results),
         Command::Show {
             p,
             table,
@@ -820,14 +946,15 @@ fn show(
     limit: Option<usize>,
     digits: usize,
 ) -> Result<ExitCode> {
-    let pipeline = load(p)?;
-    let dir = run::pipeline_dir(&p.results, &pipeline);
+    let (pipeline, e) = load(p)?;
+    say_experiment(e.as_ref());
+    let dir = run::results_dir(&p.results, &pipeline, e.as_ref());
     let (stage, name) = match table.split_once('.') {
         Some((s, t)) => (s, Some(t)),
         None => (table, None),
     };
-    let rerun = format!("`ltcal run {}`", p.pipeline.display());
-    let store = store(p, &pipeline);
+    let rerun = rerun(p, e.as_ref());
+    let store = store(p, &pipeline, e.as_ref());
     let published = published::read(&pipeline, &store, &dir, stage, name, &rerun)?;
     if let Some(why) = &published.stale {
         eprintln!("note: this table is from an earlier run; {why}: run {rerun}");

@@ -311,6 +311,10 @@ pub struct Store {
     /// for it, with its identity ([`identity`]) just after: good without
     /// being read again.
     fresh: Mutex<BTreeMap<String, String>>,
+    /// The experiment (`results/<pipeline>/runs/<name>/`) whose last run
+    /// [`Store::last`] and [`Store::set_last`] are about; `None`: the
+    /// pipeline's main results. The entries are shared by every run.
+    experiment: Option<String>,
 }
 
 /// What the packs of the folder hold, by key: 40-odd bytes an entry, so
@@ -432,7 +436,20 @@ impl Store {
             packs: RwLock::new(None),
             pending: Mutex::new(Pending::default()),
             fresh: Mutex::new(BTreeMap::new()),
+            experiment: None,
         }
+    }
+
+    /// The same cache, its "last run" records those of the experiment
+    /// `name` (`.ltcal/last/runs/<name>/`) rather than of the main results.
+    pub fn for_experiment(mut self, name: &str) -> Store {
+        self.experiment = Some(name.to_string());
+        self
+    }
+
+    /// The experiment this store's "last run" records are about.
+    pub fn experiment(&self) -> Option<&str> {
+        self.experiment.as_deref()
     }
 
     fn packs_dir(&self) -> PathBuf {
@@ -1082,6 +1099,15 @@ impl Store {
         // `verified.json`'s temporaries sit in the root.
         let mut n = clean_temp_files_in(&self.root)
             + clean_temp_files_in(&self.root.join("last"))
+            // Every experiment's records (a killed one may never run again).
+            + fs::read_dir(self.root.join("last").join("runs"))
+                .into_iter()
+                .flatten()
+                .flatten()
+                // A link is not followed: it would reach outside.
+                .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+                .map(|e| clean_temp_files_in(&e.path()))
+                .sum::<usize>()
             + clean_temp_files_in(&self.packs_dir());
         let Ok(rd) = fs::read_dir(self.entries()) else {
             return n;
@@ -1105,12 +1131,26 @@ impl Store {
         n
     }
 
+    /// Where the "last run" records of this store's results are: the main
+    /// results' in `.ltcal/last/`, an experiment's below it (a stage's
+    /// record is a file, `<stage>.json`, so the folder `runs` is no stage's).
+    fn last_dir(&self) -> PathBuf {
+        let main = self.root.join("last");
+        match &self.experiment {
+            Some(name) => main.join("runs").join(name),
+            None => main,
+        }
+    }
+
     fn last_path(&self, stage: &str) -> PathBuf {
-        self.root.join("last").join(format!("{stage}.json"))
+        self.last_dir().join(format!("{stage}.json"))
     }
 
     /// The key fields of the last successful run of a stage of this name
-    /// (at this sweep point: what the packs record).
+    /// (at this sweep point: what the packs record, whichever run computed
+    /// it). Of the results this store is about: an experiment that has not
+    /// published the stage yet falls back on the main results' record — its
+    /// change is its overrides ([`Store::last_here`] does not fall back).
     pub fn last(&self, stage: &str, point: Option<usize>) -> Option<KeyFields> {
         match point {
             Some(i) => {
@@ -1132,16 +1172,32 @@ impl Store {
                 })?;
                 Some(self.manifest(&pack::key_hex(&key))?.ok()?.key_fields)
             }
-            None => {
-                let b = read_regular_file(&self.last_path(stage), MAX_MANIFEST_BYTES).ok()?;
-                serde_json::from_slice(&b).ok()
-            }
+            None => self.last_here(stage).or_else(|| {
+                self.experiment.as_ref()?;
+                read_last(&self.root.join("last").join(format!("{stage}.json")))
+            }),
         }
     }
 
+    /// The key fields of what the last run of these results (the main
+    /// results, or this store's experiment) published for `stage`.
+    pub fn last_here(&self, stage: &str) -> Option<KeyFields> {
+        read_last(&self.last_path(stage))
+    }
+
+    /// Records `k` as what the last run of these results published for
+    /// `stage`; writes nothing when that is already the record.
     pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
+        if self.last_here(stage).as_ref() == Some(k) {
+            return Ok(());
+        }
         write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
     }
+}
+
+fn read_last(path: &Path) -> Option<KeyFields> {
+    let b = read_regular_file(path, MAX_MANIFEST_BYTES).ok()?;
+    serde_json::from_slice(&b).ok()
 }
 
 /// A manifest, checked to be the one of `key`.

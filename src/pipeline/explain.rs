@@ -1,6 +1,10 @@
 //! `ltcal explain`: why a stage would run, or why it is cached — its current
 //! key fields against those of the last successful run of a stage of that
-//! name (`.ltcal/last/<stage>.json`), field by field.
+//! name in the results asked about (`.ltcal/last/<stage>.json` for the
+//! pipeline's own, `.ltcal/last/runs/<name>/<stage>.json` for an
+//! experiment's — or, for an experiment that has not published the stage,
+//! the pipeline's), field by field: what these results hold, whichever run
+//! computed it.
 //!
 //! A stage that runs at every point of a sweep is explained at one point
 //! (`--point`, else the first point that would run it, else point 0),
@@ -46,6 +50,13 @@ pub struct Explanation {
     pub key: Option<String>,
     /// The key of the last successful run of this stage, if any.
     pub last_key: Option<String>,
+    /// The experiment explained (`--name`, `--set`); `None`: the
+    /// pipeline's own results.
+    pub experiment: Option<String>,
+    /// Whose last run `last_key` is: `experiment` or `main` (an experiment
+    /// that has not published the stage is compared with the pipeline's
+    /// results), or `point` (a sweep point's last run, by any run).
+    pub compared_with: Option<String>,
     /// For a stage that runs per sweep point: the point explained.
     pub point: Option<PointInfo>,
     pub rows: Vec<Row>,
@@ -135,7 +146,17 @@ pub fn explain(
         }
     };
     let last = store.last(stage, at.as_ref().map(|i| i.index));
+    let compared_with = last.as_ref().map(|_| {
+        match (&at, store.experiment()) {
+            (Some(_), _) => "point",
+            (None, Some(_)) if store.last_here(stage).is_some() => "experiment",
+            (None, _) => "main",
+        }
+        .to_string()
+    });
     Ok(Explanation {
+        experiment: store.experiment().map(String::from),
+        compared_with,
         rows: rows(&a, last.as_ref()),
         last_key: last.as_ref().map(KeyFields::hash),
         point: at,
@@ -225,6 +246,17 @@ impl fmt::Display for Explanation {
             key(&self.key),
             key(&self.last_key)
         )?;
+        if let Some(name) = &self.experiment {
+            let whose = match self.compared_with.as_deref() {
+                Some("experiment") => format!("compared with the last run of experiment `{name}`"),
+                Some("main") => format!(
+                    "experiment `{name}` has not published it: compared with the pipeline's own results"
+                ),
+                Some(_) => "compared with the last run at that point, by any run".to_string(),
+                None => format!("experiment `{name}`"),
+            };
+            writeln!(f, "({whose})")?;
+        }
         if self.last_key.is_none() {
             writeln!(
                 f,

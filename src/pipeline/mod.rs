@@ -14,10 +14,12 @@
 //! [`panics`]) and writes the page [`report`]; [`explain`] says why a
 //! stage would run, [`graph`] draws the stages, [`snapshot`] records and
 //! checks result tables, [`published`] reads a published table back and
-//! says whether it is current.
+//! says whether it is current. A run with `--set` is an [`experiment`],
+//! published apart from the pipeline's results.
 
 pub mod cache;
 pub mod cluster;
+pub mod experiment;
 pub mod explain;
 pub mod graph;
 pub mod pack;
@@ -107,6 +109,44 @@ fn read(path: &Path) -> Result<Source, Problem> {
                 "not UTF-8 text: a pipeline file is TOML, which is UTF-8",
             ))
         })
+}
+
+/// [`load`] for a command about one run's results (`--name`, `--set`):
+/// the pipeline with its overrides, and the experiment it is, if any
+/// ([`experiment::target`]) — `--name` alone takes the experiment's
+/// recorded overrides, found under `results_root`.
+pub fn load_target(
+    path: &Path,
+    overrides: &[Override],
+    name: Option<&str>,
+    results_root: &Path,
+) -> anyhow::Result<(Pipeline, Option<experiment::Experiment>)> {
+    let src = read(path).map_err(|p| InputError(vec![p]))?;
+    let raw =
+        raw::parse(&src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    let pipeline_name = resolve::name_of(&raw);
+    let (exp, all) = if raw::valid_name(&pipeline_name) {
+        experiment::target(&results_root.join(pipeline_name), name, overrides)?
+    } else {
+        // Not a folder name: `resolve` says so.
+        (None, overrides.to_vec())
+    };
+    let p = resolve::resolve(&raw, &all).map_err(InputError)?;
+    Ok((p, exp))
+}
+
+/// The name of the pipeline in `path` (its results folder), from the file
+/// as written: nothing is resolved.
+pub fn name(path: &Path) -> anyhow::Result<String> {
+    let src = read(path).map_err(|p| InputError(vec![p]))?;
+    let raw =
+        raw::parse(&src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    let name = resolve::name_of(&raw);
+    if !raw::valid_name(&name) {
+        // `resolve` says why, at its place.
+        resolve::resolve(&raw, &[]).map_err(InputError)?;
+    }
+    Ok(name)
 }
 
 pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipeline> {

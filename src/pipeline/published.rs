@@ -1,5 +1,6 @@
 //! The tables `ltcal run` publishes under `results/<pipeline>/<stage>/`
-//! (and `results/<pipeline>/sweep/`), read back with the one check that says
+//! (and `results/<pipeline>/sweep/`; an experiment's under its folder,
+//! `results/<pipeline>/runs/<name>/`), read back with the one check that says
 //! whether a published table is the current result: its bytes must hash to
 //! the table of the cache entry the plan would use now. An edited or damaged
 //! file is refused; a result from an earlier run is returned with the reason

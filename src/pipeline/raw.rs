@@ -119,6 +119,14 @@ fn collect_spans(prefix: &str, v: &Spanned<DeValue<'_>>, out: &mut BTreeMap<Stri
     }
 }
 
+/// The folders ltcal writes beside the stage folders in
+/// `results/<pipeline>/`, which no stage's folder may be, and what they hold.
+const RESERVED_STAGE_NAMES: &[(&str, &str)] = &[
+    (super::experiment::DIR, "the experiments (runs with --set)"),
+    (super::sweep::PSEUDO_STAGE, "a sweep's gathered tables"),
+    ("slurm", "the cluster's job scripts and logs"),
+];
+
 /// A valid stage name: used in file names and references.
 pub fn valid_name(name: &str) -> bool {
     !name.is_empty()
@@ -236,6 +244,18 @@ fn parse_stage(
             name.span(),
             format!(
                 "stage name `{name_str}` may only use letters, digits, `_` and `-` (it names files)"
+            ),
+        )]);
+    }
+    if let Some(why) = RESERVED_STAGE_NAMES
+        .iter()
+        .find_map(|(n, why)| (*n == name_str).then_some(why))
+    {
+        return Err(vec![src.error(
+            name.span(),
+            format!(
+                "a stage cannot be named `{name_str}`: its folder would be \
+                 results/<pipeline>/{name_str}/, which holds {why}; rename the stage"
             ),
         )]);
     }

@@ -1,4 +1,5 @@
-//! `results/<pipeline>/index.html`: one page per pipeline, rewritten after
+//! `results/<pipeline>/index.html`: one page per pipeline (and one per
+//! experiment, in its folder, naming its overrides), rewritten after
 //! every run (a fully cached one too), readable straight from the file
 //! system — every link and image is a relative path, nothing is fetched.
 //!
@@ -120,6 +121,15 @@ pub fn page(p: &Pipeline, report: &RunReport, tables: &Tables) -> String {
     );
     if !p.description.is_empty() {
         let _ = writeln!(h, "<p>{}</p>", escape(&p.description));
+    }
+    if let Some(e) = &report.experiment {
+        let _ = writeln!(
+            h,
+            "<p><b>Experiment <code>{}</code></b>: <code>{}</code>. The pipeline's own results \
+             are <a href=\"../../index.html\">there</a>.</p>",
+            escape(&e.name),
+            escape(&super::experiment::set_args(&e.overrides)),
+        );
     }
     let count = |st: Status| report.with_status(st).len();
     let _ = writeln!(

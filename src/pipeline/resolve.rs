@@ -321,6 +321,20 @@ impl Pipeline {
     }
 }
 
+/// The pipeline's name (`[pipeline] name`, else the file's stem): it names
+/// the results folder. Checked by [`resolve`].
+pub fn name_of(raw: &RawPipeline) -> String {
+    match &raw.meta.name {
+        Some(n) => n.get_ref().clone(),
+        None => raw
+            .source
+            .path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "pipeline".into()),
+    }
+}
+
 /// Resolves a parsed file with overrides.
 pub fn resolve(raw: &RawPipeline, overrides: &[Override]) -> Result<Pipeline, Vec<Problem>> {
     resolve_checking(raw, overrides, None)
@@ -370,14 +384,7 @@ pub fn resolve_checking(
     if !problems.is_empty() {
         return Err(problems);
     }
-    let name = match &raw.meta.name {
-        Some(n) => n.get_ref().clone(),
-        None => src
-            .path
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "pipeline".into()),
-    };
+    let name = name_of(raw);
     if !super::raw::valid_name(&name) {
         let message = format!(
             "the pipeline name `{name}` may only use letters, digits, `_` and `-` (it names the results folder)"

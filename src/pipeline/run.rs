@@ -1,7 +1,15 @@
 //! The runner: executes a resolved pipeline level by level, stages of a level
 //! in parallel (rayon), reusing cached results, and publishes every stage's
 //! tables and figures under `results/<pipeline>/<stage>/`, the run report
-//! (`run.json`) and the page [`super::report`] (`index.html`).
+//! (`run.json`) and the page [`super::report`] (`index.html`) — or, for an
+//! [`super::experiment`] (a run with `--set`), the same under
+//! `results/<pipeline>/runs/<name>/`, the cache being shared.
+//!
+//! A published file that differs from the stage's cached result is
+//! replaced. It is reported as edited or damaged only when it is not what
+//! the last run of these results published either (its record,
+//! [`Store::set_last`], kept for every stage published, cached or not):
+//! going back to an earlier result is no damage.
 //!
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
 //! reported as a failure of that stage with its message; by default the run
@@ -17,6 +25,7 @@
 //! rather than silently repaired.
 
 use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord};
+use super::experiment::{self, Experiment};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
 use super::report;
@@ -46,6 +55,8 @@ pub struct RunOptions {
     /// failed with that reason, never computed here.
     /// Point → (the stage it failed at, why).
     pub not_computed: Option<Arc<BTreeMap<usize, (String, String)>>>,
+    /// Publish to this experiment's folder, not the pipeline's results.
+    pub experiment: Option<Experiment>,
 }
 
 /// What happened to one stage.
@@ -72,7 +83,12 @@ pub struct StageReport {
 #[derive(Clone, Debug, Serialize)]
 pub struct RunReport {
     pub pipeline: String,
+    /// The folder the run published to.
     pub results: PathBuf,
+    /// The experiment the run was (a run with `--set`); absent for the
+    /// pipeline's own results.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub experiment: Option<Experiment>,
     pub started: String,
     pub finished: String,
     /// Leftovers of killed runs (incomplete entries, temporary files)
@@ -153,9 +169,29 @@ pub fn timestamp(t: SystemTime) -> String {
     humantime::format_rfc3339_millis(t).to_string()
 }
 
-/// The folder of one pipeline's results.
+/// The folder of one pipeline's results (and cache).
 pub fn pipeline_dir(root: &Path, p: &Pipeline) -> PathBuf {
     root.join(&p.name)
+}
+
+/// The folder a run publishes to: the pipeline's results, or the
+/// experiment's folder below them.
+pub fn results_dir(root: &Path, p: &Pipeline, e: Option<&Experiment>) -> PathBuf {
+    let dir = pipeline_dir(root, p);
+    match e {
+        Some(e) => experiment::folder(&dir, &e.name),
+        None => dir,
+    }
+}
+
+/// The cache of the pipeline, its "last run" records those of the results
+/// `e` names.
+pub fn store(root: &Path, p: &Pipeline, e: Option<&Experiment>) -> Store {
+    let store = Store::new(&pipeline_dir(root, p));
+    match e {
+        Some(e) => store.for_experiment(&e.name),
+        None => store,
+    }
 }
 
 /// What a sweep did: how many points ran at least one stage, how many
@@ -197,9 +233,28 @@ struct Runner<'a> {
 /// Runs the pipeline (and, with a `[sweep]`, every point of it).
 pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let started = SystemTime::now();
-    let dir = pipeline_dir(&opts.results_root, p);
-    let store = Store::new(&dir);
-    let cleaned = store.clean_incomplete() + cache::clean_temp_files(&dir);
+    let mut exp = opts.experiment.clone();
+    let store = store(&opts.results_root, p, exp.as_ref());
+    let dir = results_dir(&opts.results_root, p, exp.as_ref());
+    let mut cleaned = store.clean_incomplete();
+    // What killed runs left in the published folders: the pipeline's, and
+    // every experiment's (a killed experiment may never be run again).
+    let pdir = pipeline_dir(&opts.results_root, p);
+    cleaned += cache::clean_temp_files(&pdir);
+    for name in experiment::names(&pdir) {
+        cleaned += cache::clean_temp_files(&experiment::folder(&pdir, &name));
+    }
+    if let Some(e) = &mut exp {
+        let (recorded, before) = experiment::record(&dir, e)?;
+        if let Some(before) = before {
+            eprintln!(
+                "note: experiment `{}` had other overrides ({}); its results are replaced",
+                e.name,
+                experiment::set_args(&before)
+            );
+        }
+        *e = recorded;
+    }
     let runner = Runner {
         pipeline: &p.name,
         store: &store,
@@ -248,6 +303,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
     let report = RunReport {
         pipeline: p.name.clone(),
         results: dir.clone(),
+        experiment: exp,
         started: timestamp(started),
         finished: timestamp(SystemTime::now()),
         cleaned,
@@ -714,6 +770,7 @@ pub fn run_task(
             sw.len()
         ));
     }
+    // Nothing is published: the experiment, if any, is the coordinator's.
     let dir = pipeline_dir(&opts.results_root, p);
     let store = Store::new(&dir);
     // What killed tasks on this machine left (another machine's are left
@@ -838,17 +895,35 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             Ok(prod) => {
                 report.status = Status::Cached;
                 fill(&mut report, &entry.manifest);
-                match publish(runner, &s.name, &entry) {
-                    // The cached result is the stage's result: a published
-                    // copy that differs was edited or damaged since.
+                // What these results published last: a copy that differs
+                // from the cached result but is that is an earlier result,
+                // switched back from; one that is neither was edited or
+                // damaged since.
+                let before = runner
+                    .publish
+                    .then(|| store.last_here(&s.name))
+                    .flatten()
+                    .and_then(|k| store.manifest(&k.hash()))
+                    .and_then(Result::ok);
+                match publish(runner, &s.name, &entry).and_then(|replaced| {
+                    if runner.publish {
+                        store.set_last(&s.name, &kf)?;
+                    }
+                    Ok(replaced)
+                }) {
                     Ok(replaced) => {
-                        for path in replaced {
-                            eprintln!(
-                                "note: restored {}: it differed from the cached result of `{}` \
-                                 (edited or damaged)",
-                                path.display(),
-                                s.name
-                            );
+                        for (path, name, hash) in replaced {
+                            let switched_back = before
+                                .as_ref()
+                                .is_some_and(|m| published_hash(m, &name) == Some(&hash));
+                            if !switched_back {
+                                eprintln!(
+                                    "note: restored {}: it differed from the cached result of `{}` \
+                                     (edited or damaged)",
+                                    path.display(),
+                                    s.name
+                                );
+                            }
                         }
                     }
                     Err(e) => {
@@ -949,8 +1024,10 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         match runner.point {
             None => {
                 store.put(&entry)?;
-                store.set_last(&s.name, &kf)?;
+                // Published first: a record never names what the folder
+                // does not hold.
                 publish(runner, &s.name, &entry)?;
+                store.set_last(&s.name, &kf)?;
             }
             Some(i) => store.put_packed(entry.clone(), i),
         }
@@ -998,11 +1075,21 @@ fn decode(entry: &Entry) -> Result<Produced> {
     Ok(Produced { tables })
 }
 
-/// Copies an entry's tables and files to `results/<pipeline>/<stage>/`,
-/// atomically, skipping files that are already identical.
-/// Copies an entry's tables and files to `results/<pipeline>/<stage>/`,
-/// writing only what differs; returns the existing files it replaced.
-fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<PathBuf>> {
+/// The content hash the manifest `m` records for its published file `name`
+/// (`<table>.parquet` or a figure).
+fn published_hash<'a>(m: &'a Manifest, name: &str) -> Option<&'a String> {
+    let table = name.strip_suffix(".parquet");
+    m.tables
+        .iter()
+        .find(|t| Some(t.name.as_str()) == table)
+        .map(|t| &t.hash)
+        .or_else(|| m.files.iter().find(|f| f.name == name).map(|f| &f.hash))
+}
+
+/// Copies an entry's tables and files to `<results>/<stage>/`, atomically,
+/// writing only what differs; returns the existing files it replaced:
+/// path, file name and the content hash of the replaced copy.
+fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<(PathBuf, String, String)>> {
     let mut replaced = Vec::new();
     if !runner.publish {
         return Ok(replaced);
@@ -1014,12 +1101,12 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<PathBuf>> 
         .map(|(n, b)| (format!("{n}.parquet"), b))
         .chain(entry.files.iter().map(|(n, b)| (n.clone(), b)));
     for (name, bytes) in items {
-        let path = out.join(name);
+        let path = out.join(&name);
         match crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES) {
             Ok(old) if old == *bytes => continue,
-            Ok(_) => {
+            Ok(old) => {
                 crate::fs::write_atomic(&path, bytes)?;
-                replaced.push(path);
+                replaced.push((path, name, cache::hash_bytes(&old)));
             }
             Err(_) => crate::fs::write_atomic(&path, bytes)?,
         }

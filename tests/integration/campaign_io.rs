@@ -729,6 +729,8 @@ fn the_import_export_pipeline_round_trips_example_00() {
                 tmp.path().join("results").to_str().unwrap(),
                 "--set",
                 &format!("stages.export.path='{}'", out.display()),
+                "--name",
+                "to-tmp",
             ])
             .output()
             .unwrap()
@@ -743,9 +745,10 @@ fn the_import_export_pipeline_round_trips_example_00() {
         read_ok(&out),
         read_ok(&examples_dir().join("example-00-none"))
     );
+    // A run with --set is an experiment, published in its own folder.
     let export = crate::util::table(
         &tmp.path().join("results"),
-        "import-export",
+        "import-export/runs/to-tmp",
         "export",
         "export",
     );

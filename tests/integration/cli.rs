@@ -58,7 +58,8 @@ pub fn published(results: &Path, pipeline: &str) -> BTreeMap<String, Vec<u8>> {
     let mut out = BTreeMap::new();
     for stage in std::fs::read_dir(&dir).unwrap().flatten() {
         let name = stage.file_name().to_string_lossy().into_owned();
-        if name.starts_with('.') || !stage.path().is_dir() {
+        // `runs/` holds the experiments, not a stage's files.
+        if name.starts_with('.') || name == "runs" || !stage.path().is_dir() {
             continue;
         }
         for f in std::fs::read_dir(stage.path()).unwrap().flatten() {

@@ -554,6 +554,7 @@ fn opts(results: &Path) -> run::RunOptions {
         keep_going: false,
         progress: false,
         not_computed: None,
+        experiment: None,
     }
 }
 

@@ -10,6 +10,7 @@ mod conventions;
 mod diagnose;
 mod effects;
 mod errors;
+mod experiments;
 mod file_safety;
 mod fuzz;
 mod fuzz_files;

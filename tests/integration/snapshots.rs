@@ -56,6 +56,8 @@ fn a_difference_beyond_tolerance_is_shown_row_by_row() {
             r.to_str().unwrap(),
             "--set",
             "stages.measure_sphere_noisy.seed=2",
+            "--name",
+            "seed2",
         ],
     );
     assert_code(&out, 1);
@@ -68,9 +70,10 @@ fn a_difference_beyond_tolerance_is_shown_row_by_row() {
         ),
         "{s}"
     );
+    // The run with --set is an experiment, published in its own folder.
     let now = table(
         &r,
-        "synthetic-validation",
+        "synthetic-validation/runs/seed2",
         "evaluate_sphere_noisy",
         "summary",
     );

@@ -24,6 +24,7 @@ pub fn run_pipeline(file: &Path, results: &Path, sets: &[&str]) -> run::RunRepor
             keep_going: false,
             progress: false,
             not_computed: None,
+            experiment: None,
         },
     )
     .unwrap();
