@@ -109,18 +109,51 @@ fn the_layering_check_sees_every_way_of_naming_a_layer() {
     assert!(names_a_layer_above("use crate::pipelines_of_pipes;").is_none());
 }
 
-#[test]
-fn every_file_ltcal_writes_goes_through_fs() {
+/// `code` without its `#[cfg(test)]` items (test modules, test-only
+/// functions and imports), each cut from the attribute to the end of its
+/// item — the matching `}` of its first `{`, or its `;` — so that shipped
+/// code after a test item is still read (splitting at the first
+/// `#[cfg(test)]` left `sparse.rs:301–1080` and `linear.rs:151–787`
+/// unchecked).
+fn shipped(code: &str) -> String {
+    let mut out = String::new();
+    let mut rest = code;
+    while let Some(at) = rest.find("#[cfg(test)]") {
+        out.push_str(&rest[..at]);
+        let item = &rest[at + "#[cfg(test)]".len()..];
+        let end = match (item.find('{'), item.find(';')) {
+            (Some(open), semi) if semi.is_none_or(|s| open < s) => {
+                let mut depth = 0usize;
+                item[open..]
+                    .char_indices()
+                    .find_map(|(i, c)| {
+                        match c {
+                            '{' => depth += 1,
+                            '}' => depth -= 1,
+                            _ => {}
+                        }
+                        (depth == 0).then_some(open + i + 1)
+                    })
+                    .unwrap_or(item.len())
+            }
+            (_, Some(semi)) => semi + 1,
+            _ => item.len(),
+        };
+        rest = &item[end..];
+    }
+    out.push_str(rest);
+    out
+}
+
+/// The files of `src/` (but `own`) whose shipped code contains one of
+/// `calls`, each with the calls found.
+fn calls_outside(own: &[&str], calls: &[&str]) -> Vec<String> {
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-    let writes = ["File::create", "fs::write(", "OpenOptions", "fs::copy("];
-    let offending: Vec<String> = rust_files(&src)
+    rust_files(&src)
         .into_iter()
-        .filter(|p| p != &src.join("fs.rs"))
+        .filter(|p| !own.iter().any(|o| p == &src.join(o)))
         .filter_map(|p| {
-            // Unit tests may damage files on purpose.
-            let text = code(&p);
-            let shipped = text.split("#[cfg(test)]").next().unwrap_or_default();
-            let found: Vec<&str> = writes.into_iter().filter(|w| shipped.contains(w)).collect();
+            let found = found_calls(&shipped(&code(&p)), calls);
             (!found.is_empty()).then(|| {
                 format!(
                     "{} uses {}",
@@ -129,12 +162,51 @@ fn every_file_ltcal_writes_goes_through_fs() {
                 )
             })
         })
-        .collect();
+        .collect()
+}
+
+fn found_calls<'a>(code: &str, calls: &[&'a str]) -> Vec<&'a str> {
+    calls.iter().copied().filter(|c| code.contains(c)).collect()
+}
+
+const WRITES: [&str; 4] = ["File::create", "fs::write(", "OpenOptions", "fs::copy("];
+const READS: [&str; 3] = ["fs::read(", "fs::read_to_string(", "File::open("];
+
+/// Unit tests may damage files on purpose: test items are not checked.
+#[test]
+fn every_file_ltcal_writes_goes_through_fs() {
+    let offending = calls_outside(&["fs.rs"], &WRITES);
     assert!(
         offending.is_empty(),
         "files are written only by src/fs.rs (write_atomic, write_staged):\n  {}",
         offending.join("\n  ")
     );
+}
+
+/// ARCHITECTURE.md: a file ltcal did not just write is read through
+/// `fs::read_regular_file` (a regular file, bounded). `code.rs` is exempt:
+/// it is compiled into `build.rs` too, where `crate::fs` does not exist,
+/// and reads only the crate's own sources; `source_scan.rs` is a test-only
+/// module (declared under `#[cfg(test)]` in `lib.rs`).
+#[test]
+fn every_file_ltcal_reads_goes_through_read_regular_file() {
+    let offending = calls_outside(&["fs.rs", "code.rs", "source_scan.rs"], &READS);
+    assert!(
+        offending.is_empty(),
+        "read files through fs::read_regular_file:\n  {}",
+        offending.join("\n  ")
+    );
+}
+
+/// Both rules see a call after a test item, and neither sees one inside it.
+#[test]
+fn the_file_access_checks_read_past_test_items() {
+    let planted = "fn a() {}\n#[cfg(test)]\nmod tests { fn t() { std::fs::write(p, b); std::fs::read(p); } }\n\
+                   #[cfg(test)]\nuse std::fs::File;\nfn shipped() { let f = File::create(p); let b = std::fs::read_to_string(p); }\n";
+    let code = shipped(planted);
+    assert_eq!(found_calls(&code, &WRITES), ["File::create"]);
+    assert_eq!(found_calls(&code, &READS), ["fs::read_to_string("]);
+    assert!(!code.contains("mod tests") && !code.contains("use std::fs::File"));
 }
 
 /// ARCHITECTURE.md: `hypothesis/` knows nothing of campaigns, the
