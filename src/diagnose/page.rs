@@ -107,3 +107,25 @@ pub fn html(d: &Diagnosis, figures: &Figures) -> String {
     h.push_str("</body>\n</html>\n");
     h
 }
+
+#[cfg(test)]
+mod tests {
+    use super::markdown;
+
+    /// Campaign text in a table cell (a station id, a target name) is shown,
+    /// not interpreted; the report's own Markdown still renders.
+    #[test]
+    fn raw_html_in_the_markdown_is_escaped_and_tables_render() {
+        let h = markdown("| where |\n|---|\n| <b>S1</b> & <script>x</script> |\n\n<div>y</div>\n");
+        assert!(h.contains("<table>"), "{h}");
+        assert!(
+            h.contains("<td>&lt;b&gt;S1&lt;/b&gt; &amp; &lt;script&gt;x&lt;/script&gt;</td>"),
+            "{h}"
+        );
+        assert!(h.contains("&lt;div&gt;y&lt;/div&gt;"), "{h}");
+        assert!(
+            !h.contains("<b>") && !h.contains("<script") && !h.contains("<div"),
+            "{h}"
+        );
+    }
+}
