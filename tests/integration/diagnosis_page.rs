@@ -152,6 +152,8 @@ fn report_html_escapes_the_campaign_name() {
             .count(),
         svg_files(&out).len()
     );
+    // A folder with report.html is an earlier diagnosis: replaced again.
+    assert_eq!(diagnose(dir.path(), &campaign, &[]).1, out);
 }
 
 /// The console messages Chromium logs while it loads `page`.
