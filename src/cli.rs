@@ -613,6 +613,7 @@ fn diagnose_command(
     // empty): `--out .` must not delete the user's files.
     crate::fs::check_replaceable(out, "a diagnosis", "diagnosis.csv", |name| {
         name == "report.md"
+            || name == "report.html"
             || name == "discovered.toml"
             || [".csv", ".parquet", ".svg"]
                 .iter()

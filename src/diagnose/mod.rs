@@ -67,6 +67,7 @@ pub mod localise;
 pub mod models;
 pub mod open_check;
 pub mod output;
+pub mod page;
 
 use crate::calibrate::snooping::{self, WTest};
 use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};

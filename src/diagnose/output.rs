@@ -419,11 +419,84 @@ pub fn csv(df: &DataFrame) -> Result<Vec<u8>> {
     w.into_inner().map_err(|e| anyhow!("writing CSV: {e}"))
 }
 
-/// The diagnosis in words.
+/// The diagnosis in words, as Markdown: `report.md` joins the parts in
+/// the order of the analysis ([`Sections::markdown`]), the page
+/// (`super::page`) in the order a reader asks. One source of the words.
+pub struct Sections {
+    /// `# Diagnosis of …`.
+    pub title: String,
+    /// `**Verdict:** …` ([`verdict`]).
+    pub verdict: String,
+    /// `## Base calibration`: χ², the held-out residual, the noise floor.
+    pub base: String,
+    /// `## Where`: the significant factors.
+    pub place: String,
+    /// `## What is left`: what the set leaves, per factor.
+    pub left: String,
+    /// `## Which tracker model`; empty when no model was compared.
+    pub models: String,
+    /// The `## Which` heading.
+    pub which: String,
+    /// How many candidates were tried, and how the set is built.
+    pub tried: String,
+    /// The ranking's table (magnitude ± u), and what the set leaves in words.
+    pub ranking: String,
+    /// The candidates skipped, with why; empty when none.
+    pub skipped: String,
+    /// The readings rejected as blunders; empty when none.
+    pub blunders: String,
+    /// `## How far`: the held-out residual before and after the set.
+    pub how_far: String,
+}
+
+impl Sections {
+    /// `report.md`.
+    pub fn markdown(&self) -> String {
+        [
+            &self.title,
+            &self.verdict,
+            &self.base,
+            &self.place,
+            &self.left,
+            &self.models,
+            &self.which,
+            &self.tried,
+            &self.ranking,
+            &self.skipped,
+            &self.blunders,
+            &self.how_far,
+        ]
+        .into_iter()
+        .map(String::as_str)
+        .collect()
+    }
+}
+
+/// The diagnosis in words (`report.md`).
 pub fn report(d: &Diagnosis) -> String {
+    sections(d).markdown()
+}
+
+/// The figures left out, with why (appended to `report.md`); empty when
+/// every figure was drawn.
+pub fn figures_left_out(notes: &[String]) -> String {
+    let mut s = String::new();
+    if !notes.is_empty() {
+        s.push_str("\n## Figures left out\n\n");
+        for note in notes {
+            let _ = writeln!(s, "- {note}");
+        }
+    }
+    s
+}
+
+/// The report's parts (see [`Sections`]).
+pub fn sections(d: &Diagnosis) -> Sections {
     let mut s = String::new();
     let _ = writeln!(s, "# Diagnosis of `{}`\n", d.campaign);
+    let title = std::mem::take(&mut s);
     let _ = writeln!(s, "**Verdict:** {}.\n", verdict(d));
+    let verdict = std::mem::take(&mut s);
     let _ = writeln!(s, "## Base calibration\n");
     // After a model mismatch the diagnosis stands on the model that fits.
     let b = d.best();
@@ -464,6 +537,7 @@ pub fn report(d: &Diagnosis) -> String {
         d.noise_floor_um,
         held_out - d.noise_floor_um
     );
+    let base = std::mem::take(&mut s);
     let _ = writeln!(s, "## Where\n");
     let sig: Vec<_> = d.factors.iter().filter(|t| t.significant).collect();
     if sig.is_empty() {
@@ -487,6 +561,7 @@ pub fn report(d: &Diagnosis) -> String {
         }
         s.push('\n');
     }
+    let place = std::mem::take(&mut s);
     let _ = writeln!(s, "## What is left\n");
     let left: Vec<_> = d.unexplained.iter().filter(|l| l.significant).collect();
     if left.is_empty() {
@@ -522,6 +597,7 @@ pub fn report(d: &Diagnosis) -> String {
         }
         s.push('\n');
     }
+    let left = std::mem::take(&mut s);
     if !d.models.is_empty() {
         let _ = writeln!(s, "## Which tracker model\n");
         let _ = writeln!(
@@ -543,7 +619,9 @@ pub fn report(d: &Diagnosis) -> String {
         }
         s.push('\n');
     }
+    let models = std::mem::take(&mut s);
     let _ = writeln!(s, "## Which\n");
+    let which = std::mem::take(&mut s);
     let _ = writeln!(
         s,
         "{} candidate explanations were tried (alternatives included; the significance threshold is Bonferroni-corrected for them).\n",
@@ -554,11 +632,14 @@ pub fn report(d: &Diagnosis) -> String {
         "The explanation set is built step by step: the most significant candidate (an effect, or the worst reading by Baarda's w-test over {} reading coordinates) joins the model, the campaign is adjusted again with it, and every other candidate is tested against the augmented model; α is spent as α·2⁻ˢ over the steps.\n",
         d.blunder_tests
     );
+    let tried = std::mem::take(&mut s);
     let _ = writeln!(
         s,
         "| rank | step | effect | where | magnitude ± u | score (%) | significant | held-out RMS before → after (µm) | gap shrink (%) |\n|---|---|---|---|---|---|---|---|---|"
     );
-    for r in d.rows.iter().take(10) {
+    // `none` is not a candidate but what the set leaves: said in words
+    // below the table, never a row that reads as a significant member.
+    for r in d.rows.iter().filter(|r| r.effect != "none").take(10) {
         let _ = writeln!(
             s,
             "| {} | {} | {} | {} | {:.3}{} {} | {:.1} | {} | {:.2} → {:.2} | {:.1} |",
@@ -576,12 +657,32 @@ pub fn report(d: &Diagnosis) -> String {
             r.gap_shrink_pct
         );
     }
+    if let Some(r) = d.rest() {
+        let _ = writeln!(
+            s,
+            "\nWhat the explanation set leaves (rank {}, `none`: not a candidate) has χ²/dof = {:.3} ({}), held-out RMS {:.2} µm. Rest consistent with the stated noise: {}.",
+            r.rank,
+            r.magnitude,
+            r.detail,
+            r.rms_before_um,
+            if r.significant {
+                "yes".to_string()
+            } else {
+                format!(
+                    "no ({})",
+                    r.place.trim_start_matches("unexplained structure: ")
+                )
+            }
+        );
+    }
+    let ranking = std::mem::take(&mut s);
     if !d.skipped.is_empty() {
         let _ = writeln!(s, "\nSkipped, not guessed:\n");
         for k in &d.skipped {
             let _ = writeln!(s, "- `{}`: {}", k.effect, k.reason);
         }
     }
+    let skipped = std::mem::take(&mut s);
     let blunders: Vec<&super::Row> = d.explanation().filter(|r| r.effect == "blunder").collect();
     if !blunders.is_empty() {
         let _ = writeln!(s, "\nReadings rejected as blunders:\n");
@@ -593,6 +694,7 @@ pub fn report(d: &Diagnosis) -> String {
             );
         }
     }
+    let blunders_text = std::mem::take(&mut s);
     let _ = writeln!(s, "\n## How far\n");
     let b = d.best();
     let set: Vec<&super::Row> = d.explanation().collect();
@@ -628,7 +730,20 @@ pub fn report(d: &Diagnosis) -> String {
             b.gap_shrink_pct
         );
     }
-    s
+    Sections {
+        title,
+        verdict,
+        base,
+        place,
+        left,
+        models,
+        which,
+        tried,
+        ranking,
+        skipped,
+        blunders: blunders_text,
+        how_far: s,
+    }
 }
 
 /// One SVG per factor: the residuals against it. A factor whose values

@@ -26,8 +26,10 @@
 //! `chi2_p`, `noise_stated`, `noise_floor_um`, `tried`, `blunder_tests`,
 //! `explanation`, `set_rms_before_um`, `set_rms_after_um`,
 //! `set_gap_shrink_pct`, `verdict`), `skipped` (`effect`, `reason`); files
-//! `diagnosis.csv`, `report.md`, `residuals-<factor>.svg` and, when a
-//! factor localises what is left, `unexplained.svg` (its fitted shape).
+//! `diagnosis.csv`, `report.md`, `report.html` (the same words and the
+//! figures inlined: [`crate::diagnose::page`]), `residuals-<factor>.svg`
+//! and, when a factor localises what is left, `unexplained.svg` (its
+//! fitted shape).
 
 use super::{Context, Invalid, Slot, StageFile, StageInputs, StageKind, StageOutput, fitting};
 use crate::campaign::{self, Campaign};
@@ -202,12 +204,8 @@ pub fn outputs(d: &Diagnosis) -> Result<StageOutput> {
     let table = output::diagnosis_table(d)?;
     let figures = output::figures(d)?;
     let mut report = output::report(d);
-    if !figures.notes.is_empty() {
-        report.push_str("\n## Figures left out\n\n");
-        for note in &figures.notes {
-            report.push_str(&format!("- {note}\n"));
-        }
-    }
+    report.push_str(&output::figures_left_out(&figures.notes));
+    let page = diagnose::page::html(d, &figures);
     let unexplained = output::unexplained_table(d)?;
     let shapes = output::unexplained_shapes_table(d)?;
     let mut out = StageOutput::default()
@@ -215,6 +213,7 @@ pub fn outputs(d: &Diagnosis) -> Result<StageOutput> {
         .file("unexplained.csv".into(), output::csv(&unexplained)?)
         .file("unexplained-shapes.csv".into(), output::csv(&shapes)?)
         .file("report.md".into(), report.into_bytes())
+        .file("report.html".into(), page.into_bytes())
         .table("diagnosis", table)
         .table("where", output::where_table(d)?)
         .table("residuals", output::residuals_table(d)?)

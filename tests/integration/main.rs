@@ -8,6 +8,7 @@ mod cli;
 mod columns;
 mod conventions;
 mod diagnose;
+mod diagnosis_page;
 mod effects;
 mod errors;
 mod experiments;

@@ -25,7 +25,7 @@ fn run_synthetic(results: &Path) {
 }
 
 /// Headless Chromium, which CI installs (`.ci/run`).
-fn chromium() -> PathBuf {
+pub(crate) fn chromium() -> PathBuf {
     let path = std::env::var_os("PATH").unwrap_or_default();
     for dir in std::env::split_paths(&path).chain([PathBuf::from("/usr/bin")]) {
         for name in ["chromium", "chromium-browser"] {
