@@ -195,7 +195,7 @@ impl StageKind for PaperGapStage {
                     stats.iter().map(|x| x.map(|x| share(x.0))).collect(),
                 );
             bars.push((
-                format!("{criterion} (paper {paper:.2} %)"),
+                format!("{} (paper {paper:.2} %)", plots::axis_title(criterion)),
                 stats.iter().map(|x| x.map_or(f64::NAN, |x| x.0)).collect(),
             ));
         }
