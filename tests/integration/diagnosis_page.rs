@@ -4,9 +4,8 @@
 //! without a console error. And `report.md`'s ranking: the `none` row (what
 //! the set leaves) is said in words, never a ranked member.
 
-use crate::cli::{assert_code, ltcal, stderr, stdout};
+use crate::cli::{assert_code, ltcal, stdout};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 fn example(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -158,29 +157,9 @@ fn report_html_escapes_the_campaign_name() {
 
 /// The console messages Chromium logs while it loads `page`.
 fn console_messages(page: &Path) -> Vec<String> {
-    let profile = tempfile::tempdir().unwrap();
-    let out = Command::new(crate::report::chromium())
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--enable-logging=stderr",
-            "--v=0",
-            &format!("--user-data-dir={}", profile.path().display()),
-            "--dump-dom",
-            &format!("file://{}", page.display()),
-        ])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "chromium: {}", stderr(&out));
-    assert!(stdout(&out).contains("</svg>"), "{}", stdout(&out));
-    stderr(&out)
-        .lines()
+    let (dom, log) = crate::report::render(page, true);
+    assert!(dom.contains("</svg>"), "{dom}");
+    log.lines()
         .filter(|l| l.contains(":CONSOLE"))
         .map(str::to_string)
         .collect()

@@ -41,27 +41,37 @@ pub(crate) fn chromium() -> PathBuf {
     );
 }
 
+/// `page` loaded by headless Chromium: its DOM after the load event, and
+/// what Chromium wrote on stderr — with `console_log`, the page's console
+/// messages among it (lines with `:CONSOLE`).
+pub(crate) fn render(page: &Path, console_log: bool) -> (String, String) {
+    let profile = tempfile::tempdir().unwrap();
+    let mut args = vec![
+        "--headless".to_string(),
+        "--no-sandbox".into(),
+        "--disable-gpu".into(),
+        "--disable-quic".into(),
+        "--no-first-run".into(),
+        "--disable-background-networking".into(),
+        "--disable-component-update".into(),
+        "--disable-sync".into(),
+    ];
+    if console_log {
+        args.extend(["--enable-logging=stderr".into(), "--v=0".into()]);
+    }
+    args.extend([
+        format!("--user-data-dir={}", profile.path().display()),
+        "--dump-dom".into(),
+        format!("file://{}", page.display()),
+    ]);
+    let out = Command::new(chromium()).args(&args).output().unwrap();
+    assert!(out.status.success(), "chromium: {}", stderr(&out));
+    (stdout(&out), stderr(&out))
+}
+
 /// The DOM of `page` after its load event, as rendered by Chromium.
 fn rendered_dom(page: &Path) -> String {
-    let profile = tempfile::tempdir().unwrap();
-    let out = Command::new(chromium())
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            &format!("--user-data-dir={}", profile.path().display()),
-            "--dump-dom",
-            &format!("file://{}", page.display()),
-        ])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "chromium: {}", stderr(&out));
-    stdout(&out)
+    render(page, false).0
 }
 
 /// Every `<img …>` tag of a DOM.
