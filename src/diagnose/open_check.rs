@@ -302,11 +302,7 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
             .is_some_and(|k| r.effect == k.effect && (!k.has_place || r.place == k.place))
     };
     let effects_named = named.iter().filter(|r| r.effect != "blunder").count();
-    let top_factor = d
-        .unexplained
-        .iter()
-        .find(|l| l.significant)
-        .map_or(String::new(), |l| l.factor.to_string());
+    let top_factor = top_factor(&d);
     Ok(Case {
         case,
         kind,
@@ -337,6 +333,15 @@ fn run_case(plan: &Plan, case: usize) -> Result<Case> {
         known,
         mismatch_named: None,
     })
+}
+
+/// The first significant entry of the diagnosis's `unexplained` (empty:
+/// none), as both kinds of case report it.
+fn top_factor(d: &Diagnosis) -> String {
+    d.unexplained
+        .iter()
+        .find(|l| l.significant)
+        .map_or(String::new(), |l| l.factor.to_string())
 }
 
 /// The catalogue effect of a case, drawn through its plug-in as the
@@ -457,11 +462,7 @@ fn wrong_model_case(
         catalogue_as_cause: effects_named > 0
             && d.explained()
             && !named.iter().any(|r| is_mismatch(r)),
-        top_factor: d
-            .unexplained
-            .iter()
-            .find(|l| l.significant)
-            .map_or(String::new(), |l| l.factor.to_string()),
+        top_factor: top_factor(&d),
         factor_correct: false,
         false_blunders: named.iter().filter(|r| r.effect == "blunder").count(),
         clean_readings: readings.len(),
