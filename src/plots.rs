@@ -143,13 +143,56 @@ fn legend<'a, CT: CoordTranslate>(
         .map_err(err)
 }
 
-/// The legend in the corner of the plotting area where it hides the
-/// fewest of `points` (data coordinates): its box, estimated from the
-/// labels' lengths at `font_size` (plotters measures no text without system
-/// fonts), is laid at each corner in turn and the points under it counted;
-/// ties go to the upper right, the upper left, the lower right, the lower
-/// left, in that order. A legend in a fixed corner hid ~78 markers of
-/// Figure 8 (noisy) and the ends of the coverage bars.
+/// The width in pixels of `text` in a sans-serif font of `font_px` pixels:
+/// Helvetica's advance widths (the metrics of Arial and Liberation Sans,
+/// which browsers substitute), 0.6 em for what the table lacks. plotters
+/// measures no text without system fonts, so legends, label de-overlap and
+/// the figure layout test (`tests/integration/figure_layout.rs`) all
+/// estimate with this.
+pub fn text_width_px(text: &str, font_px: f64) -> f64 {
+    // Advance widths of ' ' to '~' in thousandths of an em.
+    const ASCII: [u16; 95] = [
+        278, 278, 355, 556, 556, 889, 667, 191, 333, 333, 389, 584, 278, 333, 278,
+        278, // ' '–'/'
+        556, 556, 556, 556, 556, 556, 556, 556, 556, 556, 278, 278, 584, 584, 584,
+        556, // '0'–'?'
+        1015, 667, 667, 722, 722, 667, 611, 778, 722, 278, 500, 667, 556, 833, 722,
+        778, // '@'–'O'
+        667, 778, 722, 667, 611, 722, 667, 944, 667, 667, 611, 278, 278, 278, 469,
+        556, // 'P'–'_'
+        333, 556, 556, 500, 556, 556, 278, 556, 556, 222, 222, 500, 222, 833, 556,
+        556, // '`'–'o'
+        556, 556, 333, 500, 278, 556, 500, 722, 500, 500, 500, 334, 260, 334,
+        584, // 'p'–'~'
+    ];
+    let em: f64 = text
+        .chars()
+        .map(|c| match c {
+            ' '..='~' => f64::from(ASCII[c as usize - 32]) / 1000.0,
+            '°' => 0.4,
+            '±' | '×' | 'µ' => 0.584,
+            '—' => 1.0,
+            '–' => 0.556,
+            _ => 0.6,
+        })
+        .sum();
+    em * font_px
+}
+
+/// The pixel size plotters gives a font of `points` in SVG (it writes
+/// `font-size` as points / 1.24).
+pub fn font_px(points: f64) -> f64 {
+    points / 1.24
+}
+
+/// The legend where it hides the fewest of `points` (data coordinates),
+/// computed: its box, estimated from the labels' widths at `font_size`
+/// ([`text_width_px`]) and grown by a marker's radius, is tried at the four
+/// corners of the plotting area and then on an 8-pixel grid over it, and
+/// the first place hiding the fewest points wins — a corner when one is as
+/// good as anywhere. Corners alone hid ~78 markers of Figure 8 (noisy), the
+/// ends of the coverage bars, and 65–113 points of Figures 6–8 whose empty
+/// band lies mid-height.
 fn legend_clear_of<'a, CT: CoordTranslate>(
     chart: &mut ChartContext<'a, SVGBackend<'a>, CT>,
     points: impl Iterator<Item = CT::From>,
@@ -157,35 +200,44 @@ fn legend_clear_of<'a, CT: CoordTranslate>(
     font_size: u32,
 ) -> Result<()> {
     let (xs, ys) = chart.plotting_area().get_pixel_range();
-    let chars = labels.iter().map(|l| l.chars().count()).max().unwrap_or(0) as i32;
-    let f = font_size as i32;
-    // Text at ~0.6 em a character, the marker, padding; a row of 1.3 em.
+    let px = font_px(f64::from(font_size));
+    let widest = labels
+        .iter()
+        .map(|l| text_width_px(l, px))
+        .fold(0.0, f64::max);
+    // plotters' box: the text, a 30-pixel marker column, 10-pixel margins;
+    // a row of ~1.3 em.
     let (w, h) = (
-        chars * f * 6 / 10 + 45,
-        labels.len() as i32 * f * 13 / 10 + 12,
+        widest.ceil() as i32 + 50,
+        (labels.len() as f64 * px * 1.3).ceil() as i32 + 20,
     );
     let pixels: Vec<(i32, i32)> = points
         .map(|p| chart.as_coord_spec().translate(&p))
         .collect();
-    let corners = [
-        (SeriesLabelPosition::UpperRight, xs.end - w, ys.start),
-        (SeriesLabelPosition::UpperLeft, xs.start, ys.start),
-        (SeriesLabelPosition::LowerRight, xs.end - w, ys.end - h),
-        (SeriesLabelPosition::LowerLeft, xs.start, ys.end - h),
-    ];
-    let hidden = |x0: i32, y0: i32| {
+    let (right, bottom) = (xs.end - xs.start - w - 5, ys.end - ys.start - h - 5);
+    let corners = [(right, 5), (5, 5), (right, bottom), (5, bottom)];
+    let grid = (5..=bottom.max(5))
+        .step_by(8)
+        .flat_map(|y| (5..=right.max(5)).step_by(8).map(move |x| (x, y)));
+    const CLEARANCE: i32 = 4;
+    let hidden = |&(x0, y0): &(i32, i32)| {
+        let (x0, y0) = (xs.start + x0 - CLEARANCE, ys.start + y0 - CLEARANCE);
         pixels
             .iter()
-            .filter(|(x, y)| (x0..=x0 + w).contains(x) && (y0..=y0 + h).contains(y))
+            .filter(|(x, y)| {
+                (x0..=x0 + w + 2 * CLEARANCE).contains(x)
+                    && (y0..=y0 + h + 2 * CLEARANCE).contains(y)
+            })
             .count()
     };
-    let best = corners
+    let (x, y) = corners
         .into_iter()
+        .chain(grid)
         .enumerate()
-        .min_by_key(|(i, (_, x0, y0))| (hidden(*x0, *y0), *i))
-        .map(|(_, (p, _, _))| p)
-        .unwrap_or(SeriesLabelPosition::UpperRight);
-    legend(chart, best, font_size)
+        .min_by_key(|(i, at)| (hidden(at), *i))
+        .map(|(_, at)| at)
+        .unwrap_or((right, 5));
+    legend(chart, SeriesLabelPosition::Coordinate(x, y), font_size)
 }
 
 /// One mesh point with its error before and after calibration.
@@ -236,13 +288,29 @@ fn bounds(v: impl Iterator<Item = f64>) -> (f64, f64) {
 
 fn mesh_3d(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError], emax: f64) -> Result<()> {
     let m = |v: f64| v / 1000.0;
-    let (x0, x1) = bounds(pts.iter().map(|p| m(p.x_mm)));
-    let (y0, y1) = bounds(pts.iter().map(|p| m(p.y_mm)));
-    let (z0, z1) = bounds(pts.iter().map(|p| m(p.z_mm)));
+    // One span for the three axes, so that the mesh keeps its shape: a
+    // plane mesh drawn on its own x range spread 2 mm over the whole width
+    // and labelled 4.999 … 5.001.
+    let ranges = [
+        bounds(pts.iter().map(|p| m(p.x_mm))),
+        bounds(pts.iter().map(|p| m(p.y_mm))),
+        bounds(pts.iter().map(|p| m(p.z_mm))),
+    ];
+    let half = ranges
+        .iter()
+        .map(|(lo, hi)| (hi - lo) / 2.0)
+        .fold(0.0, f64::max);
+    let [x, y, z] = ranges.map(|(lo, hi)| {
+        let mid = (lo + hi) / 2.0;
+        span(mid - half, mid + half)
+    });
+    let (x, y, z) = (x?, y?, z?);
+    let x_end = x.end;
     let mut chart = ChartBuilder::on(area)
         .margin(20)
+        .margin_left(36)
         .caption("mesh, coloured by error before", ("sans-serif", 18))
-        .build_cartesian_3d(span(x0, x1)?, span(z0, z1)?, span(y0, y1)?)
+        .build_cartesian_3d(x, z, y)
         .map_err(err)?;
     chart.with_projection(|mut p| {
         p.yaw = 0.6;
@@ -255,6 +323,15 @@ fn mesh_3d(area: &DrawingArea<SVGBackend, Shift>, pts: &[PointError], emax: f64)
         .x_labels(5)
         .y_labels(5)
         .z_labels(5)
+        // x ends where y begins: a label near x's far end would print over
+        // y's first ("10.010.0").
+        .x_formatter(&|v| {
+            if x_end - v < 0.15 * 2.0 * half {
+                String::new()
+            } else {
+                format!("{v:.1}")
+            }
+        })
         .label_style(("sans-serif", 12))
         .draw()
         .map_err(err)?;
@@ -378,7 +455,11 @@ pub fn criterion_errors(
                 .label(name)
                 .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
         }
-        legend(&mut chart, SeriesLabelPosition::MiddleRight, 14)?;
+        let drawn = order
+            .iter()
+            .enumerate()
+            .flat_map(|(x, &i)| [(x, before[i]), (x, after[i])]);
+        legend_clear_of(&mut chart, drawn, &series.map(|(name, _, _)| name), 14)?;
         Ok(())
     })
 }
@@ -1144,13 +1225,7 @@ pub fn uncertainty_ellipses(
     // A round magnification that makes the largest ellipse 4 % of the
     // plot: 1, 2 or 5 times a power of ten.
     let magnification = if largest_mm > 0.0 {
-        let raw = 0.04 * extent * 1000.0 / largest_mm;
-        let p = 10f64.powf(raw.log10().floor());
-        [5.0, 2.0, 1.0]
-            .into_iter()
-            .map(|m| m * p)
-            .find(|m| *m <= raw)
-            .unwrap_or(p)
+        round_below(0.04 * extent * 1000.0 / largest_mm)
     } else {
         1.0
     };
@@ -1171,50 +1246,128 @@ pub fn uncertainty_ellipses(
             .draw()
             .map_err(err)?;
         let ink = RGBColor(44, 113, 142);
-        for p in targets {
-            if let Some(c) = &p.cov_xy_mm2 {
-                let (a, b, angle) = axes(c);
-                let k = 2.448 * magnification / 1000.0;
+        let red = RGBColor(200, 60, 40);
+        let k = 2.448 * magnification / 1000.0;
+        let rings: Vec<Vec<(f64, f64)>> = targets
+            .iter()
+            .filter_map(|p| {
+                let (a, b, angle) = axes(p.cov_xy_mm2.as_ref()?);
                 let (sn, cs) = angle.sin_cos();
-                let ring: Vec<(f64, f64)> = (0..=64)
-                    .map(|i| {
-                        let t = i as f64 / 64.0 * std::f64::consts::TAU;
-                        let (u, v) = (k * a * t.cos(), k * b * t.sin());
-                        (p.x_m + u * cs - v * sn, p.y_m + u * sn + v * cs)
-                    })
-                    .collect();
-                chart
-                    .draw_series(std::iter::once(PathElement::new(ring, ink.stroke_width(2))))
-                    .map_err(err)?;
+                Some(
+                    (0..=64)
+                        .map(|i| {
+                            let t = i as f64 / 64.0 * std::f64::consts::TAU;
+                            let (u, v) = (k * a * t.cos(), k * b * t.sin());
+                            (p.x_m + u * cs - v * sn, p.y_m + u * sn + v * cs)
+                        })
+                        .collect(),
+                )
+            })
+            .collect();
+        chart
+            .draw_series(
+                rings
+                    .iter()
+                    .map(|ring| PathElement::new(ring.clone(), ink.stroke_width(2))),
+            )
+            .map_err(err)?
+            .label(format!("95 % ellipse, ×{magnification}"))
+            .legend(move |(x, y)| Circle::new((x + 8, y), 6, ink.stroke_width(2)));
+        chart
+            .draw_series(
+                targets
+                    .iter()
+                    .map(|p| Circle::new((p.x_m, p.y_m), 2, BLACK.filled())),
+            )
+            .map_err(err)?
+            .label("reflector")
+            .legend(|(x, y)| Circle::new((x + 8, y), 2, BLACK.filled()));
+        chart
+            .draw_series(
+                stations
+                    .iter()
+                    .map(|s| TriangleMarker::new((s.x_m, s.y_m), 7, red.filled())),
+            )
+            .map_err(err)?
+            .label("station")
+            .legend(move |(x, y)| TriangleMarker::new((x + 8, y), 7, red.filled()));
+        // Reflectors at one plan position (several heights) share a label:
+        // one each printed "T09" over "T17".
+        let mut places: Vec<(f64, f64, Vec<&str>)> = Vec::new();
+        for p in targets {
+            match places
+                .iter_mut()
+                .find(|(x, y, _)| (x - p.x_m).hypot(y - p.y_m) < 0.01 * extent)
+            {
+                Some((_, _, names)) => names.push(&p.label),
+                None => places.push((p.x_m, p.y_m, vec![&p.label])),
             }
-            chart
-                .draw_series([
-                    Circle::new((p.x_m, p.y_m), 2, BLACK.filled()).into_dyn(),
-                    Text::new(
-                        p.label.clone(),
-                        (p.x_m, p.y_m),
-                        ("sans-serif", 10).into_font(),
-                    )
-                    .into_dyn(),
-                ])
-                .map_err(err)?;
         }
         chart
-            .draw_series(stations.iter().flat_map(|s| {
-                [
-                    TriangleMarker::new((s.x_m, s.y_m), 7, RGBColor(200, 60, 40).filled())
-                        .into_dyn(),
-                    Text::new(
-                        s.label.clone(),
-                        (s.x_m, s.y_m),
-                        ("sans-serif", 12).into_font(),
-                    )
-                    .into_dyn(),
-                ]
+            .draw_series(places.iter().map(|(x, y, names)| {
+                Text::new(names.join(", "), (*x, *y), ("sans-serif", 10).into_font())
             }))
             .map_err(err)?;
+        chart
+            .draw_series(stations.iter().map(|s| {
+                Text::new(
+                    s.label.clone(),
+                    (s.x_m, s.y_m),
+                    ("sans-serif", 12).into_font(),
+                )
+            }))
+            .map_err(err)?;
+        // The magnification's scale: a round true length whose drawn
+        // segment fits the legend's marker column.
+        let at = |x: f64| chart.as_coord_spec().translate(&(x, cy)).0;
+        let px_per_mm = f64::from(at(cx + k) - at(cx)) / 2.448;
+        let scale_mm = round_below(24.0 / px_per_mm.max(1e-300));
+        let scale_px = (scale_mm * px_per_mm).round() as i32;
+        chart
+            .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
+            .map_err(err)?
+            .label(format!("{} (true size)", length_label(scale_mm)))
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + scale_px, y)], BLACK.stroke_width(2))
+            });
+        let drawn: Vec<(f64, f64)> = rings
+            .iter()
+            .flatten()
+            .copied()
+            .chain(stations.iter().chain(targets).map(|p| (p.x_m, p.y_m)))
+            .collect();
+        let labels = [
+            format!("95 % ellipse, ×{magnification}"),
+            "reflector".into(),
+            "station".into(),
+            format!("{} (true size)", length_label(scale_mm)),
+        ];
+        let labels: Vec<&str> = labels.iter().map(String::as_str).collect();
+        legend_clear_of(&mut chart, drawn.into_iter(), &labels, 12)?;
         Ok(())
     })
+}
+
+/// The largest 1, 2 or 5 × 10ⁿ not above `v` (> 0).
+fn round_below(v: f64) -> f64 {
+    let p = 10f64.powf(v.log10().floor());
+    [5.0, 2.0, 1.0]
+        .into_iter()
+        .map(|m| m * p)
+        .find(|m| *m <= v)
+        .unwrap_or(p)
+}
+
+/// A length in mm written in the unit that keeps it between 1 and 1000:
+/// "20 nm", "5 µm", "2 mm".
+fn length_label(mm: f64) -> String {
+    if mm >= 1.0 {
+        format!("{mm} mm")
+    } else if mm >= 1e-3 {
+        format!("{} µm", (mm * 1e3 * 1e6).round() / 1e6)
+    } else {
+        format!("{} nm", (mm * 1e6 * 1e6).round() / 1e6)
+    }
 }
 
 /// Layout design: one panel of horizontal bars per quantity (σ_min, O1, …),
@@ -1536,22 +1689,31 @@ pub fn grouped_bars(
     })
 }
 
-/// A sensitivity matrix: one row per parameter, one cell per test (tests in
-/// the groups `col_groups` names, `(label, count)`, left to right), each
-/// cell shaded by its magnitude against the row's largest, which is written
-/// at the row's end — so that a parameter's pattern over the tests shows
-/// whatever its size.
+/// The B89 sensitivity matrix: one row per parameter, one column per test
+/// (named under it, rotated), each cell `|value| / the row's largest` on
+/// viridis (grey where the test does not see the parameter), the row's
+/// largest written at its end, the tests grouped under their columns, and
+/// the colour scale beside.
 pub fn sensitivity_matrix(
     title: &str,
     rows: &[String],
     col_groups: &[(String, usize)],
+    col_labels: &[String],
     values: &[Vec<f64>],
 ) -> Result<String> {
     let (n_rows, n_cols) = (rows.len().max(1), values.first().map_or(1, Vec::len).max(1));
     let (cell_w, cell_h) = (12_i32, 22_i32);
     let (left, top) = (190_i32, 60_i32);
-    let width = left + cell_w * n_cols as i32 + 130;
-    let height = top + cell_h * n_rows as i32 + 90;
+    let label_font = 10.0;
+    let label_len = col_labels
+        .iter()
+        .map(|l| text_width_px(l, font_px(label_font)))
+        .fold(0.0, f64::max)
+        .ceil() as i32;
+    let cells_right = left + cell_w * n_cols as i32;
+    let width = cells_right + 110 + 120;
+    let cells_bottom = top + cell_h * n_rows as i32;
+    let height = cells_bottom + 8 + label_len + 50;
     figure((width as u32, height as u32), |root| {
         let style = ("sans-serif", 18).into_text_style(root);
         root.draw_text(title, &style, (20, 16)).map_err(err)?;
@@ -1572,11 +1734,26 @@ pub fn sensitivity_matrix(
                 ))
                 .map_err(err)?;
             }
-            let x_end = left + cell_w * n_cols as i32 + 8;
-            label_at(root, &format!("{max:.3}"), (x_end, y + 4), HPos::Left)?;
+            label_at(
+                root,
+                &format!("{max:.3}"),
+                (cells_right + 8, y + 4),
+                HPos::Left,
+            )?;
+        }
+        // Each test's distance, height and azimuth, read downwards.
+        let turned = ("sans-serif", label_font)
+            .into_font()
+            .transform(FontTransform::Rotate90)
+            .into_text_style(root)
+            .pos(Pos::new(HPos::Left, VPos::Center));
+        for (j, label) in col_labels.iter().enumerate() {
+            let x = left + cell_w * j as i32 + cell_w / 2;
+            root.draw_text(label, &turned, (x, cells_bottom + 4))
+                .map_err(err)?;
         }
         // The test groups under the columns, with a tick at each boundary.
-        let y_axis = top + cell_h * n_rows as i32 + 4;
+        let y_axis = cells_bottom + 8 + label_len;
         let mut at = 0_i32;
         for (label, count) in col_groups {
             let (x0, w) = (left + cell_w * at, cell_w * *count as i32);
@@ -1591,8 +1768,25 @@ pub fn sensitivity_matrix(
         label_at(
             root,
             "largest |sensitivity| of the row (µm per µm or µrad)",
-            (left + cell_w * n_cols as i32 + 8, top - 22),
+            (cells_right + 100, top - 22),
             HPos::Right,
+        )?;
+        let bar = root.clone().shrink(
+            (cells_right + 110, top - 10),
+            (110, (cells_bottom - top + 20) as u32),
+        );
+        let layout = BarLayout {
+            margin_top: 10,
+            margin_bottom: 10,
+            ..FIGURE_BAR
+        };
+        colour_bar(
+            &bar,
+            0.0,
+            1.0,
+            "|sensitivity| / row's largest",
+            viridis,
+            &layout,
         )?;
         Ok(())
     })

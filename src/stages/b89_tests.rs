@@ -389,6 +389,10 @@ impl StageKind for B89TestsStage {
             ),
             &labels,
             &column_groups(&tests),
+            &tests
+                .iter()
+                .map(|t| format!("{} m, {:+} m, {}°", t.distance_m, t.height_m, t.az_deg))
+                .collect::<Vec<_>>(),
             &by_param,
         )?;
         Ok(StageOutput::default()

@@ -12,6 +12,7 @@ mod diagnosis_page;
 mod effects;
 mod errors;
 mod experiments;
+mod figure_layout;
 mod file_safety;
 mod fuzz;
 mod fuzz_files;
