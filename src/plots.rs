@@ -892,13 +892,37 @@ fn heat_map(area: &DrawingArea<SVGBackend, Shift>, h: &HeatMap) -> Result<()> {
         .disable_mesh()
         .x_desc(h.x_desc)
         .y_desc(h.y_desc)
-        .x_labels(h.x.len())
-        .y_labels(h.y.len())
-        .x_label_formatter(&|v| format!("{v}"))
-        .y_label_formatter(&|v| format!("{v}"))
+        .x_labels(0)
+        .y_labels(0)
         .label_style(("sans-serif", 10))
         .draw()
         .map_err(err)?;
+    // A label at each cell's centre: plotters' own round ticks (every 10°)
+    // fell between cells 7.5° apart.
+    let tick = |anchor: Pos| ("sans-serif", 10).into_text_style(&plot).pos(anchor);
+    let (bx, by) = plot.get_base_pixel();
+    let at = |v| {
+        let (px, py) = chart.backend_coord(&v);
+        (px - bx, py - by)
+    };
+    for &x in h.x {
+        let (px, py) = at((x, y0));
+        plot.draw_text(
+            &format!("{x}"),
+            &tick(Pos::new(HPos::Center, VPos::Top)),
+            (px, py + 4),
+        )
+        .map_err(err)?;
+    }
+    for &y in h.y {
+        let (px, py) = at((x0, y));
+        plot.draw_text(
+            &format!("{y}"),
+            &tick(Pos::new(HPos::Right, VPos::Center)),
+            (px - 4, py),
+        )
+        .map_err(err)?;
+    }
     let span = (h.hi - h.lo).max(1e-12);
     for (i, row) in h.z.iter().enumerate() {
         // A cell without a value (NaN) stays blank.
@@ -1469,6 +1493,18 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
             .label_style(("sans-serif", 12))
             .draw()
             .map_err(err)?;
+        let green = |t: f64| {
+            RGBColor(
+                (230.0 - 170.0 * t) as u8,
+                (245.0 - 85.0 * t) as u8,
+                (230.0 - 170.0 * t) as u8,
+            )
+        };
+        let red = |t: f64| RGBColor(250, (225.0 - 150.0 * t) as u8, (225.0 - 150.0 * t) as u8);
+        let centred = ("sans-serif", 16)
+            .into_font()
+            .into_text_style(root)
+            .pos(Pos::new(HPos::Center, VPos::Center));
         for (i, row) in counts.iter().enumerate() {
             for (j, &c) in row.iter().enumerate() {
                 let y = (n - 1 - i) as f64 - 0.5;
@@ -1477,13 +1513,9 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
                 let colour = if c == 0 {
                     RGBColor(245, 245, 245)
                 } else if i == j {
-                    RGBColor(
-                        (230.0 - 170.0 * t) as u8,
-                        (245.0 - 85.0 * t) as u8,
-                        (230.0 - 170.0 * t) as u8,
-                    )
+                    green(t)
                 } else {
-                    RGBColor(250, (225.0 - 150.0 * t) as u8, (225.0 - 150.0 * t) as u8)
+                    red(t)
                 };
                 chart
                     .draw_series(std::iter::once(Rectangle::new(
@@ -1494,11 +1526,33 @@ pub fn confusion_matrix(title: &str, labels: &[String], counts: &[Vec<usize>]) -
                 chart
                     .draw_series(std::iter::once(Text::new(
                         c.to_string(),
-                        (x + 0.42, y + 0.42),
-                        ("sans-serif", 16).into_font(),
+                        (x + 0.5, y + 0.5),
+                        centred.clone(),
                     )))
                     .map_err(err)?;
             }
+        }
+        // The colour key, under the row names: a shade per count, green
+        // where the diagnosis named the true effect, red where it did not.
+        for (k, (name, shade)) in [
+            ("named right", &green as &dyn Fn(f64) -> RGBColor),
+            ("named wrong", &red),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let y = 690 + 24 * k as i32;
+            label_at(root, name, (20, y), HPos::Left)?;
+            for step in 0..10 {
+                let x = 100 + 8 * step;
+                root.draw(&Rectangle::new(
+                    [(x, y), (x + 8, y + 14)],
+                    shade((step as f64 + 0.5) / 10.0).filled(),
+                ))
+                .map_err(err)?;
+            }
+            label_at(root, "1", (96, y), HPos::Right)?;
+            label_at(root, &format!("{max}"), (184, y), HPos::Left)?;
         }
         // The class names under and beside the cells' centres.
         for (i, name) in labels.iter().enumerate() {

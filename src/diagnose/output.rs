@@ -540,10 +540,25 @@ pub fn sections(d: &Diagnosis) -> Sections {
     let base = std::mem::take(&mut s);
     let _ = writeln!(s, "## Where\n");
     let sig: Vec<_> = d.factors.iter().filter(|t| t.significant).collect();
-    if sig.is_empty() {
+    let named: Vec<String> = d
+        .explanation()
+        .map(|r| match r.place.as_str() {
+            "" | "all" => r.effect.clone(),
+            place => format!("{} at {place}", r.effect),
+        })
+        .collect();
+    if sig.is_empty() && named.is_empty() {
         let _ = writeln!(
             s,
             "No factor explains a significant share of the residual variance.\n"
+        );
+    } else if sig.is_empty() {
+        // "Where" and "Which" must not seem to disagree: the set is found
+        // by fitting its signatures, which this one-factor test cannot.
+        let _ = writeln!(
+            s,
+            "No single factor's groups differ significantly, yet *Which* names {}: each member's signature is fitted as columns of the adjustment over every reading at once, while this test compares one factor's group means at a time, so an effect of this size shows there and not here.\n",
+            named.join(", ")
         );
     } else {
         let _ = writeln!(
