@@ -179,6 +179,41 @@ pub fn text_width_px(text: &str, font_px: f64) -> f64 {
     em * font_px
 }
 
+/// A box in pixels, `[left, top, right, bottom]`.
+pub type PixelBox = [f64; 4];
+
+/// Where a label of `w` × `h` pixels goes: the first of `candidates` (its
+/// left end, vertically centred) whose box meets none of `taken`, or the
+/// first candidate when all do; its box is added to `taken`. Labels set
+/// one after the other through here never print over each other while
+/// there is room: edge labels of the stage graph converging on one stage
+/// printed "points" over "errors".
+pub fn place_label(
+    candidates: impl IntoIterator<Item = (f64, f64)>,
+    w: f64,
+    h: f64,
+    taken: &mut Vec<PixelBox>,
+) -> (f64, f64) {
+    let boxed = |(x, y): (f64, f64)| [x, y - h / 2.0, x + w, y + h / 2.0];
+    let clear = |b: &PixelBox| {
+        taken
+            .iter()
+            .all(|t| b[2] <= t[0] || t[2] <= b[0] || b[3] <= t[1] || t[3] <= b[1])
+    };
+    let mut first = None;
+    let mut chosen = None;
+    for at in candidates {
+        first.get_or_insert(at);
+        if clear(&boxed(at)) {
+            chosen = Some(at);
+            break;
+        }
+    }
+    let at = chosen.or(first).unwrap_or((0.0, 0.0));
+    taken.push(boxed(at));
+    at
+}
+
 /// The pixel size plotters gives a font of `points` in SVG (it writes
 /// `font-size` as points / 1.24).
 pub fn font_px(points: f64) -> f64 {

@@ -10,6 +10,7 @@
 use super::plan::Graph;
 use super::resolve::Pipeline;
 use super::status::Status;
+use crate::plots;
 use anyhow::{Result, anyhow};
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -148,10 +149,10 @@ fn font(px: f64, colour: RGBColor, pos: Pos) -> TextStyle<'static> {
         .pos(pos)
 }
 
-/// Generous width of text in a sans-serif font of `px` pixels (average
-/// glyphs are about 0.55 em wide), without reading any font.
+/// The width of text in a sans-serif font of `px` pixels, whole pixels
+/// (the figures' estimate, `plots::text_width_px`).
 fn text_width(s: &str, px: f64) -> i32 {
-    (s.chars().count() as f64 * px * 0.6).ceil() as i32
+    plots::text_width_px(s, px).ceil() as i32
 }
 
 /// One place in a row of the layout: a stage's box, or where an edge that
@@ -344,19 +345,42 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
         ))
         .map_err(draw_err)?;
         let line = RGBColor(90, 90, 90);
+        // The boxes labels must keep off: the stages and the title.
+        let mut taken: Vec<plots::PixelBox> = (0..p.stages.len())
+            .map(|i| {
+                let (x, y) = (x0 + lay.stage[i].0, row_y(lay.stage[i].1));
+                [x, y, x + box_w, y + BOX_H].map(f64::from)
+            })
+            .collect();
         for (path, (_, _, label)) in paths.iter().zip(&edges) {
             root.draw(&PathElement::new(path.clone(), line.stroke_width(1)))
                 .map_err(draw_err)?;
             let (a, b) = (path[path.len() - 2], path[path.len() - 1]);
             root.draw(&Polygon::new(arrow_head(a, b), line.filled()))
                 .map_err(draw_err)?;
-            // The slot's name on the last stretch, near the consumer.
-            let t = 0.7;
-            let lx = a.0 as f64 + t * (b.0 - a.0) as f64;
-            let ly = a.1 as f64 + t * (b.1 - a.1) as f64;
+            // The slot's name beside its edge, near the consumer if there
+            // is room, else further up the last stretch, else beside an
+            // earlier one.
+            let along = |(a, b): ((i32, i32), (i32, i32)), t: f64| {
+                (
+                    f64::from(a.0) + t * f64::from(b.0 - a.0) + 4.0,
+                    f64::from(a.1) + t * f64::from(b.1 - a.1),
+                )
+            };
+            let stretches: Vec<((i32, i32), (i32, i32))> =
+                path.windows(2).rev().map(|w| (w[0], w[1])).collect();
+            let candidates = stretches
+                .iter()
+                .flat_map(|&s| [0.7, 0.5, 0.3, 0.85, 0.15].map(move |t| along(s, t)));
+            let (lx, ly) = plots::place_label(
+                candidates,
+                plots::text_width_px(label, 11.0),
+                11.0,
+                &mut taken,
+            );
             root.draw(&Text::new(
                 label.as_str(),
-                (lx as i32 + 4, ly as i32),
+                (lx.round() as i32, ly.round() as i32),
                 font(11.0, RGBColor(60, 60, 60), left),
             ))
             .map_err(draw_err)?;
