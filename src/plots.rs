@@ -1885,6 +1885,28 @@ pub fn sensitivity_matrix(
 mod tests {
     use super::*;
 
+    /// Helvetica's digits are 0.556 em, a space 0.278 em.
+    #[test]
+    fn text_widths_follow_helvetica_metrics() {
+        assert!((text_width_px("10.0", 10.0) - 19.46).abs() < 1e-9);
+        assert!((text_width_px("a b", 20.0) - 27.8).abs() < 1e-9);
+        assert_eq!(text_width_px("", 12.0), 0.0);
+    }
+
+    /// Regression (issue 33): two edge labels aimed at one place; the
+    /// second goes to its next candidate, and when every candidate is
+    /// taken, to its first.
+    #[test]
+    fn a_label_goes_to_its_first_candidate_clear_of_the_others() {
+        let mut taken = vec![[0.0, 0.0, 10.0, 10.0]];
+        let at = place_label([(5.0, 5.0), (20.0, 5.0)], 8.0, 4.0, &mut taken);
+        assert_eq!(at, (20.0, 5.0));
+        assert_eq!(taken[1], [20.0, 3.0, 28.0, 7.0]);
+        let at = place_label([(22.0, 5.0), (1.0, 1.0)], 8.0, 4.0, &mut taken);
+        assert_eq!(at, (22.0, 5.0));
+        assert_eq!(taken.len(), 3);
+    }
+
     #[test]
     fn axis_titles_read_the_unit_from_the_column_name() {
         assert_eq!(axis_title("sigma_angle_urad"), "σ angle (µrad)");
