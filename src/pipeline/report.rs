@@ -14,7 +14,7 @@
 
 use super::graph;
 use super::resolve::Pipeline;
-use super::run::RunReport;
+use super::run_report::RunReport;
 use super::status::Status;
 use crate::fs::write_atomic;
 use crate::table;

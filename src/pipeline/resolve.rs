@@ -3,141 +3,24 @@
 //! the field in the file, or at the `--set` that changed it), and checks the
 //! graph: every input names an existing stage and table, every required slot
 //! is connected, and there is no cycle. Other top-level tables are resolved
-//! by their own modules against the resolved stages ([`snapshot`]).
+//! by their own modules against the resolved stages ([`snapshot_spec`]).
 
-use super::cluster::SlurmSettings;
+use super::cluster::settings::SlurmSettings;
 use super::raw::{RawPipeline, RawStage};
-use super::snapshot::{self, Snapshot};
-use super::{Problem, sweep};
+use super::snapshot_spec::{self, Snapshot};
+use super::sweep;
+use crate::diagnostics::Problem;
 use crate::diagnostics::Source;
 use crate::stages::{Invalid, StageConfig};
-use anyhow::{Result, anyhow, bail};
-use serde::Deserialize;
+use anyhow::Result;
 use std::collections::BTreeMap;
-use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-/// One `--set path=value`: `path` is dotted (`stages.measure.seed`), with
-/// double quotes around a segment that contains dots; `value` is a TOML
-/// value, or a bare word taken as a string.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Override {
-    pub path: Vec<String>,
-    pub value: serde_json::Value,
-    /// As the user typed it, for messages.
-    pub text: String,
-    /// A sweep axis's `path` in the pipeline file; `None` for `--set`.
-    pub origin: Option<Range<usize>>,
-}
+use super::overrides::get_path;
+pub use super::overrides::{Override, set_path, split_path};
 
-impl Override {
-    pub fn parse(arg: &str) -> Result<Override> {
-        let (path, value) = arg.split_once('=').ok_or_else(|| {
-            anyhow!("--set {arg}: expected path=value, e.g. stages.measure.seed=3")
-        })?;
-        let path = split_path(path.trim())
-            .ok_or_else(|| anyhow!("--set {arg}: `{}` is not a dotted path", path.trim()))?;
-        let value = value.trim();
-        let value = toml::de::ValueDeserializer::parse(value)
-            .ok()
-            .and_then(|d| serde_json::Value::deserialize(d).ok())
-            .unwrap_or_else(|| serde_json::Value::String(value.to_string()));
-        Ok(Override {
-            path,
-            value,
-            text: arg.to_string(),
-            origin: None,
-        })
-    }
-
-    /// `--set <text>` or `sweep axis <text>`, for messages.
-    fn name(&self) -> String {
-        match self.origin {
-            Some(_) => format!("sweep axis `{}`", self.text),
-            None => format!("--set {}", self.text),
-        }
-    }
-
-    /// A problem with this override: at the sweep axis in the file, or
-    /// naming the `--set` argument.
-    fn problem(&self, src: &Source, message: impl std::fmt::Display) -> Problem {
-        let message = format!("{}: {message}", self.name());
-        match &self.origin {
-            Some(span) => Problem::At(src.error(span.clone(), message)),
-            None => Problem::arg(message),
-        }
-    }
-
-    /// The path after `stages.<name>.`, when it targets that stage.
-    fn within(&self, stage: &str) -> Option<&[String]> {
-        match self.path.as_slice() {
-            [s, name, rest @ ..] if s == "stages" && name == stage => Some(rest),
-            _ => None,
-        }
-    }
-}
-
-/// Splits `a.b."c.d"` into `["a", "b", "c.d"]`.
-pub fn split_path(p: &str) -> Option<Vec<String>> {
-    let mut out = Vec::new();
-    let mut cur = String::new();
-    let mut quoted = false;
-    for c in p.chars() {
-        match c {
-            '"' => quoted = !quoted,
-            '.' if !quoted => out.push(std::mem::take(&mut cur)),
-            _ => cur.push(c),
-        }
-    }
-    out.push(cur);
-    (!quoted && out.iter().all(|s| !s.is_empty())).then_some(out)
-}
-
-fn get_path<'a>(root: &'a serde_json::Value, path: &[String]) -> Option<&'a serde_json::Value> {
-    path.iter().try_fold(root, |v, k| v.get(k))
-}
-
-/// Sets `value` at `path` inside a JSON object, creating objects on the way.
-pub fn set_path(
-    root: &mut serde_json::Value,
-    path: &[String],
-    value: serde_json::Value,
-) -> Result<()> {
-    let Some((last, parents)) = path.split_last() else {
-        bail!("empty path");
-    };
-    let mut cur = root;
-    for p in parents {
-        if cur.get(p).is_none_or(|v| v.is_null()) {
-            cur[p] = serde_json::json!({});
-        }
-        cur = cur
-            .get_mut(p)
-            .filter(|v| v.is_object())
-            .ok_or_else(|| anyhow!("`{p}` is not a table"))?;
-    }
-    match cur {
-        serde_json::Value::Object(m) => {
-            m.insert(last.clone(), value);
-            Ok(())
-        }
-        _ => bail!("cannot set `{last}` inside a value that is not a table"),
-    }
-}
-
-/// Where a stage reads a slot from.
-#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub struct InputRef {
-    pub stage: String,
-    pub table: String,
-}
-
-impl std::fmt::Display for InputRef {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}.{}", self.stage, self.table)
-    }
-}
+pub use super::names::InputRef;
 
 /// A stage with every setting resolved.
 #[derive(Clone, Debug)]
@@ -268,6 +151,11 @@ pub struct SweepPoint {
 }
 
 impl Sweep {
+    /// One gatherer per table the sweep gathers, in `gather` order.
+    pub fn gatherers(&self) -> Vec<sweep::Gatherer<'_>> {
+        sweep::Gatherer::each(&self.axes, &self.values, self.gather.len())
+    }
+
     /// The table names the pseudo-stage `sweep` offers: `stage.table`.
     pub fn table_names(&self) -> Vec<String> {
         self.gather.iter().map(|g| g.to_string()).collect()
@@ -312,7 +200,7 @@ impl Pipeline {
     pub fn stage(&self, name: &str) -> Result<&Stage> {
         self.stages.iter().find(|s| s.name == name).ok_or_else(|| {
             let names: Vec<&str> = self.stages.iter().map(|s| s.name.as_str()).collect();
-            super::InputError::arg(format!(
+            super::error::InputError::arg(format!(
                 "the pipeline has no stage `{name}`; its stages are: {}{}",
                 names.join(", "),
                 crate::suggest::hint(name, names.iter().copied())
@@ -420,12 +308,12 @@ pub fn resolve_checking(
     }
     check_columns(raw, &pipeline)?;
     if let Some((snap, header)) = &raw.snapshot {
-        pipeline.snapshot = Some(snapshot::resolve(
-            src,
-            snap,
-            header.clone(),
-            &pipeline.stages,
-        )?);
+        let stages: Vec<(&str, &StageConfig)> = pipeline
+            .stages
+            .iter()
+            .map(|s| (s.name.as_str(), &s.config))
+            .collect();
+        pipeline.snapshot = Some(snapshot_spec::resolve(src, snap, header.clone(), &stages)?);
     }
     Ok(pipeline)
 }

@@ -37,7 +37,6 @@ use crate::table;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use rayon::prelude::*;
-use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -59,71 +58,7 @@ pub struct RunOptions {
     pub experiment: Option<Experiment>,
 }
 
-/// What happened to one stage.
-#[derive(Clone, Debug, Serialize)]
-pub struct StageReport {
-    pub stage: String,
-    pub kind: String,
-    /// [`Status::Ran`], [`Status::Cached`], [`Status::Failed`] or
-    /// [`Status::Skipped`].
-    pub status: Status,
-    /// Why it ran, failed or was skipped; empty when cached.
-    pub reason: String,
-    /// What was wrong with the stage's cached entry when it failed
-    /// verification (truncated, corrupted or edited) and was recomputed.
-    pub cache_problem: Option<String>,
-    pub key: Option<String>,
-    pub seconds: f64,
-    /// Table name → rows.
-    pub tables: BTreeMap<String, usize>,
-    pub files: Vec<String>,
-}
-
-/// What happened to the pipeline; written to `results/<pipeline>/run.json`.
-#[derive(Clone, Debug, Serialize)]
-pub struct RunReport {
-    pub pipeline: String,
-    /// The folder the run published to.
-    pub results: PathBuf,
-    /// The experiment the run was (a run with `--set`); absent for the
-    /// pipeline's own results.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub experiment: Option<Experiment>,
-    pub started: String,
-    pub finished: String,
-    /// Leftovers of killed runs (incomplete entries, temporary files)
-    /// removed before this run.
-    pub cleaned: usize,
-    pub stages: Vec<StageReport>,
-    /// For a pipeline with a `[sweep]`.
-    pub sweep: Option<SweepReport>,
-    /// Packs whose index could not be read, and why: their entries were
-    /// not served (and, if needed, recomputed into new packs).
-    pub unreadable_packs: Vec<String>,
-    /// What was damaged in the cache and taken out after the run
-    /// ([`Store::heal`]), so that `ltcal verify` passes again.
-    pub healed: Vec<cache::Healed>,
-}
-
-impl RunReport {
-    /// The stages with `status` (a [`Status`], or the word it is written as).
-    pub fn with_status<S>(&self, status: S) -> Vec<&str>
-    where
-        Status: PartialEq<S>,
-    {
-        self.stages
-            .iter()
-            .filter(|s| s.status == status)
-            .map(|s| s.stage.as_str())
-            .collect()
-    }
-    pub fn failed(&self) -> Vec<&StageReport> {
-        self.stages
-            .iter()
-            .filter(|s| s.status == Status::Failed)
-            .collect()
-    }
-}
+pub use super::run_report::{RunReport, StageReport, SweepReport};
 
 /// A stage's outputs as the next stages see them.
 struct Produced {
@@ -192,18 +127,6 @@ pub fn store(root: &Path, p: &Pipeline, e: Option<&Experiment>) -> Store {
         Some(e) => store.for_experiment(&e.name),
         None => store,
     }
-}
-
-/// What a sweep did: how many points ran at least one stage, how many
-/// were wholly cached, and which failed.
-#[derive(Clone, Debug, Default, Serialize)]
-pub struct SweepReport {
-    pub points: usize,
-    pub ran: usize,
-    pub cached: usize,
-    pub failed: usize,
-    /// The gathered tables, `stage.table` → rows.
-    pub gathered: BTreeMap<String, usize>,
 }
 
 /// What [`execute_stages`] needs besides the stages.
@@ -568,7 +491,7 @@ fn run_point_set<'a>(
         parallel: false,
         ..*runner
     };
-    let mut gathered = sweep::Gatherer::each(sw);
+    let mut gathered = sw.gatherers();
     let mut counts = SweepReport {
         points: indices.len(),
         ..SweepReport::default()
