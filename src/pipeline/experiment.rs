@@ -13,7 +13,7 @@
 
 use super::cache;
 use super::error::InputError;
-use super::resolve::Override;
+use super::overrides::Override;
 use anyhow::{Context as _, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -43,6 +43,7 @@ pub mod sweep;
 pub use crate::diagnostics as source;
 pub use crate::diagnostics::Problem;
 pub use error::{InputError, MAX_FILE_BYTES};
+pub use resolve::load_source;
 
 use crate::diagnostics::Source;
 use resolve::{Override, Pipeline};
@@ -124,12 +125,6 @@ pub fn name(path: &Path) -> anyhow::Result<String> {
         resolve::resolve(&raw, &[]).map_err(InputError)?;
     }
     Ok(name)
-}
-
-pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipeline> {
-    let raw =
-        raw::parse(src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
-    Ok(resolve::resolve(&raw, overrides).map_err(InputError)?)
 }
 
 /// [`load`] for a cluster task: of the sweep, only the (increasing) points

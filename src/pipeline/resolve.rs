@@ -6,6 +6,7 @@
 //! by their own modules against the resolved stages ([`snapshot_spec`]).
 
 use super::cluster::settings::SlurmSettings;
+use super::error::InputError;
 use super::raw::{RawPipeline, RawStage};
 use super::snapshot_spec::{self, Snapshot};
 use super::sweep;
@@ -200,7 +201,7 @@ impl Pipeline {
     pub fn stage(&self, name: &str) -> Result<&Stage> {
         self.stages.iter().find(|s| s.name == name).ok_or_else(|| {
             let names: Vec<&str> = self.stages.iter().map(|s| s.name.as_str()).collect();
-            super::error::InputError::arg(format!(
+            InputError::arg(format!(
                 "the pipeline has no stage `{name}`; its stages are: {}{}",
                 names.join(", "),
                 crate::suggest::hint(name, names.iter().copied())
@@ -221,6 +222,13 @@ pub fn name_of(raw: &RawPipeline) -> String {
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "pipeline".into()),
     }
+}
+
+/// Parses and resolves a pipeline file's text with overrides.
+pub fn load_source(src: &Source, overrides: &[Override]) -> Result<Pipeline> {
+    let raw = super::raw::parse(src)
+        .map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    Ok(resolve(&raw, overrides).map_err(InputError)?)
 }
 
 /// Resolves a parsed file with overrides.
