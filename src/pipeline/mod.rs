@@ -19,6 +19,7 @@
 
 pub mod cache;
 pub mod cluster;
+pub mod diagnose;
 pub mod error;
 pub mod experiment;
 pub mod explain;

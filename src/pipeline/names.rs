@@ -9,6 +9,9 @@
 /// stage may have this name ([`RESERVED_STAGE_NAMES`]).
 pub const EXPERIMENTS_DIR: &str = "runs";
 
+/// The page of a run's results folder ([`super::report`]).
+pub const PAGE: &str = "index.html";
+
 /// The name the gathered tables are read under: `sweep.<stage>.<table>`.
 pub const PSEUDO_STAGE: &str = "sweep";
 

@@ -15,6 +15,7 @@ use crate::diagnostics::Source;
 use crate::stages::{Invalid, StageConfig};
 use anyhow::Result;
 use std::collections::BTreeMap;
+use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -476,135 +477,11 @@ fn check_graph(
 ) -> Result<(), Vec<Problem>> {
     let src = &raw.source;
     let mut problems = Vec::new();
-    let at = |stage: &str, slot: &str, key: bool| -> std::ops::Range<usize> {
-        let rs = raw.stages.iter().find(|s| s.name == stage);
-        rs.and_then(|rs| rs.inputs.iter().find(|i| i.slot == slot))
-            .map(|i| {
-                if key {
-                    i.slot_span.clone()
-                } else {
-                    i.span.clone()
-                }
-            })
-            .or_else(|| rs.map(|rs| rs.span.clone()))
-            .unwrap_or(0..0)
-    };
     for s in &p.stages {
-        let slots = s.config.inputs();
         for (slot, r) in &s.inputs {
-            if !slots.iter().any(|x| x.name == slot) {
-                let known: Vec<&str> = slots.iter().map(|x| x.name).collect();
-                problems.push(Problem::At(src.error(
-                    at(&s.name, slot, true),
-                    format!(
-                        "stage `{}` ({}) has no input `{slot}`; its inputs are: {}",
-                        s.name,
-                        s.config.kind(),
-                        if known.is_empty() {
-                            "none".to_string()
-                        } else {
-                            known.join(", ")
-                        }
-                    ),
-                )));
-                continue;
-            }
-            if let (sweep::PSEUDO_STAGE, Some(g)) = (r.stage.as_str(), gathered) {
-                if !g.contains(&r.table) {
-                    problems.push(Problem::At(src.error(
-                        at(&s.name, slot, false),
-                        format!(
-                            "`sweep.{}` is not gathered; [sweep] gather has: {}",
-                            r.table,
-                            if g.is_empty() {
-                                "nothing".into()
-                            } else {
-                                g.join(", ")
-                            }
-                        ),
-                    )));
-                }
-                continue;
-            }
-            let Some(producer) = p.stages.iter().find(|x| x.name == r.stage) else {
-                let names: Vec<&str> = p.stages.iter().map(|x| x.name.as_str()).collect();
-                problems.push(Problem::At(src.error(
-                    at(&s.name, slot, false),
-                    format!(
-                        "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}{}",
-                        s.name,
-                        r.stage,
-                        names.join(", "),
-                        crate::suggest::hint(&r.stage, names.iter().copied())
-                    ),
-                )));
-                continue;
-            };
-            let tables = producer.config.outputs();
-            let spec = slots
-                .iter()
-                .find(|x| x.name == slot)
-                .expect("checked above");
-            if !spec.group.is_empty() {
-                if !r.table.is_empty() {
-                    problems.push(Problem::At(src.error(
-                        at(&s.name, slot, false),
-                        format!(
-                            "input `{slot}` takes the tables {} of a stage together: name the stage alone, `\"{}\"`",
-                            spec.group.join(", "),
-                            r.stage
-                        ),
-                    )));
-                }
-                let missing: Vec<&str> = spec
-                    .group
-                    .iter()
-                    .copied()
-                    .filter(|t| !tables.contains(t))
-                    .collect();
-                if !missing.is_empty() {
-                    problems.push(Problem::At(src.error(
-                        at(&s.name, slot, false),
-                        format!(
-                            "input `{slot}` needs the tables {} but stage `{}` ({}) lacks {}",
-                            spec.group.join(", "),
-                            producer.name,
-                            producer.config.kind(),
-                            missing.join(", ")
-                        ),
-                    )));
-                }
-                continue;
-            }
-            if !r.table.is_empty() && !tables.contains(&r.table.as_str()) {
-                problems.push(Problem::At(src.error(
-                    at(&s.name, slot, false),
-                    format!(
-                        "stage `{}` ({}) has no table `{}`; its tables are: {}{}",
-                        producer.name,
-                        producer.config.kind(),
-                        r.table,
-                        tables.join(", "),
-                        crate::suggest::hint(&r.table, tables.iter().copied())
-                    ),
-                )));
-            }
+            problems.extend(check_input(raw, p, s, slot, r, gathered));
         }
-        for slot in slots.iter().filter(|x| x.required) {
-            if !s.inputs.contains_key(slot.name) {
-                problems.push(Problem::At(src.error(
-                    at(&s.name, "", true),
-                    format!(
-                        "stage `{}` ({}) needs input `{}`: {}; add `inputs = {{ {} = \"<stage>\" }}`",
-                        s.name,
-                        s.config.kind(),
-                        slot.name,
-                        slot.doc,
-                        slot.name
-                    ),
-                )));
-            }
-        }
+        problems.extend(check_required(raw, s));
     }
     if !problems.is_empty() {
         return Err(problems);
@@ -615,25 +492,173 @@ fn check_graph(
         .map(|s| (s.name.clone(), s.config.outputs()[0]))
         .collect();
     fill_tables(&mut p.stages, &primary);
-    {
-        if let Some(cycle) = find_cycle(p) {
+    match find_cycle(p) {
+        Some(cycle) => {
             let (first, slot) = (&cycle[0].0, &cycle[0].1);
             let names: Vec<&str> = cycle.iter().map(|(s, _)| s.as_str()).collect();
-            problems.push(Problem::At(src.error(
-                at(first, slot, false),
+            Err(vec![Problem::At(src.error(
+                input_span(raw, first, slot, false),
                 format!(
                     "the stage inputs form a cycle: {} → {} (each reads the next)",
                     names.join(" → "),
                     names[0]
                 ),
+            ))])
+        }
+        None => Ok(()),
+    }
+}
+
+/// Where input `slot` of `stage` is written (its key when `key`, else its
+/// value), or the stage's header when the file does not write it.
+fn input_span(raw: &RawPipeline, stage: &str, slot: &str, key: bool) -> Range<usize> {
+    let rs = raw.stages.iter().find(|s| s.name == stage);
+    rs.and_then(|rs| rs.inputs.iter().find(|i| i.slot == slot))
+        .map(|i| {
+            if key {
+                i.slot_span.clone()
+            } else {
+                i.span.clone()
+            }
+        })
+        .or_else(|| rs.map(|rs| rs.span.clone()))
+        .unwrap_or(0..0)
+}
+
+/// What is wrong with input `slot` of stage `s`, reading `r`: a slot the
+/// kind does not have, a table the sweep does not gather, a stage or
+/// table that does not exist, a group of tables named by one table.
+fn check_input(
+    raw: &RawPipeline,
+    p: &Pipeline,
+    s: &Stage,
+    slot: &str,
+    r: &InputRef,
+    gathered: Option<&[String]>,
+) -> Vec<Problem> {
+    let src = &raw.source;
+    let slots = s.config.inputs();
+    let mut problems = Vec::new();
+    if !slots.iter().any(|x| x.name == slot) {
+        let known: Vec<&str> = slots.iter().map(|x| x.name).collect();
+        problems.push(Problem::At(src.error(
+            input_span(raw, &s.name, slot, true),
+            format!(
+                "stage `{}` ({}) has no input `{slot}`; its inputs are: {}",
+                s.name,
+                s.config.kind(),
+                if known.is_empty() {
+                    "none".to_string()
+                } else {
+                    known.join(", ")
+                }
+            ),
+        )));
+        return problems;
+    }
+    if let (sweep::PSEUDO_STAGE, Some(g)) = (r.stage.as_str(), gathered) {
+        if !g.contains(&r.table) {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, slot, false),
+                format!(
+                    "`sweep.{}` is not gathered; [sweep] gather has: {}",
+                    r.table,
+                    if g.is_empty() {
+                        "nothing".into()
+                    } else {
+                        g.join(", ")
+                    }
+                ),
+            )));
+        }
+        return problems;
+    }
+    let Some(producer) = p.stages.iter().find(|x| x.name == r.stage) else {
+        let names: Vec<&str> = p.stages.iter().map(|x| x.name.as_str()).collect();
+        problems.push(Problem::At(src.error(
+            input_span(raw, &s.name, slot, false),
+            format!(
+                "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}{}",
+                s.name,
+                r.stage,
+                names.join(", "),
+                crate::suggest::hint(&r.stage, names.iter().copied())
+            ),
+        )));
+        return problems;
+    };
+    let tables = producer.config.outputs();
+    let spec = slots
+        .iter()
+        .find(|x| x.name == slot)
+        .expect("checked above");
+    if !spec.group.is_empty() {
+        if !r.table.is_empty() {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, slot, false),
+                format!(
+                    "input `{slot}` takes the tables {} of a stage together: name the stage alone, `\"{}\"`",
+                    spec.group.join(", "),
+                    r.stage
+                ),
+            )));
+        }
+        let missing: Vec<&str> = spec
+            .group
+            .iter()
+            .copied()
+            .filter(|t| !tables.contains(t))
+            .collect();
+        if !missing.is_empty() {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, slot, false),
+                format!(
+                    "input `{slot}` needs the tables {} but stage `{}` ({}) lacks {}",
+                    spec.group.join(", "),
+                    producer.name,
+                    producer.config.kind(),
+                    missing.join(", ")
+                ),
+            )));
+        }
+        return problems;
+    }
+    if !r.table.is_empty() && !tables.contains(&r.table.as_str()) {
+        problems.push(Problem::At(src.error(
+            input_span(raw, &s.name, slot, false),
+            format!(
+                "stage `{}` ({}) has no table `{}`; its tables are: {}{}",
+                producer.name,
+                producer.config.kind(),
+                r.table,
+                tables.join(", "),
+                crate::suggest::hint(&r.table, tables.iter().copied())
+            ),
+        )));
+    }
+    problems
+}
+
+/// Each required input slot of stage `s` that the file leaves unconnected.
+fn check_required(raw: &RawPipeline, s: &Stage) -> Vec<Problem> {
+    let src = &raw.source;
+    let mut problems = Vec::new();
+    for slot in s.config.inputs().iter().filter(|x| x.required) {
+        if !s.inputs.contains_key(slot.name) {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, "", true),
+                format!(
+                    "stage `{}` ({}) needs input `{}`: {}; add `inputs = {{ {} = \"<stage>\" }}`",
+                    s.name,
+                    s.config.kind(),
+                    slot.name,
+                    slot.doc,
+                    slot.name
+                ),
             )));
         }
     }
-    if problems.is_empty() {
-        Ok(())
-    } else {
-        Err(problems)
-    }
+    problems
 }
 
 /// Names the producer's first table where an input names a stage alone.

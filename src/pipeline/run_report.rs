@@ -5,6 +5,7 @@
 
 use super::cache;
 use super::experiment::Experiment;
+use super::names;
 use super::status::Status;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -57,6 +58,11 @@ pub struct RunReport {
 }
 
 impl RunReport {
+    /// The run's page, `index.html` in its results folder.
+    pub fn page(&self) -> PathBuf {
+        self.results.join(names::PAGE)
+    }
+
     /// The stages with `status` (a [`Status`], or the word it is written as).
     pub fn with_status<S>(&self, status: S) -> Vec<&str>
     where

@@ -412,7 +412,7 @@ const PIPELINE_LAYERS: &[&[&str]] = &[
     &["explain", "graph", "published"],
     &["report"],
     &["run"],
-    &["snapshot", "cluster"],
+    &["snapshot", "cluster", "diagnose"],
     &[""],
 ];
 
