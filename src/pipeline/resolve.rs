@@ -942,3 +942,68 @@ fn find_cycle(p: &Pipeline) -> Option<Vec<(String, String)>> {
             .flatten()
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TEXT: &str = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
+        [stages.t]\nkind = \"inject\"\n\
+        [stages.m]\nkind = \"measure\"\ninputs = { points = \"a\", errors = \"t\" }\n";
+
+    fn raw(text: &str) -> RawPipeline {
+        super::super::raw::parse(&Source::new("p.toml", text)).unwrap()
+    }
+
+    fn messages(problems: Vec<Problem>) -> String {
+        problems
+            .iter()
+            .map(|p| p.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+
+    #[test]
+    fn resolve_fills_defaults_applies_overrides_and_leaves_the_file_as_written() {
+        let raw = raw(TEXT);
+        let seven = Override::parse("stages.m.seed=7").unwrap();
+        let p = resolve(&raw, &[seven]).unwrap();
+        let m = p.stage("m").unwrap().config.to_json();
+        assert_eq!(m["seed"], 7);
+        // Defaults the file does not write are filled in.
+        assert!(m.get("noise").is_some() && m.get("face").is_some(), "{m}");
+        // An input naming a stage alone reads its first table.
+        let points = &p.stage("m").unwrap().inputs["points"];
+        assert_eq!(
+            (points.stage.as_str(), points.table.as_str()),
+            ("a", "points")
+        );
+        // The raw pipeline is not changed by resolving it: without the
+        // override, the seed is the default again.
+        let again = resolve(&raw, &[]).unwrap();
+        assert_eq!(again.stage("m").unwrap().config.to_json()["seed"], 0);
+        assert_eq!(p.name, "p");
+    }
+
+    #[test]
+    fn check_graph_names_a_missing_stage_an_unknown_slot_and_a_missing_input() {
+        let text = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
+            [stages.m]\nkind = \"measure\"\ninputs = { points = \"b\", pionts = \"a\" }\n\
+            [stages.c]\nkind = \"correct\"\ninputs = { readings = \"m\" }\n";
+        let e = messages(resolve(&raw(text), &[]).unwrap_err());
+        assert!(e.contains("names no stage `b`"), "{e}");
+        assert!(e.contains("has no input `pionts`"), "{e}");
+        assert!(e.contains("needs input `params`"), "{e}");
+    }
+
+    #[test]
+    fn check_graph_reports_a_cycle_at_its_first_input() {
+        let text = "[stages.t]\nkind = \"inject\"\n\
+            [stages.a]\nkind = \"correct\"\ninputs = { readings = \"b\", params = \"t\" }\n\
+            [stages.b]\nkind = \"correct\"\ninputs = { readings = \"a\", params = \"t\" }\n";
+        let e = messages(resolve(&raw(text), &[]).unwrap_err());
+        assert!(e.contains("the stage inputs form a cycle"), "{e}");
+        // At an input of the cycle, where the file writes it.
+        assert!(e.contains("p.toml:5:") || e.contains("p.toml:7:"), "{e}");
+    }
+}

@@ -429,6 +429,7 @@ impl fmt::Display for Report<'_> {
 mod tests {
     use super::*;
     use crate::table::TableBuilder;
+    use std::collections::BTreeMap;
 
     fn snap(tol: &[(&str, f64)], default: f64) -> Snapshot {
         Snapshot {
