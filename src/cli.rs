@@ -631,7 +631,7 @@ fn run_command(
     executor: Executor,
     detach: bool,
 ) -> Result<ExitCode> {
-    let (pipeline, e) = load_to_run(&p)?;
+    let (pipeline, e) = load_to_run(p)?;
     if let Some(n) = threads {
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
@@ -669,7 +669,7 @@ fn run_command(
     // too (`--name` alone), and the command line's `executor.*`.
     let mut set_args: Vec<String> = e.iter().flat_map(|e| e.overrides.iter().cloned()).collect();
     set_args.extend(
-        overrides(&p)?.into_iter().filter_map(|o| {
+        overrides(p)?.into_iter().filter_map(|o| {
             (o.path.first().map(String::as_str) != Some("stages")).then_some(o.text)
         }),
     );
@@ -701,13 +701,13 @@ fn run_command(
 
 /// `ltcal status`: where a sweep's points and cluster jobs stand.
 fn status_command(p: &PipelineArgs) -> Result<ExitCode> {
-    let (pipeline, e) = load(&p)?;
+    let (pipeline, e) = load(p)?;
     say_experiment(e.as_ref());
     if pipeline.sweep.is_none() {
         // No points, no cluster jobs: what a status can still say is
         // where the stages stand — and asking is no failure (exit 1
         // says a stage failed).
-        let items = plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()));
+        let items = plan::plan(&pipeline, &store(p, &pipeline, e.as_ref()));
         let cached = items.iter().filter(|i| i.status == Status::Cached).count();
         print_out(format!(
             "{}: no [sweep], so no points or cluster jobs; {cached} of {} stages cached \
@@ -733,8 +733,8 @@ fn status_command(p: &PipelineArgs) -> Result<ExitCode> {
 /// with `--repair`.
 fn verify_command(p: &PipelineArgs, repair: bool) -> Result<ExitCode> {
     // The cache is every run's: an experiment's is the pipeline's.
-    let (pipeline, _) = load(&p)?;
-    let store = store(&p, &pipeline, None);
+    let (pipeline, _) = load(p)?;
+    let store = store(p, &pipeline, None);
     let v = store.verify();
     for why in &v.problems {
         eprintln!("  {why}");
@@ -785,8 +785,8 @@ fn verify_command(p: &PipelineArgs, repair: bool) -> Result<ExitCode> {
 
 /// `ltcal plan`: which stage would run and why.
 fn plan_command(p: &PipelineArgs, json: bool, check: bool) -> Result<ExitCode> {
-    let (pipeline, e) = load(&p)?;
-    let items = plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()));
+    let (pipeline, e) = load(p)?;
+    let items = plan::plan(&pipeline, &store(p, &pipeline, e.as_ref()));
     if json {
         print_out(format!("{}\n", serde_json::to_string_pretty(&items)?))?;
     } else {
