@@ -327,6 +327,12 @@ pub fn resolve_checking(
     Ok(pipeline)
 }
 
+/// One stage as written made a resolved stage: overrides applied, defaults
+/// filled, settings validated, its file checked, every problem at its place.
+///
+/// Long on purpose (issue 31): each step reports at the field the user
+/// wrote or the `--set` that changed it, and needs the spans of the steps
+/// before it.
 fn resolve_stage(
     src: &Source,
     rs: &RawStage,
