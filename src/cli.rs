@@ -361,7 +361,7 @@ fn summarize(report: &run::RunReport) -> ExitCode {
             0 => String::new(),
             n => format!(", {n} FAILED"),
         },
-        report.results.join("index.html").display()
+        report.page().display()
     );
     for s in &damaged {
         eprintln!(
@@ -580,61 +580,15 @@ fn runs_command(file: &Path, results: &Path) -> Result<ExitCode> {
     })
 }
 
-/// `ltcal diagnose`: the `diagnose` stage on a folder, its outputs published
-/// as the folder `out` by one rename.
+/// `ltcal diagnose`: [`pipeline::diagnose::run`] with a spinner, and its
+/// verdict printed.
 fn diagnose_command(
     campaign: &Path,
     out: &Path,
     stage: stages::diagnose::DiagnoseStage,
 ) -> Result<ExitCode> {
-    use crate::stages::StageKind;
-    if let Some(bad) = stage.validate().first() {
-        return Err(InputError::arg(bad.message.clone()));
-    }
-    if let Some(path) = &stage.hypotheses {
-        crate::hypothesis::load(path).map_err(|p| anyhow::Error::from(InputError(p)))?;
-    }
-    // What a killed earlier run left beside --out (its owner gone).
-    for stale in stages::diagnose::remove_stale_temporaries(out, std::time::SystemTime::now()) {
-        eprintln!(
-            "removed {}, left by a diagnosis that was stopped",
-            stale.display()
-        );
-    }
     let step = step_spinner();
-    step.set_message(format!("reading {}", campaign.display()));
-    let c = crate::campaign::read_for_diagnosis(campaign)
-        .map_err(|e| InputError::arg(e.to_string()))?;
-    step.set_message(format!(
-        "adjusting and diagnosing {} readings",
-        c.readings.len()
-    ));
-    // The folder is replaced whole, so it must be one a diagnosis wrote (or
-    // empty): `--out .` must not delete the user's files.
-    crate::fs::check_replaceable(out, "a diagnosis", "diagnosis.csv", |name| {
-        name == "report.md"
-            || name == "report.html"
-            || name == "discovered.toml"
-            || [".csv", ".parquet", ".svg"]
-                .iter()
-                .any(|ext| name.ends_with(ext))
-    })
-    .map_err(|why| InputError::arg(format!("--out: {why}")))?;
-    let d = stage.diagnose(&c)?;
-    let output = stages::diagnose::outputs(&d)?;
-    // Every file in memory first, then one folder published by one rename:
-    // a full disk or a kill leaves the previous folder (or none), never a
-    // partial one that looks finished.
-    let mut files: Vec<(String, Vec<u8>)> = Vec::new();
-    for (name, df) in &output.tables {
-        files.push((format!("{name}.parquet"), table::to_parquet_bytes(df)?));
-        if name == "where" {
-            files.push(("where.csv".into(), crate::diagnose::output::csv(df)?));
-        }
-    }
-    files.extend(output.files.iter().cloned());
-    step.set_message(format!("writing {}", out.display()));
-    crate::fs::publish_folder(out, &files)?;
+    let d = pipeline::diagnose::run(campaign, out, &stage, &|m| step.set_message(m))?;
     step.finish_and_clear();
     println!("{}", crate::diagnose::output::verdict(&d));
     eprintln!(
@@ -668,6 +622,196 @@ fn n_tables(n: usize) -> String {
     format!("{n} table{}", if n == 1 { "" } else { "s" })
 }
 
+/// `ltcal run`: here, or on Slurm as a coordinator.
+fn run_command(
+    p: &PipelineArgs,
+    keep_going: bool,
+    threads: Option<usize>,
+    quiet: bool,
+    executor: Executor,
+    detach: bool,
+) -> Result<ExitCode> {
+    let (pipeline, e) = load_to_run(p)?;
+    if let Some(n) = threads {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()
+            .context("setting the number of threads")?;
+    }
+    let opts = run::RunOptions {
+        results_root: p.results.clone(),
+        keep_going,
+        progress: !quiet,
+        not_computed: None,
+        experiment: e.clone(),
+    };
+    if !quiet {
+        say_experiment(e.as_ref());
+    }
+    if executor == Executor::Local {
+        if detach {
+            return Err(InputError::arg(
+                "--detach submits to a cluster: use it with --executor slurm",
+            ));
+        }
+        return Ok(summarize(&run::run(&pipeline, &opts)?));
+    }
+    // The first Ctrl-C or SIGTERM sets the flag the coordinator
+    // acts on (cancelling its jobs while it waits); a second one
+    // ends the process as the signal would.
+    let interrupted = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_default(sig, interrupted.clone())
+            .and_then(|_| signal_hook::flag::register(sig, interrupted.clone()))
+            .context("watching for Ctrl-C")?;
+    }
+    // The tasks compute with every stage override, recorded ones
+    // too (`--name` alone), and the command line's `executor.*`.
+    let mut set_args: Vec<String> = e.iter().flat_map(|e| e.overrides.iter().cloned()).collect();
+    set_args.extend(
+        overrides(p)?.into_iter().filter_map(|o| {
+            (o.path.first().map(String::as_str) != Some("stages")).then_some(o.text)
+        }),
+    );
+    let cluster = cluster::ClusterOptions {
+        pipeline_file: p.pipeline.clone(),
+        set_args,
+        detach,
+        interrupted,
+    };
+    match cluster::run(&pipeline, &opts, &cluster, &cluster::slurm::Slurm)? {
+        cluster::Outcome::Finished(report) => Ok(summarize(&report)),
+        cluster::Outcome::Detached { jobs, points } => {
+            let named = e
+                .as_ref()
+                .map(|e| format!(" --name {}", e.name))
+                .unwrap_or_default();
+            eprintln!(
+                "{}: {points} points submitted or running as Slurm job {}; \
+                 `ltcal status {}{named}` shows where they stand, `ltcal run {}{named} --executor slurm` picks up",
+                pipeline.name,
+                jobs.join(", "),
+                p.pipeline.display(),
+                p.pipeline.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+/// `ltcal status`: where a sweep's points and cluster jobs stand.
+fn status_command(p: &PipelineArgs) -> Result<ExitCode> {
+    let (pipeline, e) = load(p)?;
+    say_experiment(e.as_ref());
+    if pipeline.sweep.is_none() {
+        // No points, no cluster jobs: what a status can still say is
+        // where the stages stand — and asking is no failure (exit 1
+        // says a stage failed).
+        let items = plan::plan(&pipeline, &store(p, &pipeline, e.as_ref()));
+        let cached = items.iter().filter(|i| i.status == Status::Cached).count();
+        print_out(format!(
+            "{}: no [sweep], so no points or cluster jobs; {cached} of {} stages cached \
+             (`ltcal plan {}` says which would run and why)\n",
+            pipeline.name,
+            items.len(),
+            p.pipeline.display()
+        ))?;
+        return Ok(ExitCode::SUCCESS);
+    }
+    let opts = run::RunOptions {
+        results_root: p.results.clone(),
+        keep_going: false,
+        progress: false,
+        not_computed: None,
+        experiment: e,
+    };
+    print_out(cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `ltcal verify`: every cache entry checked, the damaged ones taken out
+/// with `--repair`.
+fn verify_command(p: &PipelineArgs, repair: bool) -> Result<ExitCode> {
+    // The cache is every run's: an experiment's is the pipeline's.
+    let (pipeline, _) = load(p)?;
+    let store = store(p, &pipeline, None);
+    let v = store.verify();
+    for why in &v.problems {
+        eprintln!("  {why}");
+    }
+    for why in &v.superseded {
+        eprintln!("  (not served: another copy is good) {why}");
+    }
+    println!(
+        "{}: {} loose entries, {} packed entries in {} packs, {} damaged, {} damaged copies superseded",
+        pipeline.name,
+        v.loose,
+        v.packed,
+        v.packs,
+        v.problems.len(),
+        v.superseded.len()
+    );
+    if v.problems.is_empty() && v.superseded.is_empty() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    if !repair {
+        if !v.problems.is_empty() {
+            eprintln!(
+                "the damaged entries are never served; `ltcal verify --repair {}` (or the \
+                 next `ltcal run`) takes them out",
+                p.pipeline.display()
+            );
+            return Ok(ExitCode::from(1));
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    for h in store.heal(true) {
+        println!("repaired {h}");
+    }
+    let after = store.verify();
+    for why in &after.problems {
+        eprintln!("  still damaged: {why}");
+    }
+    Ok(if after.problems.is_empty() {
+        println!(
+            "{}: the cache is good again; what was taken out is computed again by the next run",
+            pipeline.name
+        );
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// `ltcal plan`: which stage would run and why.
+fn plan_command(p: &PipelineArgs, json: bool, check: bool) -> Result<ExitCode> {
+    let (pipeline, e) = load(p)?;
+    let items = plan::plan(&pipeline, &store(p, &pipeline, e.as_ref()));
+    if json {
+        print_out(format!("{}\n", serde_json::to_string_pretty(&items)?))?;
+    } else {
+        let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
+        let mut text = String::new();
+        for i in &items {
+            let reason = if i.reason.is_empty() {
+                String::new()
+            } else {
+                format!("  {}", i.reason)
+            };
+            let line = format!("{:>6}  {:width$}  {:9}{reason}", i.status, i.stage, i.kind);
+            text += line.trim_end();
+            text += "\n";
+        }
+        print_out(text)?;
+    }
+    let stale = items.iter().filter(|i| i.status != Status::Cached).count();
+    if check && stale > 0 {
+        eprintln!("plan --check: {stale} of {} stages would run", items.len());
+        return Ok(ExitCode::from(1));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 fn dispatch(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Run {
@@ -677,152 +821,9 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             quiet,
             executor,
             detach,
-        } => {
-            let (pipeline, e) = load_to_run(&p)?;
-            if let Some(n) = threads {
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(n)
-                    .build_global()
-                    .context("setting the number of threads")?;
-            }
-            let opts = run::RunOptions {
-                results_root: p.results.clone(),
-                keep_going,
-                progress: !quiet,
-                not_computed: None,
-                experiment: e.clone(),
-            };
-            if !quiet {
-                say_experiment(e.as_ref());
-            }
-            if executor == Executor::Local {
-                if detach {
-                    return Err(InputError::arg(
-                        "--detach submits to a cluster: use it with --executor slurm",
-                    ));
-                }
-                return Ok(summarize(&run::run(&pipeline, &opts)?));
-            }
-            // The first Ctrl-C or SIGTERM sets the flag the coordinator
-            // acts on (cancelling its jobs while it waits); a second one
-            // ends the process as the signal would.
-            let interrupted = Arc::new(AtomicBool::new(false));
-            for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-                signal_hook::flag::register_conditional_default(sig, interrupted.clone())
-                    .and_then(|_| signal_hook::flag::register(sig, interrupted.clone()))
-                    .context("watching for Ctrl-C")?;
-            }
-            // The tasks compute with every stage override, recorded ones
-            // too (`--name` alone), and the command line's `executor.*`.
-            let mut set_args: Vec<String> =
-                e.iter().flat_map(|e| e.overrides.iter().cloned()).collect();
-            set_args.extend(overrides(&p)?.into_iter().filter_map(|o| {
-                (o.path.first().map(String::as_str) != Some("stages")).then_some(o.text)
-            }));
-            let cluster = cluster::ClusterOptions {
-                pipeline_file: p.pipeline.clone(),
-                set_args,
-                detach,
-                interrupted,
-            };
-            match cluster::run(&pipeline, &opts, &cluster, &cluster::slurm::Slurm)? {
-                cluster::Outcome::Finished(report) => Ok(summarize(&report)),
-                cluster::Outcome::Detached { jobs, points } => {
-                    let named = e
-                        .as_ref()
-                        .map(|e| format!(" --name {}", e.name))
-                        .unwrap_or_default();
-                    eprintln!(
-                        "{}: {points} points submitted or running as Slurm job {}; \
-                         `ltcal status {}{named}` shows where they stand, `ltcal run {}{named} --executor slurm` picks up",
-                        pipeline.name,
-                        jobs.join(", "),
-                        p.pipeline.display(),
-                        p.pipeline.display()
-                    );
-                    Ok(ExitCode::SUCCESS)
-                }
-            }
-        }
-        Command::Status { p } => {
-            let (pipeline, e) = load(&p)?;
-            say_experiment(e.as_ref());
-            if pipeline.sweep.is_none() {
-                // No points, no cluster jobs: what a status can still say is
-                // where the stages stand — and asking is no failure (exit 1
-                // says a stage failed).
-                let items = plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()));
-                let cached = items.iter().filter(|i| i.status == Status::Cached).count();
-                print_out(format!(
-                    "{}: no [sweep], so no points or cluster jobs; {cached} of {} stages cached \
-                     (`ltcal plan {}` says which would run and why)\n",
-                    pipeline.name,
-                    items.len(),
-                    p.pipeline.display()
-                ))?;
-                return Ok(ExitCode::SUCCESS);
-            }
-            let opts = run::RunOptions {
-                results_root: p.results.clone(),
-                keep_going: false,
-                progress: false,
-                not_computed: None,
-                experiment: e,
-            };
-            print_out(cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
-            Ok(ExitCode::SUCCESS)
-        }
-        Command::Verify { p, repair } => {
-            // The cache is every run's: an experiment's is the pipeline's.
-            let (pipeline, _) = load(&p)?;
-            let store = store(&p, &pipeline, None);
-            let v = store.verify();
-            for why in &v.problems {
-                eprintln!("  {why}");
-            }
-            for why in &v.superseded {
-                eprintln!("  (not served: another copy is good) {why}");
-            }
-            println!(
-                "{}: {} loose entries, {} packed entries in {} packs, {} damaged, {} damaged copies superseded",
-                pipeline.name,
-                v.loose,
-                v.packed,
-                v.packs,
-                v.problems.len(),
-                v.superseded.len()
-            );
-            if v.problems.is_empty() && v.superseded.is_empty() {
-                return Ok(ExitCode::SUCCESS);
-            }
-            if !repair {
-                if !v.problems.is_empty() {
-                    eprintln!(
-                        "the damaged entries are never served; `ltcal verify --repair {}` (or the \
-                         next `ltcal run`) takes them out",
-                        p.pipeline.display()
-                    );
-                    return Ok(ExitCode::from(1));
-                }
-                return Ok(ExitCode::SUCCESS);
-            }
-            for h in store.heal(true) {
-                println!("repaired {h}");
-            }
-            let after = store.verify();
-            for why in &after.problems {
-                eprintln!("  still damaged: {why}");
-            }
-            Ok(if after.problems.is_empty() {
-                println!(
-                    "{}: the cache is good again; what was taken out is computed again by the next run",
-                    pipeline.name
-                );
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::from(1)
-            })
-        }
+        } => run_command(&p, keep_going, threads, quiet, executor, detach),
+        Command::Status { p } => status_command(&p),
+        Command::Verify { p, repair } => verify_command(&p, repair),
         Command::Task {
             p,
             points,
@@ -831,33 +832,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             prefix,
             cpus,
         } => task_command(&p, &points, &code, &pipeline_hash, &prefix, cpus),
-        Command::Plan { p, json, check } => {
-            let (pipeline, e) = load(&p)?;
-            let items = plan::plan(&pipeline, &store(&p, &pipeline, e.as_ref()));
-            if json {
-                print_out(format!("{}\n", serde_json::to_string_pretty(&items)?))?;
-            } else {
-                let width = items.iter().map(|i| i.stage.len()).max().unwrap_or(0);
-                let mut text = String::new();
-                for i in &items {
-                    let reason = if i.reason.is_empty() {
-                        String::new()
-                    } else {
-                        format!("  {}", i.reason)
-                    };
-                    let line = format!("{:>6}  {:width$}  {:9}{reason}", i.status, i.stage, i.kind);
-                    text += line.trim_end();
-                    text += "\n";
-                }
-                print_out(text)?;
-            }
-            let stale = items.iter().filter(|i| i.status != Status::Cached).count();
-            if check && stale > 0 {
-                eprintln!("plan --check: {stale} of {} stages would run", items.len());
-                return Ok(ExitCode::from(1));
-            }
-            Ok(ExitCode::SUCCESS)
-        }
+        Command::Plan { p, json, check } => plan_command(&p, json, check),
         Command::Explain {
             p,
             stage,

@@ -27,7 +27,8 @@ pub mod physical;
 pub mod pipeline;
 pub mod plots;
 pub mod random;
-pub mod schema;
+/// The stages' table columns, where they were first declared.
+pub use stages::schema;
 pub mod sensitivity;
 pub mod simulate;
 pub mod solver;

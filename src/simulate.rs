@@ -93,6 +93,10 @@ const STATION_CHANGE_S: f64 = 300.0;
 /// Simulates a campaign in the order of `effects.md`: true centre (after
 /// `target-shift`), true station pose (after `station-drift`), the readings
 /// of the tracker with its error parameters, reading-level effects, noise.
+///
+/// Long on purpose (issue 31): one pass in `effects.md`'s order of steps,
+/// each step a hook call on every effect; cut into functions, the order
+/// the document fixes would be spread over their call sites.
 pub fn simulate_campaign(spec: &CampaignSpec) -> Result<SimulatedCampaign, String> {
     let layout = spec.layout;
     let fx = spec.effects;

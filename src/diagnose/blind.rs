@@ -437,6 +437,10 @@ pub(super) fn signal_chi2(d: &Diagnosis, signal: &[Vector3<f64>]) -> f64 {
 }
 
 /// Runs one case.
+///
+/// Long on purpose (issue 31): one case from its draw to its score —
+/// simulate, diagnose, compare with the truth — in sequence, each step
+/// reading what the one before produced.
 fn run_case(plan: &Plan, case: usize) -> Result<Case> {
     let mut rng = random::stream(plan.seed, &format!("blind-check-{case}"));
     let setting = Setting::draw(&mut rng, &plan.campaigns);

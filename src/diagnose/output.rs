@@ -491,6 +491,9 @@ pub fn figures_left_out(notes: &[String]) -> String {
 }
 
 /// The report's parts (see [`Sections`]).
+///
+/// Long on purpose (issue 31): the sections in the order the report reads,
+/// each a few lines of words over the diagnosis; no step is reused.
 pub fn sections(d: &Diagnosis) -> Sections {
     let mut s = String::new();
     let _ = writeln!(s, "# Diagnosis of `{}`\n", d.campaign);

@@ -285,6 +285,54 @@ pub struct Entry {
     pub files: BTreeMap<String, Vec<u8>>,
 }
 
+impl Entry {
+    /// The entry of a stage's fresh output: its tables as Parquet bytes,
+    /// each table and file recorded with its hash in the manifest.
+    /// `times` is when the stage started and finished (RFC 3339).
+    pub fn new(
+        stage: &str,
+        key_fields: &KeyFields,
+        times: (String, String),
+        seconds: f64,
+        tables: &[(String, polars::prelude::DataFrame)],
+        files: BTreeMap<String, Vec<u8>>,
+    ) -> anyhow::Result<Entry> {
+        let mut bytes = BTreeMap::new();
+        let mut records = Vec::new();
+        for (name, df) in tables {
+            let b = crate::table::to_parquet_bytes(df)?;
+            records.push(TableRecord {
+                name: name.clone(),
+                rows: df.height(),
+                hash: hash_bytes(&b),
+            });
+            bytes.insert(name.clone(), b);
+        }
+        let manifest = Manifest {
+            stage: stage.to_string(),
+            key: key_fields.hash(),
+            key_fields: key_fields.clone(),
+            started: times.0,
+            finished: times.1,
+            seconds,
+            tables: records,
+            files: files
+                .iter()
+                .map(|(n, b)| FileRecord {
+                    name: n.clone(),
+                    bytes: b.len(),
+                    hash: hash_bytes(b),
+                })
+                .collect(),
+        };
+        Ok(Entry {
+            manifest,
+            tables: bytes,
+            files,
+        })
+    }
+}
+
 /// What a lookup found.
 #[derive(Debug)]
 pub enum Lookup {

@@ -11,16 +11,14 @@
 //! Overrides of `executor.*` (where the points run) change nothing
 //! computed: they make no experiment, and are not part of one.
 
-use super::InputError;
 use super::cache;
-use super::resolve::Override;
+use super::error::InputError;
+use super::overrides::Override;
 use anyhow::{Context as _, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-/// The folder below `results/<pipeline>/` that holds the experiments; no
-/// stage may have this name ([`super::raw`] refuses it).
-pub const DIR: &str = "runs";
+pub use super::names::EXPERIMENTS_DIR as DIR;
 
 /// The file of an experiment's folder that records its overrides.
 pub const OVERRIDES_FILE: &str = "overrides.toml";

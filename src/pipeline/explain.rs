@@ -15,8 +15,8 @@
 //! compared, so that a change of the stage's own settings shows even when an
 //! upstream change makes it rerun anyway.
 
-use super::InputError;
 use super::cache::{KeyFields, Store, short};
+use super::error::InputError;
 use super::plan::{self, Assessment};
 use super::resolve::Pipeline;
 use super::status::Status;

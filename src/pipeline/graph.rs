@@ -448,7 +448,7 @@ fn arrow_head(from: (i32, i32), to: (i32, i32)) -> Vec<(i32, i32)> {
 mod tests {
     use super::*;
     use crate::diagnostics::Source;
-    use crate::pipeline::load_source;
+    use crate::pipeline::resolve::load_source;
 
     fn pipeline() -> Pipeline {
         let text = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\

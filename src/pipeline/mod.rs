@@ -19,9 +19,13 @@
 
 pub mod cache;
 pub mod cluster;
+pub mod diagnose;
+pub mod error;
 pub mod experiment;
 pub mod explain;
 pub mod graph;
+pub mod names;
+pub mod overrides;
 pub mod pack;
 pub mod panics;
 pub mod plan;
@@ -30,52 +34,27 @@ pub mod raw;
 pub mod report;
 pub mod resolve;
 pub mod run;
+pub mod run_report;
 pub mod snapshot;
+pub mod snapshot_spec;
 pub mod status;
 pub mod sweep;
 
 /// Where [`Source`] was first defined; kept for code written against it.
 pub use crate::diagnostics as source;
 pub use crate::diagnostics::Problem;
+pub use error::{InputError, MAX_FILE_BYTES};
+pub use resolve::load_source;
 
 use crate::diagnostics::Source;
 use resolve::{Override, Pipeline};
-use std::fmt;
 use std::path::Path;
-
-/// Everything wrong with a pipeline file, reported together.
-#[derive(Clone, Debug)]
-pub struct InputError(pub Vec<Problem>);
-
-impl fmt::Display for InputError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        for (i, p) in self.0.iter().enumerate() {
-            if i > 0 {
-                writeln!(f, "\n")?;
-            }
-            write!(f, "{p}")?;
-        }
-        Ok(())
-    }
-}
-
-impl std::error::Error for InputError {}
-
-impl InputError {
-    /// One mistake in the command line's arguments.
-    pub fn arg(message: impl Into<String>) -> anyhow::Error {
-        InputError(vec![Problem::arg(message)]).into()
-    }
-}
 
 /// Reads, parses and resolves a pipeline file.
 pub fn load(path: &Path, overrides: &[Override]) -> anyhow::Result<Pipeline> {
     let src = read(path).map_err(|p| InputError(vec![p]))?;
     load_source(&src, overrides)
 }
-
-/// The largest pipeline file read: real ones are a few kilobytes.
-pub const MAX_FILE_BYTES: u64 = 1 << 20;
 
 /// A pipeline file's text. Anything that is not one — missing, a folder, a
 /// FIFO or device (which would block or never end), too large, not UTF-8 —
@@ -147,12 +126,6 @@ pub fn name(path: &Path) -> anyhow::Result<String> {
         resolve::resolve(&raw, &[]).map_err(InputError)?;
     }
     Ok(name)
-}
-
-pub fn load_source(src: &Source, overrides: &[Override]) -> anyhow::Result<Pipeline> {
-    let raw =
-        raw::parse(src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
-    Ok(resolve::resolve(&raw, overrides).map_err(InputError)?)
 }
 
 /// [`load`] for a cluster task: of the sweep, only the (increasing) points

@@ -142,7 +142,7 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
     // the stages of one point differently from another's): its assessment
     // at the first point, and how many points would run it, with the first.
     let mut out: Vec<(Assessment, usize, Option<String>)> = Vec::new();
-    let mut gathering = Some(Gatherer::each(sw));
+    let mut gathering = Some(sw.gatherers());
     assess_points(sw, store, |index, assessed| {
         for a in &assessed {
             let stale = a.item.status != Status::Cached;
@@ -203,7 +203,7 @@ fn assess_sweep(p: &Pipeline, sw: &Sweep, store: &Store) -> Vec<Assessment> {
 /// The content hashes the gathered tables would have now: `None` unless
 /// every point is cached.
 pub fn gathered_now(sw: &Sweep, store: &Store) -> Option<BTreeMap<String, String>> {
-    let mut gathering = Some(Gatherer::each(sw));
+    let mut gathering = Some(sw.gatherers());
     assess_points(sw, store, |index, assessed| {
         if let Some(gs) = gathering.as_mut() {
             if gather_point(sw, store, index, &assessed, gs).is_none() {

@@ -9,9 +9,10 @@
 //! or a link in its place is refused, not waited on or read without end.
 
 use super::cache::{self, Store};
+use super::error::InputError;
 use super::resolve::Pipeline;
 use super::status::Status;
-use super::{InputError, plan, sweep};
+use super::{plan, sweep};
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
 

@@ -85,7 +85,7 @@ const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot", "sweep", "executo
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawExecutor {
-    pub slurm: Option<super::cluster::SlurmSettings>,
+    pub slurm: Option<super::cluster::settings::SlurmSettings>,
 }
 
 fn key_str<'a>(k: &'a Spanned<std::borrow::Cow<'_, str>>) -> &'a str {
@@ -119,22 +119,8 @@ fn collect_spans(prefix: &str, v: &Spanned<DeValue<'_>>, out: &mut BTreeMap<Stri
     }
 }
 
-/// The folders ltcal writes beside the stage folders in
-/// `results/<pipeline>/`, which no stage's folder may be, and what they hold.
-const RESERVED_STAGE_NAMES: &[(&str, &str)] = &[
-    (super::experiment::DIR, "the experiments (runs with --set)"),
-    (super::sweep::PSEUDO_STAGE, "a sweep's gathered tables"),
-    ("slurm", "the cluster's job scripts and logs"),
-];
-
-/// A valid stage name: used in file names and references.
-pub fn valid_name(name: &str) -> bool {
-    !name.is_empty()
-        && name.len() <= 64
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-}
+use super::names::RESERVED_STAGE_NAMES;
+pub use super::names::valid_name;
 
 /// Parses a pipeline file. Returns every error found, not only the first.
 pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {

@@ -14,7 +14,7 @@
 
 use super::graph;
 use super::resolve::Pipeline;
-use super::run::RunReport;
+use super::run_report::RunReport;
 use super::status::Status;
 use crate::fs::write_atomic;
 use crate::table;
@@ -107,7 +107,10 @@ pub fn write(dir: &Path, p: &Pipeline, report: &RunReport, tables: &Tables) -> R
         .map(|s| (s.stage.clone(), s.status))
         .collect();
     write_atomic(&dir.join("graph.svg"), graph::svg(p, &statuses)?.as_bytes())?;
-    write_atomic(&dir.join("index.html"), page(p, report, tables).as_bytes())
+    write_atomic(
+        &dir.join(super::names::PAGE),
+        page(p, report, tables).as_bytes(),
+    )
 }
 
 /// The page's HTML.

@@ -3,141 +3,26 @@
 //! the field in the file, or at the `--set` that changed it), and checks the
 //! graph: every input names an existing stage and table, every required slot
 //! is connected, and there is no cycle. Other top-level tables are resolved
-//! by their own modules against the resolved stages ([`snapshot`]).
+//! by their own modules against the resolved stages ([`snapshot_spec`]).
 
-use super::cluster::SlurmSettings;
+use super::cluster::settings::SlurmSettings;
+use super::error::InputError;
 use super::raw::{RawPipeline, RawStage};
-use super::snapshot::{self, Snapshot};
-use super::{Problem, sweep};
+use super::snapshot_spec::{self, Snapshot};
+use super::sweep;
+use crate::diagnostics::Problem;
 use crate::diagnostics::Source;
 use crate::stages::{Invalid, StageConfig};
-use anyhow::{Result, anyhow, bail};
-use serde::Deserialize;
+use anyhow::Result;
 use std::collections::BTreeMap;
 use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-/// One `--set path=value`: `path` is dotted (`stages.measure.seed`), with
-/// double quotes around a segment that contains dots; `value` is a TOML
-/// value, or a bare word taken as a string.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Override {
-    pub path: Vec<String>,
-    pub value: serde_json::Value,
-    /// As the user typed it, for messages.
-    pub text: String,
-    /// A sweep axis's `path` in the pipeline file; `None` for `--set`.
-    pub origin: Option<Range<usize>>,
-}
+use super::overrides::get_path;
+pub use super::overrides::{Override, set_path, split_path};
 
-impl Override {
-    pub fn parse(arg: &str) -> Result<Override> {
-        let (path, value) = arg.split_once('=').ok_or_else(|| {
-            anyhow!("--set {arg}: expected path=value, e.g. stages.measure.seed=3")
-        })?;
-        let path = split_path(path.trim())
-            .ok_or_else(|| anyhow!("--set {arg}: `{}` is not a dotted path", path.trim()))?;
-        let value = value.trim();
-        let value = toml::de::ValueDeserializer::parse(value)
-            .ok()
-            .and_then(|d| serde_json::Value::deserialize(d).ok())
-            .unwrap_or_else(|| serde_json::Value::String(value.to_string()));
-        Ok(Override {
-            path,
-            value,
-            text: arg.to_string(),
-            origin: None,
-        })
-    }
-
-    /// `--set <text>` or `sweep axis <text>`, for messages.
-    fn name(&self) -> String {
-        match self.origin {
-            Some(_) => format!("sweep axis `{}`", self.text),
-            None => format!("--set {}", self.text),
-        }
-    }
-
-    /// A problem with this override: at the sweep axis in the file, or
-    /// naming the `--set` argument.
-    fn problem(&self, src: &Source, message: impl std::fmt::Display) -> Problem {
-        let message = format!("{}: {message}", self.name());
-        match &self.origin {
-            Some(span) => Problem::At(src.error(span.clone(), message)),
-            None => Problem::arg(message),
-        }
-    }
-
-    /// The path after `stages.<name>.`, when it targets that stage.
-    fn within(&self, stage: &str) -> Option<&[String]> {
-        match self.path.as_slice() {
-            [s, name, rest @ ..] if s == "stages" && name == stage => Some(rest),
-            _ => None,
-        }
-    }
-}
-
-/// Splits `a.b."c.d"` into `["a", "b", "c.d"]`.
-pub fn split_path(p: &str) -> Option<Vec<String>> {
-    let mut out = Vec::new();
-    let mut cur = String::new();
-    let mut quoted = false;
-    for c in p.chars() {
-        match c {
-            '"' => quoted = !quoted,
-            '.' if !quoted => out.push(std::mem::take(&mut cur)),
-            _ => cur.push(c),
-        }
-    }
-    out.push(cur);
-    (!quoted && out.iter().all(|s| !s.is_empty())).then_some(out)
-}
-
-fn get_path<'a>(root: &'a serde_json::Value, path: &[String]) -> Option<&'a serde_json::Value> {
-    path.iter().try_fold(root, |v, k| v.get(k))
-}
-
-/// Sets `value` at `path` inside a JSON object, creating objects on the way.
-pub fn set_path(
-    root: &mut serde_json::Value,
-    path: &[String],
-    value: serde_json::Value,
-) -> Result<()> {
-    let Some((last, parents)) = path.split_last() else {
-        bail!("empty path");
-    };
-    let mut cur = root;
-    for p in parents {
-        if cur.get(p).is_none_or(|v| v.is_null()) {
-            cur[p] = serde_json::json!({});
-        }
-        cur = cur
-            .get_mut(p)
-            .filter(|v| v.is_object())
-            .ok_or_else(|| anyhow!("`{p}` is not a table"))?;
-    }
-    match cur {
-        serde_json::Value::Object(m) => {
-            m.insert(last.clone(), value);
-            Ok(())
-        }
-        _ => bail!("cannot set `{last}` inside a value that is not a table"),
-    }
-}
-
-/// Where a stage reads a slot from.
-#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub struct InputRef {
-    pub stage: String,
-    pub table: String,
-}
-
-impl std::fmt::Display for InputRef {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}.{}", self.stage, self.table)
-    }
-}
+pub use super::names::InputRef;
 
 /// A stage with every setting resolved.
 #[derive(Clone, Debug)]
@@ -268,6 +153,11 @@ pub struct SweepPoint {
 }
 
 impl Sweep {
+    /// One gatherer per table the sweep gathers, in `gather` order.
+    pub fn gatherers(&self) -> Vec<sweep::Gatherer<'_>> {
+        sweep::Gatherer::each(&self.axes, &self.values, self.gather.len())
+    }
+
     /// The table names the pseudo-stage `sweep` offers: `stage.table`.
     pub fn table_names(&self) -> Vec<String> {
         self.gather.iter().map(|g| g.to_string()).collect()
@@ -312,7 +202,7 @@ impl Pipeline {
     pub fn stage(&self, name: &str) -> Result<&Stage> {
         self.stages.iter().find(|s| s.name == name).ok_or_else(|| {
             let names: Vec<&str> = self.stages.iter().map(|s| s.name.as_str()).collect();
-            super::InputError::arg(format!(
+            InputError::arg(format!(
                 "the pipeline has no stage `{name}`; its stages are: {}{}",
                 names.join(", "),
                 crate::suggest::hint(name, names.iter().copied())
@@ -333,6 +223,13 @@ pub fn name_of(raw: &RawPipeline) -> String {
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "pipeline".into()),
     }
+}
+
+/// Parses and resolves a pipeline file's text with overrides.
+pub fn load_source(src: &Source, overrides: &[Override]) -> Result<Pipeline> {
+    let raw = super::raw::parse(src)
+        .map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    Ok(resolve(&raw, overrides).map_err(InputError)?)
 }
 
 /// Resolves a parsed file with overrides.
@@ -420,16 +317,22 @@ pub fn resolve_checking(
     }
     check_columns(raw, &pipeline)?;
     if let Some((snap, header)) = &raw.snapshot {
-        pipeline.snapshot = Some(snapshot::resolve(
-            src,
-            snap,
-            header.clone(),
-            &pipeline.stages,
-        )?);
+        let stages: Vec<(&str, &StageConfig)> = pipeline
+            .stages
+            .iter()
+            .map(|s| (s.name.as_str(), &s.config))
+            .collect();
+        pipeline.snapshot = Some(snapshot_spec::resolve(src, snap, header.clone(), &stages)?);
     }
     Ok(pipeline)
 }
 
+/// One stage as written made a resolved stage: overrides applied, defaults
+/// filled, settings validated, its file checked, every problem at its place.
+///
+/// Long on purpose (issue 31): each step reports at the field the user
+/// wrote or the `--set` that changed it, and needs the spans of the steps
+/// before it.
 fn resolve_stage(
     src: &Source,
     rs: &RawStage,
@@ -580,135 +483,11 @@ fn check_graph(
 ) -> Result<(), Vec<Problem>> {
     let src = &raw.source;
     let mut problems = Vec::new();
-    let at = |stage: &str, slot: &str, key: bool| -> std::ops::Range<usize> {
-        let rs = raw.stages.iter().find(|s| s.name == stage);
-        rs.and_then(|rs| rs.inputs.iter().find(|i| i.slot == slot))
-            .map(|i| {
-                if key {
-                    i.slot_span.clone()
-                } else {
-                    i.span.clone()
-                }
-            })
-            .or_else(|| rs.map(|rs| rs.span.clone()))
-            .unwrap_or(0..0)
-    };
     for s in &p.stages {
-        let slots = s.config.inputs();
         for (slot, r) in &s.inputs {
-            if !slots.iter().any(|x| x.name == slot) {
-                let known: Vec<&str> = slots.iter().map(|x| x.name).collect();
-                problems.push(Problem::At(src.error(
-                    at(&s.name, slot, true),
-                    format!(
-                        "stage `{}` ({}) has no input `{slot}`; its inputs are: {}",
-                        s.name,
-                        s.config.kind(),
-                        if known.is_empty() {
-                            "none".to_string()
-                        } else {
-                            known.join(", ")
-                        }
-                    ),
-                )));
-                continue;
-            }
-            if let (sweep::PSEUDO_STAGE, Some(g)) = (r.stage.as_str(), gathered) {
-                if !g.contains(&r.table) {
-                    problems.push(Problem::At(src.error(
-                        at(&s.name, slot, false),
-                        format!(
-                            "`sweep.{}` is not gathered; [sweep] gather has: {}",
-                            r.table,
-                            if g.is_empty() {
-                                "nothing".into()
-                            } else {
-                                g.join(", ")
-                            }
-                        ),
-                    )));
-                }
-                continue;
-            }
-            let Some(producer) = p.stages.iter().find(|x| x.name == r.stage) else {
-                let names: Vec<&str> = p.stages.iter().map(|x| x.name.as_str()).collect();
-                problems.push(Problem::At(src.error(
-                    at(&s.name, slot, false),
-                    format!(
-                        "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}{}",
-                        s.name,
-                        r.stage,
-                        names.join(", "),
-                        crate::suggest::hint(&r.stage, names.iter().copied())
-                    ),
-                )));
-                continue;
-            };
-            let tables = producer.config.outputs();
-            let spec = slots
-                .iter()
-                .find(|x| x.name == slot)
-                .expect("checked above");
-            if !spec.group.is_empty() {
-                if !r.table.is_empty() {
-                    problems.push(Problem::At(src.error(
-                        at(&s.name, slot, false),
-                        format!(
-                            "input `{slot}` takes the tables {} of a stage together: name the stage alone, `\"{}\"`",
-                            spec.group.join(", "),
-                            r.stage
-                        ),
-                    )));
-                }
-                let missing: Vec<&str> = spec
-                    .group
-                    .iter()
-                    .copied()
-                    .filter(|t| !tables.contains(t))
-                    .collect();
-                if !missing.is_empty() {
-                    problems.push(Problem::At(src.error(
-                        at(&s.name, slot, false),
-                        format!(
-                            "input `{slot}` needs the tables {} but stage `{}` ({}) lacks {}",
-                            spec.group.join(", "),
-                            producer.name,
-                            producer.config.kind(),
-                            missing.join(", ")
-                        ),
-                    )));
-                }
-                continue;
-            }
-            if !r.table.is_empty() && !tables.contains(&r.table.as_str()) {
-                problems.push(Problem::At(src.error(
-                    at(&s.name, slot, false),
-                    format!(
-                        "stage `{}` ({}) has no table `{}`; its tables are: {}{}",
-                        producer.name,
-                        producer.config.kind(),
-                        r.table,
-                        tables.join(", "),
-                        crate::suggest::hint(&r.table, tables.iter().copied())
-                    ),
-                )));
-            }
+            problems.extend(check_input(raw, p, s, slot, r, gathered));
         }
-        for slot in slots.iter().filter(|x| x.required) {
-            if !s.inputs.contains_key(slot.name) {
-                problems.push(Problem::At(src.error(
-                    at(&s.name, "", true),
-                    format!(
-                        "stage `{}` ({}) needs input `{}`: {}; add `inputs = {{ {} = \"<stage>\" }}`",
-                        s.name,
-                        s.config.kind(),
-                        slot.name,
-                        slot.doc,
-                        slot.name
-                    ),
-                )));
-            }
-        }
+        problems.extend(check_required(raw, s));
     }
     if !problems.is_empty() {
         return Err(problems);
@@ -719,25 +498,173 @@ fn check_graph(
         .map(|s| (s.name.clone(), s.config.outputs()[0]))
         .collect();
     fill_tables(&mut p.stages, &primary);
-    {
-        if let Some(cycle) = find_cycle(p) {
+    match find_cycle(p) {
+        Some(cycle) => {
             let (first, slot) = (&cycle[0].0, &cycle[0].1);
             let names: Vec<&str> = cycle.iter().map(|(s, _)| s.as_str()).collect();
-            problems.push(Problem::At(src.error(
-                at(first, slot, false),
+            Err(vec![Problem::At(src.error(
+                input_span(raw, first, slot, false),
                 format!(
                     "the stage inputs form a cycle: {} → {} (each reads the next)",
                     names.join(" → "),
                     names[0]
                 ),
+            ))])
+        }
+        None => Ok(()),
+    }
+}
+
+/// Where input `slot` of `stage` is written (its key when `key`, else its
+/// value), or the stage's header when the file does not write it.
+fn input_span(raw: &RawPipeline, stage: &str, slot: &str, key: bool) -> Range<usize> {
+    let rs = raw.stages.iter().find(|s| s.name == stage);
+    rs.and_then(|rs| rs.inputs.iter().find(|i| i.slot == slot))
+        .map(|i| {
+            if key {
+                i.slot_span.clone()
+            } else {
+                i.span.clone()
+            }
+        })
+        .or_else(|| rs.map(|rs| rs.span.clone()))
+        .unwrap_or(0..0)
+}
+
+/// What is wrong with input `slot` of stage `s`, reading `r`: a slot the
+/// kind does not have, a table the sweep does not gather, a stage or
+/// table that does not exist, a group of tables named by one table.
+fn check_input(
+    raw: &RawPipeline,
+    p: &Pipeline,
+    s: &Stage,
+    slot: &str,
+    r: &InputRef,
+    gathered: Option<&[String]>,
+) -> Vec<Problem> {
+    let src = &raw.source;
+    let slots = s.config.inputs();
+    let mut problems = Vec::new();
+    if !slots.iter().any(|x| x.name == slot) {
+        let known: Vec<&str> = slots.iter().map(|x| x.name).collect();
+        problems.push(Problem::At(src.error(
+            input_span(raw, &s.name, slot, true),
+            format!(
+                "stage `{}` ({}) has no input `{slot}`; its inputs are: {}",
+                s.name,
+                s.config.kind(),
+                if known.is_empty() {
+                    "none".to_string()
+                } else {
+                    known.join(", ")
+                }
+            ),
+        )));
+        return problems;
+    }
+    if let (sweep::PSEUDO_STAGE, Some(g)) = (r.stage.as_str(), gathered) {
+        if !g.contains(&r.table) {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, slot, false),
+                format!(
+                    "`sweep.{}` is not gathered; [sweep] gather has: {}",
+                    r.table,
+                    if g.is_empty() {
+                        "nothing".into()
+                    } else {
+                        g.join(", ")
+                    }
+                ),
+            )));
+        }
+        return problems;
+    }
+    let Some(producer) = p.stages.iter().find(|x| x.name == r.stage) else {
+        let names: Vec<&str> = p.stages.iter().map(|x| x.name.as_str()).collect();
+        problems.push(Problem::At(src.error(
+            input_span(raw, &s.name, slot, false),
+            format!(
+                "input `{slot}` of stage `{}` names no stage `{}`; the stages are: {}{}",
+                s.name,
+                r.stage,
+                names.join(", "),
+                crate::suggest::hint(&r.stage, names.iter().copied())
+            ),
+        )));
+        return problems;
+    };
+    let tables = producer.config.outputs();
+    let spec = slots
+        .iter()
+        .find(|x| x.name == slot)
+        .expect("checked above");
+    if !spec.group.is_empty() {
+        if !r.table.is_empty() {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, slot, false),
+                format!(
+                    "input `{slot}` takes the tables {} of a stage together: name the stage alone, `\"{}\"`",
+                    spec.group.join(", "),
+                    r.stage
+                ),
+            )));
+        }
+        let missing: Vec<&str> = spec
+            .group
+            .iter()
+            .copied()
+            .filter(|t| !tables.contains(t))
+            .collect();
+        if !missing.is_empty() {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, slot, false),
+                format!(
+                    "input `{slot}` needs the tables {} but stage `{}` ({}) lacks {}",
+                    spec.group.join(", "),
+                    producer.name,
+                    producer.config.kind(),
+                    missing.join(", ")
+                ),
+            )));
+        }
+        return problems;
+    }
+    if !r.table.is_empty() && !tables.contains(&r.table.as_str()) {
+        problems.push(Problem::At(src.error(
+            input_span(raw, &s.name, slot, false),
+            format!(
+                "stage `{}` ({}) has no table `{}`; its tables are: {}{}",
+                producer.name,
+                producer.config.kind(),
+                r.table,
+                tables.join(", "),
+                crate::suggest::hint(&r.table, tables.iter().copied())
+            ),
+        )));
+    }
+    problems
+}
+
+/// Each required input slot of stage `s` that the file leaves unconnected.
+fn check_required(raw: &RawPipeline, s: &Stage) -> Vec<Problem> {
+    let src = &raw.source;
+    let mut problems = Vec::new();
+    for slot in s.config.inputs().iter().filter(|x| x.required) {
+        if !s.inputs.contains_key(slot.name) {
+            problems.push(Problem::At(src.error(
+                input_span(raw, &s.name, "", true),
+                format!(
+                    "stage `{}` ({}) needs input `{}`: {}; add `inputs = {{ {} = \"<stage>\" }}`",
+                    s.name,
+                    s.config.kind(),
+                    slot.name,
+                    slot.doc,
+                    slot.name
+                ),
             )));
         }
     }
-    if problems.is_empty() {
-        Ok(())
-    } else {
-        Err(problems)
-    }
+    problems
 }
 
 /// Names the producer's first table where an input names a stage alone.
@@ -1020,4 +947,69 @@ fn find_cycle(p: &Pipeline) -> Option<Vec<(String, String)>> {
             .then(|| visit(p, i, &mut marks, &mut Vec::new()))
             .flatten()
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TEXT: &str = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
+        [stages.t]\nkind = \"inject\"\n\
+        [stages.m]\nkind = \"measure\"\ninputs = { points = \"a\", errors = \"t\" }\n";
+
+    fn raw(text: &str) -> RawPipeline {
+        super::super::raw::parse(&Source::new("p.toml", text)).unwrap()
+    }
+
+    fn messages(problems: Vec<Problem>) -> String {
+        problems
+            .iter()
+            .map(|p| p.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+
+    #[test]
+    fn resolve_fills_defaults_applies_overrides_and_leaves_the_file_as_written() {
+        let raw = raw(TEXT);
+        let seven = Override::parse("stages.m.seed=7").unwrap();
+        let p = resolve(&raw, &[seven]).unwrap();
+        let m = p.stage("m").unwrap().config.to_json();
+        assert_eq!(m["seed"], 7);
+        // Defaults the file does not write are filled in.
+        assert!(m.get("noise").is_some() && m.get("face").is_some(), "{m}");
+        // An input naming a stage alone reads its first table.
+        let points = &p.stage("m").unwrap().inputs["points"];
+        assert_eq!(
+            (points.stage.as_str(), points.table.as_str()),
+            ("a", "points")
+        );
+        // The raw pipeline is not changed by resolving it: without the
+        // override, the seed is the default again.
+        let again = resolve(&raw, &[]).unwrap();
+        assert_eq!(again.stage("m").unwrap().config.to_json()["seed"], 0);
+        assert_eq!(p.name, "p");
+    }
+
+    #[test]
+    fn check_graph_names_a_missing_stage_an_unknown_slot_and_a_missing_input() {
+        let text = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
+            [stages.m]\nkind = \"measure\"\ninputs = { points = \"b\", pionts = \"a\" }\n\
+            [stages.c]\nkind = \"correct\"\ninputs = { readings = \"m\" }\n";
+        let e = messages(resolve(&raw(text), &[]).unwrap_err());
+        assert!(e.contains("names no stage `b`"), "{e}");
+        assert!(e.contains("has no input `pionts`"), "{e}");
+        assert!(e.contains("needs input `params`"), "{e}");
+    }
+
+    #[test]
+    fn check_graph_reports_a_cycle_at_its_first_input() {
+        let text = "[stages.t]\nkind = \"inject\"\n\
+            [stages.a]\nkind = \"correct\"\ninputs = { readings = \"b\", params = \"t\" }\n\
+            [stages.b]\nkind = \"correct\"\ninputs = { readings = \"a\", params = \"t\" }\n";
+        let e = messages(resolve(&raw(text), &[]).unwrap_err());
+        assert!(e.contains("the stage inputs form a cycle"), "{e}");
+        // At an input of the cycle, where the file writes it.
+        assert!(e.contains("p.toml:5:") || e.contains("p.toml:7:"), "{e}");
+    }
 }

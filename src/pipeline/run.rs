@@ -24,7 +24,7 @@
 //! report says so (`cache_problem`), so that a damaged cache is visible
 //! rather than silently repaired.
 
-use super::cache::{self, Entry, FileRecord, Lookup, Manifest, Store, TableRecord};
+use super::cache::{self, Entry, KeyFields, Lookup, Manifest, Store};
 use super::experiment::{self, Experiment};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
@@ -37,7 +37,6 @@ use crate::table;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
 use rayon::prelude::*;
-use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -59,71 +58,7 @@ pub struct RunOptions {
     pub experiment: Option<Experiment>,
 }
 
-/// What happened to one stage.
-#[derive(Clone, Debug, Serialize)]
-pub struct StageReport {
-    pub stage: String,
-    pub kind: String,
-    /// [`Status::Ran`], [`Status::Cached`], [`Status::Failed`] or
-    /// [`Status::Skipped`].
-    pub status: Status,
-    /// Why it ran, failed or was skipped; empty when cached.
-    pub reason: String,
-    /// What was wrong with the stage's cached entry when it failed
-    /// verification (truncated, corrupted or edited) and was recomputed.
-    pub cache_problem: Option<String>,
-    pub key: Option<String>,
-    pub seconds: f64,
-    /// Table name → rows.
-    pub tables: BTreeMap<String, usize>,
-    pub files: Vec<String>,
-}
-
-/// What happened to the pipeline; written to `results/<pipeline>/run.json`.
-#[derive(Clone, Debug, Serialize)]
-pub struct RunReport {
-    pub pipeline: String,
-    /// The folder the run published to.
-    pub results: PathBuf,
-    /// The experiment the run was (a run with `--set`); absent for the
-    /// pipeline's own results.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub experiment: Option<Experiment>,
-    pub started: String,
-    pub finished: String,
-    /// Leftovers of killed runs (incomplete entries, temporary files)
-    /// removed before this run.
-    pub cleaned: usize,
-    pub stages: Vec<StageReport>,
-    /// For a pipeline with a `[sweep]`.
-    pub sweep: Option<SweepReport>,
-    /// Packs whose index could not be read, and why: their entries were
-    /// not served (and, if needed, recomputed into new packs).
-    pub unreadable_packs: Vec<String>,
-    /// What was damaged in the cache and taken out after the run
-    /// ([`Store::heal`]), so that `ltcal verify` passes again.
-    pub healed: Vec<cache::Healed>,
-}
-
-impl RunReport {
-    /// The stages with `status` (a [`Status`], or the word it is written as).
-    pub fn with_status<S>(&self, status: S) -> Vec<&str>
-    where
-        Status: PartialEq<S>,
-    {
-        self.stages
-            .iter()
-            .filter(|s| s.status == status)
-            .map(|s| s.stage.as_str())
-            .collect()
-    }
-    pub fn failed(&self) -> Vec<&StageReport> {
-        self.stages
-            .iter()
-            .filter(|s| s.status == Status::Failed)
-            .collect()
-    }
-}
+pub use super::run_report::{RunReport, StageReport, SweepReport};
 
 /// A stage's outputs as the next stages see them.
 struct Produced {
@@ -192,18 +127,6 @@ pub fn store(root: &Path, p: &Pipeline, e: Option<&Experiment>) -> Store {
         Some(e) => store.for_experiment(&e.name),
         None => store,
     }
-}
-
-/// What a sweep did: how many points ran at least one stage, how many
-/// were wholly cached, and which failed.
-#[derive(Clone, Debug, Default, Serialize)]
-pub struct SweepReport {
-    pub points: usize,
-    pub ran: usize,
-    pub cached: usize,
-    pub failed: usize,
-    /// The gathered tables, `stage.table` → rows.
-    pub gathered: BTreeMap<String, usize>,
 }
 
 /// What [`execute_stages`] needs besides the stages.
@@ -568,7 +491,7 @@ fn run_point_set<'a>(
         parallel: false,
         ..*runner
     };
-    let mut gathered = sweep::Gatherer::each(sw);
+    let mut gathered = sw.gatherers();
     let mut counts = SweepReport {
         points: indices.len(),
         ..SweepReport::default()
@@ -875,65 +798,12 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         if let Some(Ok(m)) = store.manifest(&key) {
             report.status = Status::Cached;
             fill(&mut report, &m);
-            let tables = m
-                .tables
-                .iter()
-                .map(|t| {
-                    let out = Output {
-                        frame: OnceLock::new(),
-                        key: Some(key.clone()),
-                        hash: t.hash.clone(),
-                    };
-                    (t.name.clone(), out)
-                })
-                .collect();
-            return (report, Some(Produced { tables }));
+            return (report, Some(on_manifest(&key, &m)));
         }
     }
-    let why = match store.lookup(&key) {
+    report.reason = match store.lookup(&key) {
         Lookup::Hit(entry) => match decode(&entry) {
-            Ok(prod) => {
-                report.status = Status::Cached;
-                fill(&mut report, &entry.manifest);
-                // What these results published last: a copy that differs
-                // from the cached result but is that is an earlier result,
-                // switched back from; one that is neither was edited or
-                // damaged since.
-                let before = runner
-                    .publish
-                    .then(|| store.last_here(&s.name))
-                    .flatten()
-                    .and_then(|k| store.manifest(&k.hash()))
-                    .and_then(Result::ok);
-                match publish(runner, &s.name, &entry).and_then(|replaced| {
-                    if runner.publish {
-                        store.set_last(&s.name, &kf)?;
-                    }
-                    Ok(replaced)
-                }) {
-                    Ok(replaced) => {
-                        for (path, name, hash) in replaced {
-                            let switched_back = before
-                                .as_ref()
-                                .is_some_and(|m| published_hash(m, &name) == Some(&hash));
-                            if !switched_back {
-                                eprintln!(
-                                    "note: restored {}: it differed from the cached result of `{}` \
-                                     (edited or damaged)",
-                                    path.display(),
-                                    s.name
-                                );
-                            }
-                        }
-                    }
-                    Err(e) => {
-                        report.status = Status::Failed;
-                        report.reason = format!("{e:#}");
-                        return (report, None);
-                    }
-                }
-                return (report, Some(prod));
-            }
+            Ok(prod) => return serve_cached(runner, s, &kf, &entry, prod, report),
             Err(e) => format!("its cached result could not be read: {e:#}"),
         },
         Lookup::Corrupt(why) => {
@@ -943,121 +813,200 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         }
         Lookup::Miss => reason(store, &s.name, runner.point, &kf),
     };
-    report.reason = why;
-    let mut stage_inputs = StageInputs::default();
-    for (slot, r, prod) in &inputs {
-        match prod.tables[&r.table].frame(store, &r.table) {
-            Ok(df) => stage_inputs.insert(slot, r.to_string(), df),
-            Err(e) => {
-                // A cached input damaged since it was taken on its
-                // manifest: the point runs again, reading entries whole.
-                let why = format!("its input `{r}` could not be read from the cache: {e:#}");
-                report.reason = why.clone();
-                report.cache_problem = Some(why);
-                return (report, None);
-            }
-        }
-    }
-    let started = SystemTime::now();
-    let ctx = Context {
-        pipeline: runner.pipeline,
-        stage: &s.name,
-        file_hash: s.file_hash.as_deref(),
-    };
-    let output = match panics::catch(|| s.config.run(&ctx, &stage_inputs)) {
-        Ok(Ok(o)) => o,
-        Ok(Err(e)) => {
-            report.reason = format!("{e:#}");
+    let stage_inputs = match read_inputs(store, &inputs) {
+        Ok(i) => i,
+        Err(why) => {
+            // A cached input damaged since it was taken on its manifest:
+            // the point runs again, reading entries whole.
+            report.reason = why.clone();
+            report.cache_problem = Some(why);
             return (report, None);
         }
-        Err(panic) => {
-            report.reason = format!("the stage panicked: {panic}");
+    };
+    let started = SystemTime::now();
+    let output = match run_stage(runner, s, &stage_inputs) {
+        Ok(o) => o,
+        Err(why) => {
+            report.reason = why;
             return (report, None);
         }
     };
     report.seconds = t0.elapsed().as_secs_f64();
-    let stored = (|| -> Result<Entry> {
-        for name in s.config.outputs() {
-            if !output.tables.iter().any(|(n, _)| n == name) {
-                return Err(anyhow!(
-                    "the stage did not produce its table `{name}` (a bug in ltcal)"
-                ));
-            }
-        }
-        let mut tables = BTreeMap::new();
-        let mut records = Vec::new();
-        for (name, df) in &output.tables {
-            let bytes = table::to_parquet_bytes(df)?;
-            records.push(TableRecord {
-                name: name.clone(),
-                rows: df.height(),
-                hash: cache::hash_bytes(&bytes),
-            });
-            tables.insert(name.clone(), bytes);
-        }
-        let files: BTreeMap<String, Vec<u8>> = output.files.iter().cloned().collect();
-        let manifest = Manifest {
-            stage: s.name.clone(),
-            key: key.clone(),
-            key_fields: kf.clone(),
-            started: timestamp(started),
-            finished: timestamp(SystemTime::now()),
-            seconds: report.seconds,
-            tables: records,
-            files: files
-                .iter()
-                .map(|(n, b)| FileRecord {
-                    name: n.clone(),
-                    bytes: b.len(),
-                    hash: cache::hash_bytes(b),
-                })
-                .collect(),
-        };
-        let entry = Entry {
-            manifest,
-            tables,
-            files,
-        };
-        // A sweep point's entry goes into the next pack, which also records
-        // that it ran there; another stage's is an entry of its own, and its
-        // record is what `explain` compares with.
-        match runner.point {
-            None => {
-                store.put(&entry)?;
-                // Published first: a record never names what the folder
-                // does not hold.
-                publish(runner, &s.name, &entry)?;
-                store.set_last(&s.name, &kf)?;
-            }
-            Some(i) => store.put_packed(entry.clone(), i),
-        }
-        Ok(entry)
-    })();
-    match stored {
+    match store_output(runner, s, &kf, started, report.seconds, &output) {
         Ok(entry) => {
             report.status = Status::Ran;
             fill(&mut report, &entry.manifest);
-            let prod = Produced {
-                tables: output
-                    .tables
-                    .into_iter()
-                    .map(|(n, df)| {
-                        let h = entry
-                            .manifest
-                            .tables
-                            .iter()
-                            .find(|t| t.name == n)
-                            .map(|t| t.hash.clone());
-                        (n, Output::loaded(Arc::new(df), h.unwrap_or_default()))
-                    })
-                    .collect(),
-            };
-            (report, Some(prod))
+            (report, Some(produced(output, &entry.manifest)))
         }
         Err(e) => {
             report.reason = format!("{e:#}");
             (report, None)
         }
+    }
+}
+
+/// A cached stage taken on its manifest: each table's hash, read when
+/// something reads it.
+fn on_manifest(key: &str, m: &Manifest) -> Produced {
+    let tables = m
+        .tables
+        .iter()
+        .map(|t| {
+            let out = Output {
+                frame: OnceLock::new(),
+                key: Some(key.to_string()),
+                hash: t.hash.clone(),
+            };
+            (t.name.clone(), out)
+        })
+        .collect();
+    Produced { tables }
+}
+
+/// A cached stage served: its entry published (restoring a published copy
+/// edited or damaged since, with a note) and recorded as what the folder
+/// holds.
+fn serve_cached(
+    runner: &Runner,
+    s: &Stage,
+    kf: &KeyFields,
+    entry: &Entry,
+    prod: Produced,
+    mut report: StageReport,
+) -> (StageReport, Option<Produced>) {
+    let store = runner.store;
+    report.status = Status::Cached;
+    fill(&mut report, &entry.manifest);
+    // What these results published last: a copy that differs from the
+    // cached result but is that is an earlier result, switched back from;
+    // one that is neither was edited or damaged since.
+    let before = runner
+        .publish
+        .then(|| store.last_here(&s.name))
+        .flatten()
+        .and_then(|k| store.manifest(&k.hash()))
+        .and_then(Result::ok);
+    let published = publish(runner, &s.name, entry).and_then(|replaced| {
+        if runner.publish {
+            store.set_last(&s.name, kf)?;
+        }
+        Ok(replaced)
+    });
+    match published {
+        Ok(replaced) => {
+            for (path, name, hash) in replaced {
+                let switched_back = before
+                    .as_ref()
+                    .is_some_and(|m| published_hash(m, &name) == Some(&hash));
+                if !switched_back {
+                    eprintln!(
+                        "note: restored {}: it differed from the cached result of `{}` \
+                         (edited or damaged)",
+                        path.display(),
+                        s.name
+                    );
+                }
+            }
+            (report, Some(prod))
+        }
+        Err(e) => {
+            report.status = Status::Failed;
+            report.reason = format!("{e:#}");
+            (report, None)
+        }
+    }
+}
+
+/// The stage's input tables, read from what produced them; or why one
+/// could not be read.
+fn read_inputs(store: &Store, inputs: &Wired) -> Result<StageInputs, String> {
+    let mut stage_inputs = StageInputs::default();
+    for (slot, r, prod) in inputs {
+        match prod.tables[&r.table].frame(store, &r.table) {
+            Ok(df) => stage_inputs.insert(slot, r.to_string(), df),
+            Err(e) => {
+                return Err(format!(
+                    "its input `{r}` could not be read from the cache: {e:#}"
+                ));
+            }
+        }
+    }
+    Ok(stage_inputs)
+}
+
+/// The stage's own computation, a panic caught as its failure.
+fn run_stage(
+    runner: &Runner,
+    s: &Stage,
+    inputs: &StageInputs,
+) -> Result<crate::stages::StageOutput, String> {
+    let ctx = Context {
+        pipeline: runner.pipeline,
+        stage: &s.name,
+        file_hash: s.file_hash.as_deref(),
+    };
+    match panics::catch(|| s.config.run(&ctx, inputs)) {
+        Ok(Ok(o)) => Ok(o),
+        Ok(Err(e)) => Err(format!("{e:#}")),
+        Err(panic) => Err(format!("the stage panicked: {panic}")),
+    }
+}
+
+/// A stage's fresh output made an entry and stored: a sweep point's into
+/// the next pack (which also records that it ran there), another stage's
+/// as an entry of its own, published, and recorded as what the folder
+/// holds (what `explain` compares with).
+fn store_output(
+    runner: &Runner,
+    s: &Stage,
+    kf: &KeyFields,
+    started: SystemTime,
+    seconds: f64,
+    output: &crate::stages::StageOutput,
+) -> Result<Entry> {
+    for name in s.config.outputs() {
+        if !output.tables.iter().any(|(n, _)| n == name) {
+            return Err(anyhow!(
+                "the stage did not produce its table `{name}` (a bug in ltcal)"
+            ));
+        }
+    }
+    let entry = Entry::new(
+        &s.name,
+        kf,
+        (timestamp(started), timestamp(SystemTime::now())),
+        seconds,
+        &output.tables,
+        output.files.iter().cloned().collect(),
+    )?;
+    match runner.point {
+        None => {
+            runner.store.put(&entry)?;
+            // Published first: a record never names what the folder does
+            // not hold.
+            publish(runner, &s.name, &entry)?;
+            runner.store.set_last(&s.name, kf)?;
+        }
+        Some(i) => runner.store.put_packed(entry.clone(), i),
+    }
+    Ok(entry)
+}
+
+/// A fresh output's tables, held in memory with their stored hashes.
+fn produced(output: crate::stages::StageOutput, m: &Manifest) -> Produced {
+    Produced {
+        tables: output
+            .tables
+            .into_iter()
+            .map(|(n, df)| {
+                let h = m
+                    .tables
+                    .iter()
+                    .find(|t| t.name == n)
+                    .map(|t| t.hash.clone());
+                (n, Output::loaded(Arc::new(df), h.unwrap_or_default()))
+            })
+            .collect(),
     }
 }
 
@@ -1112,4 +1061,102 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<(PathBuf, 
         }
     }
     Ok(replaced)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diagnostics::Source;
+    use crate::pipeline::resolve::{Override, load_source};
+
+    const TEXT: &str = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
+        [stages.t]\nkind = \"inject\"\n\
+        [stages.m]\nkind = \"measure\"\ninputs = { points = \"a\", errors = \"t\" }\n";
+
+    fn run_in(root: &Path, set: &[&str]) -> RunReport {
+        let overrides: Vec<Override> = set.iter().map(|s| Override::parse(s).unwrap()).collect();
+        let p = load_source(&Source::new("p.toml", TEXT), &overrides).unwrap();
+        let opts = RunOptions {
+            results_root: root.to_path_buf(),
+            keep_going: false,
+            progress: false,
+            not_computed: None,
+            experiment: None,
+        };
+        run(&p, &opts).unwrap()
+    }
+
+    fn statuses(r: &RunReport) -> Vec<(&str, Status)> {
+        r.stages
+            .iter()
+            .map(|s| (s.stage.as_str(), s.status))
+            .collect()
+    }
+
+    /// `execute` runs what is not cached, serves what is, and reruns only
+    /// the stage whose settings changed, saying why.
+    #[test]
+    fn execute_runs_then_serves_from_the_cache_and_reruns_only_what_changed() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = run_in(dir.path(), &[]);
+        assert_eq!(
+            statuses(&first),
+            [("a", Status::Ran), ("t", Status::Ran), ("m", Status::Ran)]
+        );
+        assert_eq!(first.stages[0].reason, "never run");
+        assert!(dir.path().join("p/m/readings.parquet").is_file());
+        let second = run_in(dir.path(), &[]);
+        assert_eq!(
+            statuses(&second),
+            [
+                ("a", Status::Cached),
+                ("t", Status::Cached),
+                ("m", Status::Cached)
+            ]
+        );
+        let keys = |r: &RunReport| r.stages.iter().map(|s| s.key.clone()).collect::<Vec<_>>();
+        assert_eq!(keys(&first), keys(&second));
+        assert_eq!(first.stages[2].tables, second.stages[2].tables);
+        let third = run_in(dir.path(), &["stages.m.seed=3"]);
+        assert_eq!(
+            statuses(&third),
+            [
+                ("a", Status::Cached),
+                ("t", Status::Cached),
+                ("m", Status::Ran)
+            ]
+        );
+        assert!(
+            third.stages[2].reason.contains("seed"),
+            "{}",
+            third.stages[2].reason
+        );
+        assert_ne!(third.stages[2].key, first.stages[2].key);
+    }
+
+    /// A damaged cache entry is never served: it is recomputed, and the
+    /// report says what was wrong.
+    #[test]
+    fn execute_recomputes_a_corrupt_entry_and_says_so() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = run_in(dir.path(), &[]);
+        let key = first.stages[0].key.clone().unwrap();
+        let entry = dir.path().join("p/.ltcal/cache").join(&key);
+        let table = std::fs::read_dir(&entry)
+            .unwrap()
+            .flatten()
+            .map(|e| e.path())
+            .find(|p| p.extension().is_some_and(|x| x == "parquet"))
+            .unwrap();
+        std::fs::write(&table, b"not parquet").unwrap();
+        let second = run_in(dir.path(), &[]);
+        assert_eq!(second.stages[0].status, Status::Ran);
+        assert!(second.stages[0].cache_problem.is_some());
+        assert!(
+            second.stages[0].reason.contains("corrupt"),
+            "{}",
+            second.stages[0].reason
+        );
+        assert_eq!(second.stages[0].key, first.stages[0].key);
+    }
 }

@@ -11,165 +11,28 @@
 //! the tolerance so that a tolerance of zero means "equal as recorded" and a
 //! tolerance of one unit is not lost to binary rounding.
 //!
-//! `[snapshot]` is resolved here (layer 2 of [`super`]): its table
-//! references are checked against the stages; its `tolerance` columns can
+//! `[snapshot]` is resolved beside the stages ([`super::snapshot_spec`]):
+//! its table references are checked against the stages; its `tolerance` columns can
 //! only be checked once the tables exist, and are then reported at their
 //! place in the file like every other pipeline error.
 
 use super::cache::{Lookup, Store};
-use super::raw::RawSnapshot;
-use super::resolve::{InputRef, Pipeline, Stage};
-use super::run::RunReport;
+use super::error::InputError;
+use super::resolve::{InputRef, Pipeline};
+use super::run_report::RunReport;
 use super::status::Status;
-use super::{InputError, Problem};
-use crate::diagnostics::Source;
+use crate::diagnostics::Problem;
 use crate::fs::write_atomic;
 use crate::table;
 use anyhow::{Result, anyhow, bail};
 use polars::prelude::DataFrame;
-use std::collections::BTreeMap;
 use std::fmt;
-use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-/// Decimal places of recorded numbers unless `digits` says otherwise.
-pub const DEFAULT_DIGITS: usize = 6;
-/// Beyond this, decimal text of an `f64` is noise.
-const MAX_DIGITS: usize = 15;
 /// Differing rows shown per table; the rest are counted.
 const SHOWN_ROWS: usize = 20;
 
-/// The resolved `[snapshot]` table.
-#[derive(Clone, Debug)]
-pub struct Snapshot {
-    pub tables: Vec<InputRef>,
-    pub digits: usize,
-    /// Column → absolute tolerance.
-    pub tolerance: BTreeMap<String, f64>,
-    pub default_tolerance: f64,
-    /// Where each `tolerance` column is named in the file.
-    pub tolerance_spans: BTreeMap<String, Range<usize>>,
-}
-
-impl Snapshot {
-    pub fn tolerance_of(&self, column: &str) -> f64 {
-        self.tolerance
-            .get(column)
-            .copied()
-            .unwrap_or(self.default_tolerance)
-    }
-}
-
-/// Resolves `[snapshot]` against the resolved stages.
-pub fn resolve(
-    src: &Source,
-    raw: &RawSnapshot,
-    header: Range<usize>,
-    stages: &[Stage],
-) -> Result<Snapshot, Vec<Problem>> {
-    let mut problems = Vec::new();
-    let mut err = |span: Range<usize>, msg: String| {
-        problems.push(Problem::At(src.error(span, format!("[snapshot]: {msg}"))));
-    };
-    if raw.tables.is_empty() {
-        err(
-            header.clone(),
-            "`tables` lists no table; name some, e.g. tables = [\"evaluate.summary\"]".into(),
-        );
-    }
-    let mut tables: Vec<InputRef> = Vec::new();
-    for t in &raw.tables {
-        let span = t.span();
-        let (stage, table) = match t.get_ref().split_once('.') {
-            Some((s, t)) => (s, Some(t)),
-            None => (t.get_ref().as_str(), None),
-        };
-        let Some(s) = stages.iter().find(|s| s.name == stage) else {
-            let names: Vec<&str> = stages.iter().map(|s| s.name.as_str()).collect();
-            err(
-                span,
-                format!(
-                    "`{}` names no stage `{stage}`; the stages are: {}{}",
-                    t.get_ref(),
-                    names.join(", "),
-                    crate::suggest::hint(stage, names.iter().copied())
-                ),
-            );
-            continue;
-        };
-        let outputs = s.config.outputs();
-        let table = table.unwrap_or(outputs[0]);
-        if !outputs.contains(&table) {
-            err(
-                span,
-                format!(
-                    "stage `{stage}` ({}) has no table `{table}`; its tables are: {}{}",
-                    s.config.kind(),
-                    outputs.join(", "),
-                    crate::suggest::hint(table, outputs.iter().copied())
-                ),
-            );
-            continue;
-        }
-        let r = InputRef {
-            stage: stage.to_string(),
-            table: table.to_string(),
-        };
-        if tables.contains(&r) {
-            err(span, format!("`{r}` is listed twice"));
-            continue;
-        }
-        tables.push(r);
-    }
-    let digits = match &raw.digits {
-        Some(d) if *d.get_ref() > MAX_DIGITS => {
-            err(
-                d.span(),
-                format!("`digits` is at most {MAX_DIGITS}: an f64 holds no more"),
-            );
-            DEFAULT_DIGITS
-        }
-        Some(d) => *d.get_ref(),
-        None => DEFAULT_DIGITS,
-    };
-    let mut tolerance = BTreeMap::new();
-    let mut tolerance_spans = BTreeMap::new();
-    let valid = |v: f64| v.is_finite() && v >= 0.0;
-    for (col, tol) in &raw.tolerance {
-        if !valid(*tol.get_ref()) {
-            err(
-                tol.span(),
-                format!(
-                    "the tolerance of `{}` must be a finite number ≥ 0",
-                    col.get_ref()
-                ),
-            );
-        }
-        tolerance.insert(col.get_ref().clone(), *tol.get_ref());
-        tolerance_spans.insert(col.get_ref().clone(), col.span());
-    }
-    let default_tolerance = match &raw.default_tolerance {
-        Some(t) if !valid(*t.get_ref()) => {
-            err(
-                t.span(),
-                "`default_tolerance` must be a finite number ≥ 0".into(),
-            );
-            0.0
-        }
-        Some(t) => *t.get_ref(),
-        None => 0.0,
-    };
-    if !problems.is_empty() {
-        return Err(problems);
-    }
-    Ok(Snapshot {
-        tables,
-        digits,
-        tolerance,
-        default_tolerance,
-        tolerance_spans,
-    })
-}
+pub use super::snapshot_spec::{DEFAULT_DIGITS, Snapshot};
 
 /// The pipeline's `[snapshot]`, or an error saying how to add one.
 pub fn of(p: &Pipeline) -> Result<&Snapshot> {
@@ -566,6 +429,7 @@ impl fmt::Display for Report<'_> {
 mod tests {
     use super::*;
     use crate::table::TableBuilder;
+    use std::collections::BTreeMap;
 
     fn snap(tol: &[(&str, f64)], default: f64) -> Snapshot {
         Snapshot {

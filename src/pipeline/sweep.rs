@@ -34,9 +34,8 @@
 //! `range`'s values and the grid of all axes at [`MAX_POINTS`], each
 //! refused at its place in the file.
 
-use super::Problem;
-use super::resolve::{Override, Sweep, split_path};
-use crate::diagnostics::Source;
+use super::overrides::{Override, split_path};
+use crate::diagnostics::{Problem, Source};
 use crate::{random, table};
 use anyhow::{Result, anyhow};
 use polars::prelude::{Column, DataFrame};
@@ -48,8 +47,7 @@ use toml::Spanned;
 /// The most points a sweep may expand to.
 pub const MAX_POINTS: usize = 100_000;
 
-/// The name the gathered tables are read under: `sweep.<stage>.<table>`.
-pub const PSEUDO_STAGE: &str = "sweep";
+pub use super::names::PSEUDO_STAGE;
 
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -321,7 +319,9 @@ pub fn expand(src: &Source, raw: &RawSweep) -> Result<(Vec<Axis>, Vec<PointValue
 /// plan, and the bytes do not depend on the chunking (the table is made
 /// one chunk before it is written), so both hash the same bytes.
 pub struct Gatherer<'a> {
-    sw: &'a Sweep,
+    axes: &'a [Axis],
+    /// Each point's value of each axis.
+    values: &'a [Vec<serde_json::Value>],
     /// Each chunk's points stacked and made one contiguous chunk: a point's
     /// table appended as it is stays a chunk of its own in every column,
     /// and 100 000 points' chunks cost more to carry than their rows.
@@ -335,9 +335,10 @@ pub struct Gatherer<'a> {
 const GATHER_CHUNK: usize = 256;
 
 impl<'a> Gatherer<'a> {
-    fn new(sw: &'a Sweep) -> Gatherer<'a> {
+    fn new(axes: &'a [Axis], values: &'a [Vec<serde_json::Value>]) -> Gatherer<'a> {
         Gatherer {
-            sw,
+            axes,
+            values,
             parts: Vec::new(),
             chunk: Vec::new(),
             points: 0,
@@ -349,17 +350,22 @@ impl<'a> Gatherer<'a> {
         self.points == 0
     }
 
-    /// One gatherer per table the sweep gathers, in `gather` order.
-    pub fn each(sw: &'a Sweep) -> Vec<Gatherer<'a>> {
-        sw.gather.iter().map(|_| Gatherer::new(sw)).collect()
+    /// `tables` gatherers over the points `values` of `axes`: one per
+    /// table the sweep gathers.
+    pub fn each(
+        axes: &'a [Axis],
+        values: &'a [Vec<serde_json::Value>],
+        tables: usize,
+    ) -> Vec<Gatherer<'a>> {
+        (0..tables).map(|_| Gatherer::new(axes, values)).collect()
     }
 
     /// Adds point `index`'s table (points in increasing order).
     pub fn push(&mut self, index: usize, df: &DataFrame) -> Result<()> {
         self.chunk.push(with_point_columns(
-            self.sw,
+            self.axes,
             index,
-            &self.sw.values[index],
+            &self.values[index],
             df,
         )?);
         self.points += 1;
@@ -390,18 +396,18 @@ impl<'a> Gatherer<'a> {
 
 /// A point's table with `point` and one column per axis in front.
 fn with_point_columns(
-    sw: &Sweep,
+    axes: &[Axis],
     index: usize,
     values: &[serde_json::Value],
     df: &DataFrame,
 ) -> Result<DataFrame> {
     let n = df.height();
     let mut cols = vec![Column::new("point".into(), vec![index as i64; n])];
-    for (a, v) in sw.axes.iter().zip(values) {
+    for (a, v) in axes.iter().zip(values) {
         cols.push(table::constant_column(&a.name, v, n)?);
     }
     for c in df.columns() {
-        if sw.axes.iter().any(|a| a.name == c.name().as_str()) || c.name().as_str() == "point" {
+        if axes.iter().any(|a| a.name == c.name().as_str()) || c.name().as_str() == "point" {
             return Err(anyhow!(
                 "the gathered table already has a column `{}`: name the axis differently",
                 c.name()

@@ -32,6 +32,7 @@ pub mod monte_carlo;
 pub mod open_world_check;
 pub mod paper_gap;
 pub mod plot;
+pub mod schema;
 pub mod sensitivity;
 pub mod simulate_campaign;
 pub mod spread;

@@ -36,6 +36,12 @@ const ABOVE: [&str; 3] = ["pipeline", "stages", "cli"];
 /// Whether `code` names one of [`ABOVE`]: `crate::pipeline`,
 /// `crate::{…, stages, …}`, `super::super::cli`.
 fn names_a_layer_above(code: &str) -> Option<String> {
+    names_one_of(code, &ABOVE)
+}
+
+/// Whether `code` names one of the crate's top-level modules `layers`
+/// (`crate::x`, `crate::{…, x, …}`, `super::super::x`).
+fn names_one_of(code: &str, layers: &[&str]) -> Option<String> {
     let compact: String = code.chars().filter(|c| !c.is_whitespace()).collect();
     for root in ["crate::", "super::"] {
         for (at, _) in compact.match_indices(root) {
@@ -57,7 +63,7 @@ fn names_a_layer_above(code: &str) -> Option<String> {
                     .split(|c: char| !(c.is_alphanumeric() || c == '_'))
                     .next()
                     .unwrap_or_default();
-                if ABOVE.contains(&first) {
+                if layers.contains(&first) {
                     return Some(format!("{root}{}", &rest[..rest.len().min(40)]));
                 }
             }
@@ -329,4 +335,282 @@ fn the_tracker_model_check_sees_a_planted_match() {
     ] {
         assert_eq!(names_a_tracker_model(clean, &ids), None, "{clean}");
     }
+}
+
+/// The files below `src/<dir>` whose code names one of `layers`.
+fn files_naming(dir: &str, layers: &[&str]) -> Vec<String> {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let files = rust_files(&src.join(dir));
+    assert!(
+        files.len() > 10,
+        "found only {} files in {dir}",
+        files.len()
+    );
+    files
+        .iter()
+        .filter_map(|p| {
+            names_one_of(&code(p), layers)
+                .map(|what| format!("{} names {what}", p.strip_prefix(&src).unwrap().display()))
+        })
+        .collect()
+}
+
+/// ARCHITECTURE.md: stages are adapters between tables and the domain; the
+/// runner calls them, never the other way round (`StageInputs`, the stage
+/// interface, lives in `stages/mod.rs`). Test modules included.
+#[test]
+fn stages_never_import_pipeline_or_cli() {
+    let offending = files_naming("stages", &["pipeline", "cli"]);
+    assert!(
+        offending.is_empty(),
+        "a stage must not depend on the runner or the command line:\n  {}",
+        offending.join("\n  ")
+    );
+}
+
+/// ARCHITECTURE.md: the command line calls `pipeline`, never the other
+/// way round. Test modules included.
+#[test]
+fn pipeline_never_imports_cli() {
+    let offending = files_naming("pipeline", &["cli"]);
+    assert!(
+        offending.is_empty(),
+        "the runner must not depend on the command line:\n  {}",
+        offending.join("\n  ")
+    );
+}
+
+#[test]
+fn the_stage_and_cli_rules_see_planted_imports() {
+    let stage = "use crate::table;\nfn f() { let p = crate::pipeline::load(path); }";
+    assert!(names_one_of(stage, &["pipeline", "cli"]).is_some());
+    assert!(names_one_of("use crate::{cli::Cli, table};", &["pipeline", "cli"]).is_some());
+    assert!(names_one_of("use super::super::cli::dispatch;", &["cli"]).is_some());
+    assert!(names_one_of("use crate::stages::StageInputs;", &["pipeline", "cli"]).is_none());
+    assert!(names_one_of("use super::cache; use crate::client;", &["cli"]).is_none());
+}
+
+/// The layers of `src/pipeline/`, first to last: a module imports only
+/// modules of earlier layers, so the runner's imports form no circle
+/// (ARCHITECTURE.md, "The runner's layers"). `""` is `mod.rs`, the facade
+/// the rest of the crate calls.
+const PIPELINE_LAYERS: &[&[&str]] = &[
+    &[
+        "error",
+        "names",
+        "overrides",
+        "pack",
+        "panics",
+        "status",
+        "cluster::settings",
+    ],
+    &["cache", "cluster::scheduler", "sweep"],
+    &["raw", "cluster::slurm"],
+    &["snapshot_spec", "experiment"],
+    &["resolve", "run_report"],
+    &["plan"],
+    &["explain", "graph", "published"],
+    &["report"],
+    &["run"],
+    &["snapshot", "cluster", "diagnose"],
+    &[""],
+];
+
+fn pipeline_layer(module: &str) -> Option<usize> {
+    PIPELINE_LAYERS.iter().position(|l| l.contains(&module))
+}
+
+/// Splits `a, b::{c, d}, e` at its top-level commas.
+fn top_level_items(group: &str) -> Vec<&str> {
+    let (mut out, mut depth, mut from) = (Vec::new(), 0usize, 0);
+    for (i, c) in group.char_indices() {
+        match c {
+            '{' => depth += 1,
+            '}' if depth == 0 => {
+                out.push(&group[from..i]);
+                return out;
+            }
+            '}' => depth -= 1,
+            ',' if depth == 0 => {
+                out.push(&group[from..i]);
+                from = i + 1;
+            }
+            _ => {}
+        }
+    }
+    out.push(&group[from..]);
+    out
+}
+
+/// The modules of `pipeline/` (`"resolve"`, `"cluster::slurm"`, `""` for
+/// `mod.rs`'s own items) that the code of module `module` names through
+/// `super::` or `crate::pipeline::`. Inline modules (`mod tests {` at the
+/// start of a line up to the `}` that closes it at the start of a line, as
+/// rustfmt lays them out) are read too: their `super::` is the file.
+fn pipeline_imports(module: &str, code: &str, modules: &[String]) -> Vec<String> {
+    let own: Vec<&str> = module.split("::").filter(|s| !s.is_empty()).collect();
+    let mut out = Vec::new();
+    let mut inline = false;
+    for line in code.lines() {
+        let t = line.trim_end();
+        if !line.starts_with(' ') && t.ends_with('{') && t.split_whitespace().any(|w| w == "mod") {
+            inline = true;
+        } else if t == "}" {
+            inline = false;
+        }
+        let here: Vec<&str> = own
+            .iter()
+            .copied()
+            .chain(inline.then_some("tests"))
+            .collect();
+        let compact: String = line.chars().filter(|c| !c.is_whitespace()).collect();
+        let mut at = 0;
+        while at < compact.len() {
+            let rest = &compact[at..];
+            let (mut base, mut path): (Vec<&str>, &str) =
+                if let Some(r) = rest.strip_prefix("crate::pipeline::") {
+                    (Vec::new(), r)
+                } else if let Some(r) = rest.strip_prefix("super::") {
+                    (here[..here.len().saturating_sub(1)].to_vec(), r)
+                } else {
+                    at += rest.chars().next().map_or(1, char::len_utf8);
+                    continue;
+                };
+            while let Some(r) = path.strip_prefix("super::") {
+                base.pop();
+                path = r;
+            }
+            at = compact.len() - path.len();
+            let items = match path.strip_prefix('{') {
+                Some(group) => top_level_items(group),
+                None => vec![path],
+            };
+            for item in items {
+                let mut target = base.clone();
+                for seg in item.split("::") {
+                    let name: String = seg
+                        .chars()
+                        .take_while(|c| c.is_alphanumeric() || *c == '_')
+                        .collect();
+                    let mut next = target.clone();
+                    next.push(name.as_str());
+                    if name.is_empty() || !modules.contains(&next.join("::")) {
+                        break;
+                    }
+                    target.push(seg.get(..name.len()).unwrap_or_default());
+                }
+                let target = target.join("::");
+                if target != module && !out.contains(&target) {
+                    out.push(target);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Each import of module `module` that does not run to an earlier layer.
+fn layer_violations(module: &str, code: &str, modules: &[String]) -> Vec<String> {
+    let Some(layer) = pipeline_layer(module) else {
+        return vec![format!(
+            "`{module}` is in no layer of PIPELINE_LAYERS: add it"
+        )];
+    };
+    pipeline_imports(module, code, modules)
+        .into_iter()
+        .filter(|t| pipeline_layer(t).is_none_or(|l| l >= layer))
+        .map(|t| format!("`{module}` imports `{t}`, which is not in an earlier layer"))
+        .collect()
+}
+
+/// The modules of `src/pipeline/` and their files.
+fn pipeline_modules() -> Vec<(String, PathBuf)> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/pipeline");
+    rust_files(&dir)
+        .into_iter()
+        .map(|p| {
+            let rel = p.strip_prefix(&dir).unwrap().with_extension("");
+            let mut segs: Vec<String> = rel
+                .components()
+                .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                .collect();
+            if segs.last().is_some_and(|s| s == "mod") {
+                segs.pop();
+            }
+            (segs.join("::"), p)
+        })
+        .collect()
+}
+
+#[test]
+fn pipeline_imports_run_only_to_earlier_layers() {
+    let files = pipeline_modules();
+    assert!(
+        files.len() > 20,
+        "found only {} pipeline modules",
+        files.len()
+    );
+    let modules: Vec<String> = files.iter().map(|(m, _)| m.clone()).collect();
+    let offending: Vec<String> = files
+        .iter()
+        .flat_map(|(m, p)| layer_violations(m, &code(p), &modules))
+        .collect();
+    assert!(
+        offending.is_empty(),
+        "src/pipeline/ must import one way (tests/integration/layering.rs, PIPELINE_LAYERS):\n  {}",
+        offending.join("\n  ")
+    );
+}
+
+#[test]
+fn the_pipeline_layer_check_sees_planted_imports() {
+    let modules: Vec<String> = [
+        "", "cache", "raw", "resolve", "run", "names", "sweep", "cluster",
+    ]
+    .iter()
+    .chain(&["cluster::settings", "cluster::slurm", "cluster::scheduler"])
+    .map(|s| s.to_string())
+    .collect();
+    let check = |module: &str, code: &str| layer_violations(module, code, &modules);
+    // Earlier layers, the file's own test module, a child's `super::super`.
+    assert!(check("raw", "use super::names::valid_name;\nuse super::{sweep::RawSweep, cluster::settings::SlurmSettings};").is_empty());
+    assert!(
+        check(
+            "raw",
+            "fn f() {}\n#[cfg(test)]\nmod tests {\n    use super::*;\n}\n"
+        )
+        .is_empty()
+    );
+    assert!(
+        check(
+            "cluster::slurm",
+            "mod tests {\n    use super::super::settings::SlurmSettings;\n}\n"
+        )
+        .is_empty()
+    );
+    // Later layers, however named.
+    assert_eq!(check("raw", "use super::resolve::Pipeline;").len(), 1);
+    assert_eq!(
+        check("raw", "use super::{names, cache::{self, Store}, run};"),
+        ["`raw` imports `run`, which is not in an earlier layer"]
+    );
+    assert_eq!(
+        check("resolve", "fn f() { crate::pipeline::run::run(p, o) }").len(),
+        1
+    );
+    assert_eq!(
+        check("cache", "fn f() { super::load(p) }"),
+        ["`cache` imports ``, which is not in an earlier layer"]
+    );
+    assert_eq!(check("cluster::slurm", "use super::Scheduler;").len(), 1);
+    assert_eq!(
+        check(
+            "sweep",
+            "mod tests {\n    use super::super::resolve::Sweep;\n}\n"
+        )
+        .len(),
+        1
+    );
+    // A module in no layer.
+    assert_eq!(check("brand_new", "").len(), 1);
 }

@@ -45,15 +45,18 @@
 //! batch scheduler offers, [`slurm`] is Slurm's; PBS or LSF would be
 //! another implementation.
 
+pub mod scheduler;
 pub mod settings;
 pub mod slurm;
 
+pub use scheduler::{ArrayJob, Scheduler, TaskState};
 pub use settings::SlurmSettings;
 
 use super::cache::Store;
 use super::plan;
 use super::resolve::{Pipeline, Sweep};
-use super::run::{self, RunOptions, RunReport, point_label};
+use super::run::{self, RunOptions, point_label};
+use super::run_report::RunReport;
 use super::status::Status;
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
@@ -62,75 +65,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-
-/// One array job to submit.
-pub struct ArrayJob<'a> {
-    /// The pipeline's name (the job's name is `ltcal-<name>`).
-    pub name: &'a str,
-    pub tasks: usize,
-    pub settings: &'a SlurmSettings,
-    /// The working folder tasks start in.
-    pub workdir: &'a Path,
-    /// The wave's folder: its logs.
-    pub wave: &'a Path,
-    /// The points file: line `i + 1` is task `i`'s `<first>-<last> <points>`.
-    pub units: &'a Path,
-    /// `ltcal task …` up to the task's own arguments.
-    pub command: Vec<String>,
-}
-
-/// A task as the scheduler sees it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TaskState {
-    pub index: usize,
-    /// The scheduler's word (Slurm: `PENDING`, `RUNNING`, `COMPLETED`,
-    /// `FAILED`, `CANCELLED`, `TIMEOUT`, `NODE_FAIL`, `PREEMPTED`,
-    /// `OUT_OF_MEMORY`, …).
-    pub state: String,
-    pub node: String,
-}
-
-impl TaskState {
-    /// Still to run or running.
-    pub fn active(&self) -> bool {
-        matches!(
-            self.state.as_str(),
-            "PENDING"
-                | "RUNNING"
-                | "CONFIGURING"
-                | "COMPLETING"
-                | "REQUEUED"
-                | "REQUEUE_FED"
-                | "REQUEUE_HOLD"
-                | "RESIZING"
-                | "SUSPENDED"
-                | "STOPPED"
-                | "RESV_DEL_HOLD"
-                | "STAGE_OUT"
-                | "SIGNALING"
-        )
-    }
-
-    pub fn pending(&self) -> bool {
-        self.state == "PENDING"
-    }
-}
-
-/// What a batch scheduler offers the coordinator.
-pub trait Scheduler {
-    fn name(&self) -> &'static str;
-    /// The job script of an array job.
-    fn script(&self, job: &ArrayJob) -> String;
-    /// Submits a job script; returns the job's id.
-    fn submit(&self, script: &Path) -> Result<String>;
-    /// Every task of `job` the scheduler still knows of; `None` when it
-    /// knows nothing of the job any more.
-    fn tasks(&self, job: &str) -> Result<Option<Vec<TaskState>>>;
-    fn cancel(&self, jobs: &[String]) -> Result<()>;
-    /// The name prefix of the packs task `task` of `job` writes (its job
-    /// script passes the same to `ltcal task --prefix`).
-    fn task_prefix(&self, job: &str, task: usize) -> String;
-}
 
 /// One array task's points.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -301,7 +235,7 @@ pub fn run(
     scheduler: &dyn Scheduler,
 ) -> Result<Outcome> {
     let Some(sw) = &p.sweep else {
-        return Err(super::InputError::arg(format!(
+        return Err(super::error::InputError::arg(format!(
             "{}: the {} executor runs a sweep's points; this pipeline has no [sweep] (run it locally)",
             cluster.pipeline_file.display(),
             scheduler.name()
@@ -312,7 +246,7 @@ pub fn run(
     let store = Store::new(&dir);
     store.clean_incomplete();
     let pipeline_file = std::path::absolute(&cluster.pipeline_file)?;
-    let text = crate::fs::read_regular_file(&pipeline_file, super::MAX_FILE_BYTES)?;
+    let text = crate::fs::read_regular_file(&pipeline_file, super::error::MAX_FILE_BYTES)?;
     let pipeline_hash = super::cache::hash_bytes(&text);
     let mut jobs = read_jobs(&dir)?;
     // Jobs of earlier runs still running the same computation: waited for,

@@ -20,7 +20,7 @@
 //! default); once the controller has forgotten a job, from `sacct` where
 //! accounting exists.
 
-use super::{ArrayJob, Scheduler, TaskState};
+use super::scheduler::{ArrayJob, Scheduler, TaskState};
 use anyhow::{Context as _, Result, anyhow, bail};
 use std::path::Path;
 use std::process::Command;
@@ -235,7 +235,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let units = dir.path().join("points.txt");
         std::fs::write(&units, "0-1 0-1\n2-3 2,3\n4-5 4-5\n").unwrap();
-        let settings = super::super::SlurmSettings {
+        let settings = super::super::settings::SlurmSettings {
             sbatch_options: vec!["--qos=long".into()],
             ..Default::default()
         };

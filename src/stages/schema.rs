@@ -1,5 +1,8 @@
 //! The tables stages exchange, column by column. These are the stable,
-//! documented columns a user reads; the README lists them.
+//! documented columns a user reads; the README lists them. Not a leaf:
+//! it turns the domain's points, parameters and readings into these
+//! tables and back, which is the stages' work, so it lives with them (the
+//! domain never names it; `crate::schema` is kept as a path to it).
 //!
 //! * **points** — `target` (id), `x_mm`, `y_mm`, `z_mm`: reflector centres in
 //!   the station frame.
