@@ -197,12 +197,19 @@ pub fn run(
     let interrupted = Arc::new(AtomicBool::new(false));
     let work: Box<dyn FnOnce() -> anyhow::Result<run::RunReport> + Send> = match executor {
         "local" => {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(jobs.unwrap_or(0))
-                .build()
-                .context("starting the worker threads")?;
             let pipeline = pipeline.clone();
-            Box::new(move || pool.install(|| run::run(&pipeline, &opts)))
+            match jobs {
+                // All cores: rayon's global pool, as the command line.
+                None => Box::new(move || run::run(&pipeline, &opts)),
+                // A pool of its own: the global one is sized once per process.
+                Some(n) => {
+                    let pool = rayon::ThreadPoolBuilder::new()
+                        .num_threads(n)
+                        .build()
+                        .context("starting the worker threads")?;
+                    Box::new(move || pool.install(|| run::run(&pipeline, &opts)))
+                }
+            }
         }
         "slurm" => {
             // As `ltcal run --executor slurm`: tasks compute with every stage
