@@ -38,6 +38,9 @@ pub struct Located {
 
 pub type Result<T> = std::result::Result<T, Error>;
 
+/// Tables by name, each as its Parquet bytes.
+pub type Tables = Vec<(String, Vec<u8>)>;
+
 impl From<anyhow::Error> for Error {
     fn from(e: anyhow::Error) -> Error {
         if let Some(input) = e.downcast_ref::<pipeline::InputError>() {
@@ -302,7 +305,7 @@ pub struct DiagnoseOptions {
 /// and the names of the files written to `out`.
 pub struct Diagnosed {
     pub verdict: String,
-    pub tables: Vec<(String, Vec<u8>)>,
+    pub tables: Tables,
     pub files: Vec<String>,
 }
 
@@ -373,7 +376,7 @@ fn campaign_error(e: &campaign::CampaignError, names: Option<&Path>) -> Error {
 
 /// A campaign folder as tables (readings, targets, gauge: Parquet bytes,
 /// every optional column present) and campaign.toml as JSON.
-pub fn read_campaign(dir: &Path) -> Result<(Vec<(String, Vec<u8>)>, String)> {
+pub fn read_campaign(dir: &Path) -> Result<(Tables, String)> {
     let c = campaign::read(dir).map_err(|e| campaign_error(&e, None))?;
     let mut tables = Vec::new();
     for (name, mut df) in c.to_tables()? {
