@@ -49,13 +49,19 @@ def fresh_python():
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
 
 
+def import_only():
+    subprocess.run([sys.executable, "-c", "import ltcal"], check=True, capture_output=True)
+
+
 cli_ms = median_ms(cli)
 py_ms = median_ms(lambda: ltcal.run(PIPELINE, results=results))
 fresh_ms = median_ms(fresh_python)
+import_ms = median_ms(import_only)
 print(f"cached run of {PIPELINE}, median of {RUNS}:")
 print(f"  ltcal run (CLI process)           {cli_ms:7.1f} ms")
 print(f"  ltcal.run (warm interpreter)      {py_ms:7.1f} ms  ({py_ms - cli_ms:+.1f} ms)")
 print(f"  python -c 'import ltcal; run'     {fresh_ms:7.1f} ms  ({fresh_ms - cli_ms:+.1f} ms)")
+print(f"  of which python -c 'import ltcal'  {import_ms:7.1f} ms  (the interpreter's start, the extension's load)")
 
 big = ltcal.run("python/bench/table-100k.toml", results=results)
 rows = len(big.table("measure.readings"))

@@ -22,9 +22,6 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
-import pyarrow as pa
-import pyarrow.parquet as pq
-
 from . import _ltcal
 from ._errors import InputError, LtcalError, StageError
 
@@ -47,6 +44,11 @@ PathLike = Union[str, "os.PathLike[str]"]
 
 def _frame(data: bytes, backend: str) -> Any:
     """A table's Parquet bytes as a DataFrame of `backend`."""
+    # Imported here, not at the top: `import ltcal` then costs no pandas or
+    # pyarrow import (~0.4 s) until a table is asked for.
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     table = pq.read_table(pa.BufferReader(data))
     if backend == "pandas":
         return table.to_pandas()
@@ -61,6 +63,9 @@ def _frame(data: bytes, backend: str) -> Any:
 
 def _parquet(df: Any, what: str) -> bytes:
     """A pandas or polars DataFrame (or an Arrow table) as Parquet bytes."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     if isinstance(df, pa.Table):
         table = df
     elif hasattr(df, "to_arrow") and not hasattr(df, "to_pandas"):

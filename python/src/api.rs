@@ -244,13 +244,24 @@ pub fn run(
             )));
         }
     };
-    let handle = std::thread::spawn(move || caught(work));
+    // The run sends its outcome the moment it ends: a cached run returns
+    // at once, not at the next poll.
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(caught(work));
+    });
     let store = run::store(&t.results, &pipeline, e.as_ref());
     let total = pipeline.stages.len();
     let mut last_plan = std::time::Instant::now();
     let mut done = 0;
-    while !handle.is_finished() {
-        std::thread::sleep(std::time::Duration::from_millis(100));
+    let report = loop {
+        match rx.recv_timeout(std::time::Duration::from_millis(100)) {
+            Ok(outcome) => break outcome?,
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                return Err(Error::Other("the run's thread ended unexpectedly".into()));
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+        }
         // Stages done so far: those the plan now finds cached (a cheap
         // look at the cache's keys, every half second).
         if last_plan.elapsed().as_millis() >= 500 {
@@ -264,10 +275,7 @@ pub fn run(
             interrupted.store(true, Ordering::SeqCst);
             return Err(Error::Other("interrupted".into()));
         }
-    }
-    let report = handle
-        .join()
-        .map_err(|_| Error::Other("the run's thread ended unexpectedly".into()))??;
+    };
     poll(total, total);
     serde_json::to_string(&report).map_err(|e| Error::Other(e.to_string()))
 }
