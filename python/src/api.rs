@@ -70,22 +70,40 @@ fn located_source(at: &ltcal::diagnostics::SourceError, names: Option<&Path>) ->
         l.row = line.checked_sub(2);
         l.column_name = column_at(&at.source.text, at.span.start)
             .or_else(|| backticked_after(&at.message, "column `"));
-        if let Some(dir) = names {
-            // Written from DataFrames: the user knows tables, not our files.
+        if names.is_some() {
+            // Written from DataFrames: the user knows tables, rows and
+            // columns, not the scratch files they passed through.
             l.file = None;
             l.line = None;
             l.column = None;
-            l.message = l.message.replace(&dir.display().to_string(), "");
+            l.message = in_table(&l, &at.message);
         }
     }
     l
+}
+
+/// "table `readings`, row 7, column `d_mm`: …", as [`campaign::Issue`]
+/// says it for a campaign that comes from tables.
+fn in_table(l: &Located, message: &str) -> String {
+    let mut at = format!("table `{}`", l.table.as_deref().unwrap_or("?"));
+    if let Some(row) = l.row {
+        at += &format!(", row {row}");
+    }
+    if let Some(c) = &l.column_name {
+        at += &format!(", column `{c}`");
+    }
+    format!("{at}: {message}")
 }
 
 fn locate(p: &Problem, names: Option<&Path>) -> Located {
     match p {
         Problem::At(at) => located_source(at, names),
         Problem::File { path, message } => Located {
-            message: p.to_string(),
+            message: if names.is_some() {
+                message.clone()
+            } else {
+                p.to_string()
+            },
             file: path
                 .as_ref()
                 .filter(|_| names.is_none())

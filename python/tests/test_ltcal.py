@@ -123,6 +123,7 @@ def test_a_nan_distance_raises_input_error_naming_table_row_and_column(tmp_path)
         ltcal.diagnose(bad(nan), out=tmp_path / "out")
     assert (e.value.table, e.value.row, e.value.column) == ("readings", 7, "d_mm")
     assert e.value.file is None
+    assert str(e.value).startswith("table `readings`, row 7, column `d_mm`: ")
 
 
 def test_an_unknown_reflector_raises_input_error_naming_table_row_and_column(tmp_path):
