@@ -159,10 +159,16 @@ def test_a_panic_in_rust_raises_an_exception_not_a_crash():
 
 
 def test_quickstart_runs(tmp_path):
+    # From a folder that sees the repository's pipelines and examples, so
+    # that its results/ is its own and the committed one stays untouched.
+    here = tmp_path / "repo"
+    here.mkdir()
+    for name in ("pipelines", "examples"):
+        (here / name).symlink_to(REPO / name)
     env = dict(os.environ, MPLBACKEND="Agg")
     done = subprocess.run(
         [sys.executable, "examples/quickstart.py", str(tmp_path)],
-        cwd=REPO,
+        cwd=here,
         env=env,
         capture_output=True,
         text=True,
@@ -211,3 +217,16 @@ def test_the_gil_is_released_while_rust_works(tmp_path):
     # The diagnosis takes a fraction of a second; a held GIL would leave
     # this thread one tick.
     assert ticks > 20
+
+
+def test_a_run_with_set_is_an_experiment_with_its_own_tables(repo, results):
+    plain = ltcal.run(PIPELINE, results=results).table("evaluate_sphere_noisy.summary")
+    run = ltcal.run(PIPELINE, set={"stages.measure_sphere_noisy.seed": 2}, results=results)
+    assert run.name.startswith("set-")
+    assert "/runs/" in run.results
+    changed = run.table("evaluate_sphere_noisy.summary")
+    assert list(changed["statistic"]) == list(plain["statistic"])
+    assert changed.loc[0, "after_um"] != plain.loc[0, "after_um"]
+    # The pipeline's own results are still the plain run's.
+    again = ltcal.run(PIPELINE, results=results).table("evaluate_sphere_noisy.summary")
+    pd.testing.assert_frame_equal(again, plain)
