@@ -185,7 +185,8 @@ def run(
     ``["stages.identify.noise=0.1"]``) and makes the run an experiment,
     published to ``results/<pipeline>/runs/<name>/``; ``name`` names it.
     ``jobs``: worker threads (default: all cores). ``executor``: ``"local"``
-    (default) or ``"slurm"``. ``progress``: a tqdm bar of stages done.
+    (default) or ``"slurm"``. ``progress``: a tqdm bar of stages done
+    (stages, not sweep points: a sweep's stages count when it ends).
     Raises :class:`InputError` for a wrong pipeline or setting and
     :class:`StageError` when a stage failed (its ``run`` holds the rest);
     Ctrl-C raises KeyboardInterrupt (stages under way finish in the
