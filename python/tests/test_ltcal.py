@@ -230,3 +230,25 @@ def test_a_run_with_set_is_an_experiment_with_its_own_tables(repo, results):
     # The pipeline's own results are still the plain run's.
     again = ltcal.run(PIPELINE, results=results).table("evaluate_sphere_noisy.summary")
     pd.testing.assert_frame_equal(again, plain)
+
+
+FAILING = """
+[stages.a]
+kind = "mesh"
+shape = "plane"
+
+[stages.bad]
+kind = "plot"
+plot = "mesh-errors"
+inputs = { table = "a" }
+"""
+
+
+def test_a_failed_stage_raises_stage_error_with_the_run(tmp_path):
+    # A figure of a table that lacks its columns fails at run time.
+    (tmp_path / "p.toml").write_text(FAILING)
+    with pytest.raises(ltcal.StageError) as e:
+        ltcal.run(tmp_path / "p.toml", results=tmp_path / "results")
+    assert (e.value.stage, e.value.kind) == ("bad", "plot")
+    assert "has no column `x_ref_mm`" in e.value.reason
+    assert e.value.run.statuses == {"a": "ran", "bad": "failed"}
