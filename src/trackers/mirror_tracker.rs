@@ -213,7 +213,7 @@ impl BeamPath {
         let du = |axis: Vector3<f64>| (axis - u * u.dot(&axis)) * (u.z * urad);
         let zero = Vector3::zeros();
         // (ds₀, du, dn, do, d mirror offset, d range offset) per misalignment.
-        let tangents: [(Vector3<f64>, Vector3<f64>, Vector3<f64>, Vector3<f64>, f64, f64); 10] = [
+        let tangents = [
             (Vector3::x() * um, zero, zero, zero, 0.0, 0.0),
             (Vector3::y() * um, zero, zero, zero, 0.0, 0.0),
             (zero, du(Vector3::x()), zero, zero, 0.0, 0.0),
