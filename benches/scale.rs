@@ -10,7 +10,7 @@
 //! from every station (4 800 readings), as the issue timed it.
 //! `mirror_hall` is the same hall read by a mirror tracker (every
 //! misalignment 10 µm or 10 µrad): its bundle adjustment with its own model
-//! (derivatives by central differences) and `compare_models` on it (both
+//! (analytic derivatives of the beam path) and `compare_models` on it (both
 //! models, each with its 5-fold held-out residual).
 //!
 //!     cargo bench --bench scale

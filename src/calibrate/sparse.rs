@@ -346,8 +346,10 @@ struct PointBlock {
 /// chunks: fixed, so that the sums do not depend on the thread count.
 const CHUNKS: usize = 16;
 
-/// One chunk's share of the assembly: `H_AA` (column-major, upper
-/// triangle) and the dense part of `Jᵀr`, and the scratch space of a block.
+/// One chunk's share of the assembly: `H_AA` (column-major, lower
+/// triangle: a block's columns ascend, so a row of its products lands in
+/// consecutive entries) and the dense part of `Jᵀr`, and the scratch space
+/// of a block.
 struct Accumulator<'a> {
     j: &'a BlockJacobian,
     r: Option<&'a DVector<f64>>,
@@ -359,6 +361,9 @@ struct Accumulator<'a> {
     local: Vec<f64>,
     global: Vec<usize>,
     place: Vec<usize>,
+    /// The block's position part by columns (`rows` values each), so that
+    /// every product below is one [`dot`] of two contiguous columns.
+    x_cols: Vec<f64>,
 }
 
 impl<'a> Accumulator<'a> {
@@ -371,6 +376,7 @@ impl<'a> Accumulator<'a> {
             local: Vec::new(),
             global: Vec::new(),
             place: Vec::new(),
+            x_cols: Vec::new(),
         }
     }
 
@@ -410,22 +416,27 @@ impl<'a> Accumulator<'a> {
             for (c, &gc) in self.global.iter().enumerate().skip(a) {
                 let h = dot(la, &local[c * rows..(c + 1) * rows]);
                 let (lo, hi) = min_max(ga, gc);
-                self.h_aa[hi * n_a + lo] += h;
+                self.h_aa[lo * n_a + hi] += h;
             }
         }
         if let (Some(pb), Some(x)) = (pb, x_part) {
+            self.x_cols.clear();
+            for c in 0..3 {
+                self.x_cols.extend((0..rows).map(|k| x[k * 3 + c]));
+            }
+            let xc = |c: usize| &self.x_cols[c * rows..(c + 1) * rows];
             for (a, &pa) in self.place.iter().enumerate() {
                 let la = &local[a * rows..(a + 1) * rows];
                 for (c, out) in pb.h_ax[pa].iter_mut().enumerate() {
-                    *out += (0..rows).map(|k| la[k] * x[k * 3 + c]).sum::<f64>();
+                    *out += dot(la, xc(c));
                 }
             }
             for a in 0..3 {
                 if let Some(res) = res {
-                    pb.g_x[a] += (0..rows).map(|k| x[k * 3 + a] * res[k]).sum::<f64>();
+                    pb.g_x[a] += dot(xc(a), res);
                 }
                 for c in a..3 {
-                    let h: f64 = (0..rows).map(|k| x[k * 3 + a] * x[k * 3 + c]).sum();
+                    let h = dot(xc(a), xc(c));
                     pb.h_xx[(a, c)] += h;
                     if a != c {
                         pb.h_xx[(c, a)] += h;
@@ -513,7 +524,7 @@ impl Normal {
             acc.g_a.iter_mut().zip(&g_a).for_each(|(a, b)| *a += b);
             points.extend(pts);
         }
-        mirror_upper(&mut acc.h_aa, n_a);
+        mirror_lower(&mut acc.h_aa, n_a);
         let mut g = DVector::zeros(j.n);
         g.rows_mut(0, n_a).copy_from_slice(&acc.g_a);
         for (i, p) in points.iter().enumerate() {
@@ -559,7 +570,7 @@ impl Normal {
         let n_a = self.n_a;
         let chunk = self.points.len().div_ceil(CHUNKS).max(1);
         // Each chunk of positions: their inverse blocks and their share of
-        // Σ H_AX·H_XX⁻¹·H_XA (upper triangle), subtracted in chunk order.
+        // Σ H_AX·H_XX⁻¹·H_XA (lower triangle), subtracted in chunk order.
         let shares: Vec<Option<(Vec<f64>, Vec<FactorPoint>)>> = self
             .points
             .par_chunks(chunk)
@@ -585,7 +596,7 @@ impl Normal {
                 .for_each(|(a, b)| *a -= b);
             points.extend(factored);
         }
-        mirror_upper(s.as_mut_slice(), n_a);
+        mirror_lower(s.as_mut_slice(), n_a);
         if !s.iter().all(|v| v.is_finite()) {
             return None;
         }
@@ -601,8 +612,9 @@ impl Normal {
 }
 
 /// Eliminates one position: its damped inverse block and
-/// `W = H_AX·H_XX⁻¹`, with `W·H_XA` added to `share` (column-major, upper
-/// triangle: the columns ascend); `None` when its block is singular. The
+/// `W = H_AX·H_XX⁻¹`, with `W·H_XA` added to `share` (column-major, lower
+/// triangle: the columns ascend, so the inner loop writes consecutive
+/// entries where they are consecutive); `None` when its block is singular. The
 /// small products are written out, as they run once per reflector per
 /// factorisation.
 fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Option<FactorPoint> {
@@ -635,7 +647,7 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
     for (a, wa) in w.iter().enumerate() {
         let ca = p.cols[a];
         for (hb, &cb) in p.h_ax[a..].iter().zip(&p.cols[a..]) {
-            share[cb * n_a + ca] += wa[0] * hb[0] + wa[1] * hb[1] + wa[2] * hb[2];
+            share[ca * n_a + cb] += wa[0] * hb[0] + wa[1] * hb[1] + wa[2] * hb[2];
         }
     }
     Some(FactorPoint {
@@ -893,7 +905,14 @@ pub fn solve_ls_rows(
     y
 }
 
+/// `a·b`, summed in order. A reading's block has three rows: that length
+/// gets its own unrolled loop (the same sum, in the same order), as the
+/// assembly runs it a hundred times per reading.
+#[inline]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
+    if let (Ok(a), Ok(b)) = (<&[f64; 3]>::try_from(a), <&[f64; 3]>::try_from(b)) {
+        return a.iter().zip(b).map(|(x, y)| x * y).sum();
+    }
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
@@ -912,12 +931,12 @@ fn min_max(a: usize, b: usize) -> (usize, usize) {
     if a <= b { (a, b) } else { (b, a) }
 }
 
-/// Copies the upper triangle of a column-major `n × n` matrix onto its
-/// lower one.
-fn mirror_upper(m: &mut [f64], n: usize) {
+/// Copies the lower triangle of a column-major `n × n` matrix onto its
+/// upper one.
+fn mirror_lower(m: &mut [f64], n: usize) {
     for c in 0..n {
         for r in c + 1..n {
-            m[c * n + r] = m[r * n + c];
+            m[r * n + c] = m[c * n + r];
         }
     }
 }

@@ -29,8 +29,8 @@
 //!   true length), zero (to rounding) without errors.
 //! * `sensitivity` — `test`, `kind`, `parameter`, `unit`, `sens_um_per_unit`:
 //!   each test's error per µm or µrad of each parameter (linear, at zero,
-//!   through the model's Jacobian: analytic for the head-laser chain,
-//!   central differences of the exact beam path for the mirror tracker).
+//!   through the model's Jacobian: analytic for the head-laser chain and,
+//!   by the reflection's chain rule, for the mirror tracker).
 //! * `visibility` — per parameter: `two_face_max_um`, `length_max_um` (the
 //!   largest |sensitivity| over each kind of test) and `seen_by`.
 //! * `b89-sensitivity.svg` — the sensitivity matrix, parameters by tests.
