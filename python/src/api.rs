@@ -366,14 +366,12 @@ pub fn diagnose(campaign: &Path, out: &Path, o: DiagnoseOptions, names: bool) ->
     stages::diagnose::remove_stale_temporaries(out, std::time::SystemTime::now());
     let c = campaign::read_for_diagnosis(campaign)
         .map_err(|e| campaign_error(&e, names.then_some(campaign)))?;
-    ltcal::fs::check_replaceable(out, "a diagnosis", "diagnosis.csv", |name| {
-        name == "report.md"
-            || name == "report.html"
-            || name == "discovered.toml"
-            || [".csv", ".parquet", ".svg"]
-                .iter()
-                .any(|ext| name.ends_with(ext))
-    })
+    ltcal::fs::check_replaceable(
+        out,
+        "a diagnosis",
+        "diagnosis.csv",
+        stages::diagnose::replaceable_folder_file,
+    )
     .map_err(|why| input(format!("out: {why}")))?;
     let d = stage.diagnose(&c)?;
     let output = stages::diagnose::outputs(&d)?;

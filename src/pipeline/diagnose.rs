@@ -41,16 +41,12 @@ pub fn run(
         "adjusting and diagnosing {} readings",
         c.readings.len()
     ));
-    // The folder is replaced whole, so it must be one a diagnosis wrote (or
-    // empty): `--out .` must not delete the user's files.
-    crate::fs::check_replaceable(out, "a diagnosis", "diagnosis.csv", |name| {
-        name == "report.md"
-            || name == "report.html"
-            || name == "discovered.toml"
-            || [".csv", ".parquet", ".svg"]
-                .iter()
-                .any(|ext| name.ends_with(ext))
-    })
+    crate::fs::check_replaceable(
+        out,
+        "a diagnosis",
+        "diagnosis.csv",
+        crate::stages::diagnose::replaceable_folder_file,
+    )
     .map_err(|why| InputError::arg(format!("--out: {why}")))?;
     let d = stage.diagnose(&c)?;
     let output = diagnose::outputs(&d)?;

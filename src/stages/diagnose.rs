@@ -159,6 +159,19 @@ impl DiagnoseStage {
     }
 }
 
+/// Whether a file named `name` is one a diagnosis writes into its folder:
+/// the folder is replaced whole, so it must hold only such files (or be
+/// empty) — `--out .` must not delete the user's files. The one rule of
+/// `ltcal diagnose` and of the Python package's `ltcal.diagnose`.
+pub fn replaceable_folder_file(name: &str) -> bool {
+    name == "report.md"
+        || name == "report.html"
+        || name == "discovered.toml"
+        || [".csv", ".parquet", ".svg"]
+            .iter()
+            .any(|ext| name.ends_with(ext))
+}
+
 /// Removes what a killed `ltcal diagnose --out <out>` left beside `out`:
 /// the folders `fs::publish_folder` builds (`.<name>.<temp_name>.tmp`) or
 /// sets aside (`.<name>.<temp_name>.old`), when the process that made them
