@@ -19,16 +19,14 @@
 //!
 //!     cargo bench --bench race -- --warm-up-time 1 --measurement-time 3
 
+mod common;
+
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use ltcal::calibrate::sparse::Normal;
 use ltcal::calibrate::{Network, Norm, Objective, Settings, bundle};
-use ltcal::campaign::{self, Aim, Campaign};
-use ltcal::effects::Effects;
+use ltcal::campaign::{self, Campaign};
 use ltcal::error_model::{ErrorModel, ErrorParams, ParamId};
-use ltcal::kinematics::Face;
-use ltcal::layout::{self, Kind, Spec};
-use ltcal::noise::Noise;
-use ltcal::simulate::{CampaignSpec, simulate_campaign};
+use ltcal::layout::Kind;
 use ltcal::stages::calibrate::{CalibrateStage, tables};
 use std::hint::black_box;
 use std::time::Duration;
@@ -52,33 +50,14 @@ const HELD: [&str; 11] = [
 /// The hall campaign of `benches/data/race-halls.toml` (Table 2 errors,
 /// the pipeline's noise and seed).
 fn hall(per_level: usize, stations: usize, faces: usize) -> Campaign {
-    let mut spec = Spec::new(Kind::Hall);
-    spec.per_level = per_level;
-    spec.stations = stations;
-    let layout = layout::build(&spec);
-    simulate_campaign(&CampaignSpec {
-        name: "hall".into(),
-        layout: &layout,
-        errors: Some(&ErrorParams::table2()),
-        faces: &[Face::Front, Face::Back][..faces],
-        aim: Aim::StationsCentroid,
-        max_angle_deg: 30.0,
-        noise: Noise {
-            sigma_angle_urad: 1.0,
-            sigma_range_um: 2.0,
-            sigma_range_ppm: 0.3,
-        },
-        effects: &Effects::default(),
-        gauge_u_mm: 0.0005,
-        reference_u_mm: 0.002,
-        level_urad: 1000.0,
-        interval_s: 20.0,
-        record_time: true,
-        record_temperature: true,
-        seed: 11,
-    })
-    .expect("the hall simulates")
-    .campaign
+    common::simulated(
+        "hall",
+        Kind::Hall,
+        per_level,
+        stations,
+        faces,
+        &ErrorParams::table2(),
+    )
 }
 
 /// The stage of `benches/data/race-calibrate.toml`.

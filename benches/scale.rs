@@ -15,16 +15,14 @@
 //!
 //!     cargo bench --bench scale
 
+mod common;
+
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use ltcal::calibrate::{Network, Norm, Objective, Settings, calibrate};
-use ltcal::campaign::{Aim, Campaign};
+use ltcal::campaign::Campaign;
 use ltcal::diagnose::{self, diagnose, models};
-use ltcal::effects::Effects;
 use ltcal::error_model::{ErrorModel, ErrorParams};
-use ltcal::kinematics::Face;
-use ltcal::layout::{self, Kind, Spec};
-use ltcal::noise::Noise;
-use ltcal::simulate::{CampaignSpec, simulate_campaign};
+use ltcal::layout::Kind;
 use ltcal::trackers::TrackerModel;
 use std::hint::black_box;
 use std::time::Duration;
@@ -57,33 +55,7 @@ fn campaign_with(
     faces: usize,
     errors: &ErrorParams,
 ) -> Campaign {
-    let mut spec = Spec::new(kind);
-    spec.per_level = per_level;
-    spec.stations = stations;
-    let layout = layout::build(&spec);
-    simulate_campaign(&CampaignSpec {
-        name: "network".into(),
-        layout: &layout,
-        errors: Some(errors),
-        faces: &[Face::Front, Face::Back][..faces],
-        aim: Aim::StationsCentroid,
-        max_angle_deg: 30.0,
-        noise: Noise {
-            sigma_angle_urad: 1.0,
-            sigma_range_um: 2.0,
-            sigma_range_ppm: 0.3,
-        },
-        effects: &Effects::default(),
-        gauge_u_mm: 0.0005,
-        reference_u_mm: 0.002,
-        level_urad: 1000.0,
-        interval_s: 20.0,
-        record_time: true,
-        record_temperature: true,
-        seed: 11,
-    })
-    .expect("the network layout simulates")
-    .campaign
+    common::simulated("network", kind, per_level, stations, faces, errors)
 }
 
 fn id(c: &Campaign, stations: usize, faces: usize) -> BenchmarkId {
