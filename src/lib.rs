@@ -18,6 +18,7 @@ pub mod fs;
 pub mod hypothesis;
 pub mod identifiability;
 pub mod identify;
+pub mod incidence_grid;
 pub mod kinematics;
 pub mod layout;
 pub mod mesh;
