@@ -44,8 +44,10 @@ pub struct Tracker {
     pub sigma_range_ppm: Option<f64>,
 }
 
-/// How the SMR axes are known (`[smr] aim`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+/// How the SMR axes are known (`[smr] aim`), and how a simulating stage
+/// sets them (its `aim` setting, the same words).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum Aim {
     /// From the `aim_*_mm` columns of targets.csv.
     #[default]
@@ -55,6 +57,12 @@ pub enum Aim {
 }
 
 impl Aim {
+    /// A simulating stage's default: every SMR faces the stations' centroid,
+    /// as in the paper's simulations (Section 10). A campaign file's default
+    /// stays [`Aim::AimColumns`], the format's.
+    pub fn simulated_default() -> Aim {
+        Aim::StationsCentroid
+    }
     pub fn as_str(self) -> &'static str {
         match self {
             Aim::AimColumns => "aim-columns",

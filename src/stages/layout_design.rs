@@ -49,20 +49,19 @@
 //! layout).
 
 use super::measure::Faces;
-use super::simulate_campaign::AimRule;
+use super::simulate_campaign::SimulateCampaignStage;
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput};
 use crate::calibrate::{Network, bundle};
 use crate::campaign::{self, Aim, Campaign};
-use crate::effects::{DEFAULT_MAX_ANGLE_DEG, Effects};
+use crate::effects::DEFAULT_MAX_ANGLE_DEG;
 use crate::error_model::{ErrorModel, ErrorParams, ParamId};
 use crate::identifiability::{self, Analysis, Combination};
-use crate::layout::{self, Spec};
+use crate::layout::Spec;
 use crate::noise::Noise;
 use crate::plots;
-use crate::simulate::{self, CampaignSpec};
 use crate::table::TableBuilder;
 use crate::trackers::TrackerModel;
-use anyhow::{Context as _, Result, anyhow, bail};
+use anyhow::{Context as _, Result, bail};
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 
@@ -74,8 +73,8 @@ pub struct LayoutCase {
     pub layout: Spec,
     #[serde(default)]
     pub faces: Faces,
-    #[serde(default)]
-    pub aim: AimRule,
+    #[serde(default = "Aim::simulated_default")]
+    pub aim: Aim,
     #[serde(default = "default_max_angle")]
     pub max_angle_deg: f64,
     /// Whether the campaign has the layout's gauge of calibrated lengths
@@ -115,13 +114,6 @@ fn default_rank_tol() -> f64 {
     identifiability::DEFAULT_REL_TOL
 }
 
-/// The simulated campaigns' gauge and station levelling, as
-/// `simulate_campaign`'s defaults: a CMM-calibrated gauge (0.5 µm), CMM
-/// references (2 µm), stations levelled within about 1 mrad.
-const GAUGE_U_MM: f64 = 0.0005;
-const REFERENCE_U_MM: f64 = 0.002;
-const LEVEL_URAD: f64 = 1000.0;
-
 /// One evaluated layout.
 struct Row {
     name: String,
@@ -134,29 +126,15 @@ struct Row {
 
 impl LayoutCase {
     fn campaign(&self, seed: u64) -> Result<Campaign> {
-        let layout = layout::build(&self.layout);
-        let sim = simulate::simulate_campaign(&CampaignSpec {
-            name: self.name.clone(),
-            layout: &layout,
-            errors: None,
-            faces: self.faces.list(),
-            aim: match self.aim {
-                AimRule::StationsCentroid => Aim::StationsCentroid,
-                AimRule::AimColumns => Aim::AimColumns,
-            },
-            max_angle_deg: self.max_angle_deg,
-            noise: Noise::default(),
-            effects: &Effects::default(),
-            gauge_u_mm: GAUGE_U_MM,
-            reference_u_mm: REFERENCE_U_MM,
-            level_urad: LEVEL_URAD,
-            // Time is not recorded and no effect depends on it.
-            interval_s: 20.0,
-            record_time: false,
-            record_temperature: false,
+        let sim = SimulateCampaignStage::noise_free(
+            &self.name,
+            &self.layout,
+            self.faces,
+            self.aim,
+            self.max_angle_deg,
             seed,
-        })
-        .map_err(|e| anyhow!(e))?;
+        )
+        .simulate(None)?;
         let mut c = sim.campaign;
         if !self.gauge {
             c.gauge.clear();

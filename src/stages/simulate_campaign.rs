@@ -50,15 +50,6 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-/// How the SMR axes are given.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "kebab-case")]
-pub enum AimRule {
-    #[default]
-    StationsCentroid,
-    AimColumns,
-}
-
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimulateCampaignStage {
@@ -67,8 +58,8 @@ pub struct SimulateCampaignStage {
     pub layout: Spec,
     #[serde(default)]
     pub faces: Faces,
-    #[serde(default)]
-    pub aim: AimRule,
+    #[serde(default = "Aim::simulated_default")]
+    pub aim: Aim,
     #[serde(default = "default_max_angle")]
     pub max_angle_deg: f64,
     #[serde(default)]
@@ -123,6 +114,37 @@ fn yes() -> bool {
 }
 
 impl SimulateCampaignStage {
+    /// A campaign of this geometry without noise, effects, times or
+    /// temperatures, every other setting at this stage's default: what
+    /// `layout_design` evaluates, so that the two stages simulate one way.
+    pub fn noise_free(
+        name: &str,
+        layout: &Spec,
+        faces: Faces,
+        aim: Aim,
+        max_angle_deg: f64,
+        seed: u64,
+    ) -> Self {
+        SimulateCampaignStage {
+            name: name.to_string(),
+            layout: layout.clone(),
+            faces,
+            aim,
+            max_angle_deg,
+            noise: Noise::default(),
+            effects: Effects::default(),
+            gauge_u_mm: default_gauge_u(),
+            reference_u_mm: default_reference_u(),
+            level_urad: default_level(),
+            interval_s: default_interval(),
+            record_time: false,
+            record_temperature: false,
+            seed,
+            hypotheses: None,
+            hypothesis_values: BTreeMap::new(),
+        }
+    }
+
     /// The hypotheses to inject, with `hypothesis_values` over the file's.
     pub fn injected(&self) -> Result<Vec<Hypothesis>> {
         let Some(path) = &self.hypotheses else {
@@ -155,10 +177,7 @@ impl SimulateCampaignStage {
             layout: &layout,
             errors,
             faces: self.faces.list(),
-            aim: match self.aim {
-                AimRule::StationsCentroid => Aim::StationsCentroid,
-                AimRule::AimColumns => Aim::AimColumns,
-            },
+            aim: self.aim,
             max_angle_deg: self.max_angle_deg,
             noise: self.noise,
             effects: &effects,
