@@ -9,12 +9,10 @@
 //!   a process that has ended and may be removed ([`temp_owner_gone`]) —
 //!   and, on a cluster's shared folder, leave alone those of processes on
 //!   other machines, whose liveness it cannot see.
-//! - [`write_staged`]: a file inside a folder that is itself published by one
-//!   rename (a cache entry, a campaign folder), where the folder's rename is
-//!   what makes the whole appear at once.
-//! - [`publish_folder`]: a whole folder of files built that way and renamed
-//!   into place (replacing the folder there, if any), so a full disk or a
-//!   kill never leaves a partial folder that looks finished.
+//! - [`StagedFolder`]: a folder (a cache entry, a campaign, a diagnosis)
+//!   built under a temporary name and published by one rename, so a full
+//!   disk or a kill never leaves a partial folder that looks finished;
+//!   [`publish_folder`] is its common use, replacing the folder there.
 //! - [`read_regular_file`] (and [`open_regular_file`] for positioned
 //!   reads): the one way to read a file the runner did not just write — a
 //!   pipeline, a campaign, a cache entry, a pack, a published table — read
@@ -32,7 +30,7 @@
 //!   not write): `diagnose --out` and `export_campaign`'s `overwrite` never
 //!   delete a user's files.
 
-use anyhow::{Context as _, Result, anyhow, bail};
+use anyhow::{Context as _, Result, anyhow};
 use std::fmt;
 use std::io::{Read as _, Write as _};
 use std::path::{Path, PathBuf};
@@ -182,28 +180,88 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
-/// Writes `bytes` as the new file `path` inside a folder that is still being
-/// built under a [`temp_name`] and is published afterwards by one rename.
-/// `sync` asks for the bytes to reach the disk before returning: a campaign
-/// folder wants it; a cache entry does not (a killed process cannot tear an
-/// entry, and what a power cut might tear its content hashes catch on reuse,
-/// while syncing the thousands of files of a sweep would cost more than
-/// computing them).
-pub fn write_staged(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()> {
-    let mut f = std::fs::File::create(path)?;
-    f.write_all(bytes)?;
-    if sync {
-        f.sync_all()?;
-    }
-    Ok(())
+/// A folder built under a temporary name beside its final place and
+/// published by one rename, so that it appears whole or not at all: the one
+/// way ltcal publishes a folder (a cache entry, a campaign, a diagnosis).
+/// Dropped unpublished, it removes itself. `sync` asks for every file's
+/// bytes to reach the disk before the rename: a campaign or a diagnosis
+/// wants it; a cache entry does not (a killed process cannot tear an entry,
+/// and what a power cut might tear its content hashes catch on reuse, while
+/// syncing the thousands of files of a sweep would cost more than computing
+/// them).
+pub struct StagedFolder {
+    tmp: PathBuf,
+    sync: bool,
+    published: bool,
 }
 
-/// Publishes `files` (name, bytes) as the folder `dir`: built beside it as
-/// `.<name>.<temp_name>.tmp` with every file synced, then renamed into
-/// place. A folder already at `dir` is renamed away first and removed once
-/// the new one is in place (put back if that rename fails); whether it may
-/// be replaced at all is the caller's decision ([`check_replaceable`]). On
-/// any failure nothing is left but what was there before.
+impl StagedFolder {
+    /// Creates the empty temporary folder `tmp` (named by the caller with a
+    /// [`temp_name`], so that [`temp_owner_gone`] can tell a dead run's).
+    pub fn create(tmp: PathBuf, sync: bool) -> std::io::Result<StagedFolder> {
+        std::fs::create_dir(&tmp)?;
+        Ok(StagedFolder {
+            tmp,
+            sync,
+            published: false,
+        })
+    }
+
+    /// Creates the sub-folder `rel` inside.
+    pub fn folder(&self, rel: impl AsRef<Path>) -> std::io::Result<()> {
+        std::fs::create_dir(self.tmp.join(rel))
+    }
+
+    /// Writes `bytes` as the new file `rel` inside (its folder must exist:
+    /// a name the caller did not plan for is an error, not a new folder).
+    pub fn write(&self, rel: impl AsRef<Path>, bytes: &[u8]) -> std::io::Result<()> {
+        let mut f = std::fs::File::create(self.tmp.join(rel))?;
+        f.write_all(bytes)?;
+        if self.sync {
+            f.sync_all()?;
+        }
+        Ok(())
+    }
+
+    /// Renames the folder to `dir` if nothing but an empty folder is there;
+    /// otherwise the error, the staged folder kept for another try.
+    pub fn place(&mut self, dir: &Path) -> std::io::Result<()> {
+        std::fs::rename(&self.tmp, dir)?;
+        self.published = true;
+        Ok(())
+    }
+
+    /// Renames the folder to `dir`, replacing the folder there, if any: that
+    /// one is renamed away first and removed once the new one is in place
+    /// (put back if that rename fails). Whether it may be replaced at all is
+    /// the caller's decision ([`check_replaceable`]).
+    pub fn replace(mut self, dir: &Path, parent: &Path, name: &str) -> std::io::Result<()> {
+        if std::fs::symlink_metadata(dir).is_err() {
+            return self.place(dir);
+        }
+        let old = parent.join(format!(".{name}.{}.old", temp_name()));
+        std::fs::rename(dir, &old)?;
+        if let Err(e) = self.place(dir) {
+            let _ = std::fs::rename(&old, dir);
+            return Err(e);
+        }
+        let _ = std::fs::remove_dir_all(&old);
+        Ok(())
+    }
+}
+
+impl Drop for StagedFolder {
+    fn drop(&mut self) {
+        if !self.published {
+            let _ = std::fs::remove_dir_all(&self.tmp);
+        }
+    }
+}
+
+/// Publishes `files` (name, bytes) as the folder `dir` through a
+/// [`StagedFolder`] built beside it as `.<name>.<temp_name>.tmp`, every file
+/// synced, replacing the folder there, if any. On any failure nothing is
+/// left but what was there before.
 pub fn publish_folder<N: AsRef<Path>>(dir: &Path, files: &[(N, Vec<u8>)]) -> Result<()> {
     let name = dir
         .file_name()
@@ -215,37 +273,18 @@ pub fn publish_folder<N: AsRef<Path>>(dir: &Path, files: &[(N, Vec<u8>)]) -> Res
         _ => PathBuf::from("."),
     };
     create_dirs(&parent)?;
-    let suffix = temp_name();
-    let tmp = parent.join(format!(".{name}.{suffix}.tmp"));
-    let built = (|| -> std::io::Result<()> {
-        std::fs::create_dir(&tmp)?;
-        for (file, bytes) in files {
-            write_staged(&tmp.join(file), bytes, true)?;
-        }
-        Ok(())
-    })();
-    if let Err(e) = built {
-        let _ = std::fs::remove_dir_all(&tmp);
-        bail!("writing {}: {e}", tmp.display());
-    }
-    let placed = if std::fs::symlink_metadata(dir).is_ok() {
-        let old = parent.join(format!(".{name}.{suffix}.old"));
-        std::fs::rename(dir, &old)
-            .and_then(|()| {
-                std::fs::rename(&tmp, dir).inspect_err(|_| {
-                    let _ = std::fs::rename(&old, dir);
-                })
-            })
-            .map(|()| {
-                let _ = std::fs::remove_dir_all(&old);
-            })
-    } else {
-        std::fs::rename(&tmp, dir)
-    };
-    placed.map_err(|e| {
-        let _ = std::fs::remove_dir_all(&tmp);
-        anyhow!("moving the folder into {}: {e}", dir.display())
-    })
+    let tmp = parent.join(format!(".{name}.{}.tmp", temp_name()));
+    let staged = StagedFolder::create(tmp.clone(), true)
+        .and_then(|staged| {
+            for (file, bytes) in files {
+                staged.write(file, bytes)?;
+            }
+            Ok(staged)
+        })
+        .map_err(|e| anyhow!("writing {}: {e}", tmp.display()))?;
+    staged
+        .replace(dir, &parent, &name)
+        .map_err(|e| anyhow!("moving the folder into {}: {e}", dir.display()))
 }
 
 /// Whether the folder `dir` may be replaced whole by one ltcal writes
@@ -595,5 +634,34 @@ mod tests {
             assert!(e.to_string().contains("a FIFO"), "{e}");
         }
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// One way to publish a folder (issue 31): a staged folder dropped
+    /// unpublished leaves nothing; `place` refuses a non-empty folder (a
+    /// cache entry another writer published first is kept) and keeps the
+    /// staged one for another try.
+    #[test]
+    fn a_staged_folder_appears_whole_once_or_not_at_all() {
+        let root = scratch("staged");
+        {
+            let s = StagedFolder::create(root.join(".a.tmp"), false).unwrap();
+            s.write("x.parquet", b"x").unwrap();
+        }
+        assert_eq!(std::fs::read_dir(&root).unwrap().count(), 0);
+        let dest = root.join("entry");
+        std::fs::create_dir(&dest).unwrap();
+        std::fs::write(dest.join("first"), b"theirs").unwrap();
+        let mut s = StagedFolder::create(root.join(".b.tmp"), false).unwrap();
+        s.folder("files").unwrap();
+        s.write("files/f.svg", b"<svg/>").unwrap();
+        assert!(s.write("no/such.csv", b"y").is_err());
+        assert!(s.place(&dest).is_err());
+        assert_eq!(std::fs::read(dest.join("first")).unwrap(), b"theirs");
+        std::fs::remove_dir_all(&dest).unwrap();
+        s.place(&dest).unwrap();
+        drop(s);
+        assert_eq!(std::fs::read(dest.join("files/f.svg")).unwrap(), b"<svg/>");
+        assert_eq!(std::fs::read_dir(&root).unwrap().count(), 1);
+        std::fs::remove_dir_all(&root).unwrap();
     }
 }

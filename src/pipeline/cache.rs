@@ -71,7 +71,7 @@
 //! `verify --repair` read everything.
 
 use super::pack::{self, Key, Span};
-use crate::fs::{ReadError, read_regular_file, temp_name, write_atomic};
+use crate::fs::{ReadError, StagedFolder, read_regular_file, temp_name, write_atomic};
 use anyhow::{Context as _, Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -1089,37 +1089,37 @@ impl Store {
         let entries = self.entries();
         crate::fs::create_dirs(&entries)?;
         let tmp = entries.join(format!(".tmp-{}-{}", short(key), temp_name()));
-        let result = (|| -> Result<()> {
-            fs::create_dir_all(&tmp)?;
+        let staged = (|| -> std::io::Result<StagedFolder> {
+            let staged = StagedFolder::create(tmp, false)?;
             if !entry.files.is_empty() {
-                fs::create_dir_all(tmp.join("files"))?;
+                staged.folder("files")?;
             }
             for (name, b) in &entry.tables {
-                write_file(&tmp.join(format!("{name}.parquet")), b)?;
+                staged.write(format!("{name}.parquet"), b)?;
             }
             for (name, b) in &entry.files {
-                write_file(&tmp.join("files").join(name), b)?;
+                staged.write(Path::new("files").join(name), b)?;
             }
-            let manifest = serde_json::to_vec_pretty(&entry.manifest)?;
-            write_file(&tmp.join("manifest.json"), &manifest)?;
-            Ok(())
+            let manifest =
+                serde_json::to_vec_pretty(&entry.manifest).map_err(std::io::Error::other)?;
+            staged.write("manifest.json", &manifest)?;
+            Ok(staged)
         })();
-        if let Err(e) = result {
-            let _ = fs::remove_dir_all(&tmp);
-            return Err(e.context(format!(
+        let mut staged = staged.map_err(|e| {
+            anyhow!(e).context(format!(
                 "writing the cache entry for {}",
                 entry.manifest.stage
-            )));
-        }
+            ))
+        })?;
         let dest = self.entry_dir(key);
-        // `rename` onto an existing non-empty directory fails: another writer
-        // won the race (its entry is identical by construction and is kept),
-        // or a bad entry sits there, which `lookup` discards so that ours can
-        // take its place.
-        let published = fs::rename(&tmp, &dest).is_ok()
+        // The rename fails onto an existing non-empty directory: another
+        // writer won the race (its entry is identical by construction and is
+        // kept), or a bad entry sits there, which `lookup` discards so that
+        // ours can take its place. The staged folder removes itself if unused.
+        let published = staged.place(&dest).is_ok()
             || matches!(self.lookup(key), Lookup::Hit(_))
-            || fs::rename(&tmp, &dest).is_ok();
-        let _ = fs::remove_dir_all(&tmp);
+            || staged.place(&dest).is_ok();
+        drop(staged);
         if !published && !matches!(self.lookup(key), Lookup::Hit(_)) {
             bail!("could not publish the cache entry {}", dest.display());
         }
@@ -1424,16 +1424,6 @@ fn is_dead_temp_file(name: &str) -> bool {
     // Only names `write_atomic` makes: a user's own dot-files stay.
     stem.rsplit_once('.')
         .is_some_and(|(_, suffix)| crate::fs::temp_owner_gone(suffix))
-}
-
-/// Entry files are not synced to disk one by one: a killed process cannot
-/// tear an entry (it appears by one `rename`, after every file is
-/// written), and what a power cut might tear, the content hashes of the
-/// manifest catch on reuse. Syncing each of the thousands of files of a
-/// sweep would cost more than computing them.
-fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
-    crate::fs::write_staged(path, bytes, false)
-        .with_context(|| format!("creating {}", path.display()))
 }
 
 #[cfg(test)]
