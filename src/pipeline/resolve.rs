@@ -12,7 +12,7 @@ use super::snapshot_spec::{self, Snapshot};
 use super::sweep;
 use crate::diagnostics::Problem;
 use crate::diagnostics::Source;
-use crate::stages::{Invalid, StageConfig};
+use crate::stages::{Invalid, ResolvedConfig, StageConfig};
 use anyhow::Result;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -28,7 +28,7 @@ pub use super::names::InputRef;
 #[derive(Clone, Debug)]
 pub struct Stage {
     pub name: String,
-    pub config: StageConfig,
+    pub config: ResolvedConfig,
     pub inputs: BTreeMap<String, InputRef>,
     /// Content hash of the file or folder the stage reads, checked when
     /// the pipeline loaded ([`crate::stages::StageFile`]).
@@ -317,7 +317,7 @@ pub fn resolve_checking(
     }
     check_columns(raw, &pipeline)?;
     if let Some((snap, header)) = &raw.snapshot {
-        let stages: Vec<(&str, &StageConfig)> = pipeline
+        let stages: Vec<(&str, &ResolvedConfig)> = pipeline
             .stages
             .iter()
             .map(|s| (s.name.as_str(), &s.config))
@@ -343,11 +343,7 @@ fn resolve_stage(
     let mut json = rs.config.to_json();
     // An override inside a value the file leaves to its default (`x.step`
     // of a default mesh range) starts from that default.
-    let defaults = {
-        let mut c = rs.config.clone();
-        c.resolve();
-        c.to_json()
-    };
+    let defaults = rs.config.clone().resolve().to_json();
     let mut inputs: BTreeMap<String, String> = rs
         .inputs
         .iter()
@@ -389,7 +385,7 @@ fn resolve_stage(
     if !problems.is_empty() {
         return Err(problems);
     }
-    let mut config = if mine.is_empty() {
+    let config = if mine.is_empty() {
         rs.config.clone()
     } else {
         StageConfig::from_json(&rs.kind, json).map_err(|e| {
@@ -413,7 +409,7 @@ fn resolve_stage(
             vec![Problem::arg(format!("{}: {e}", sets.join(", ")))]
         })?
     };
-    config.resolve();
+    let config = config.resolve();
     let mut invalid = config.validate();
     let file_hash = config.file().and_then(|f| {
         let checked = files

@@ -6,7 +6,7 @@
 use super::names::InputRef;
 use super::raw::RawSnapshot;
 use crate::diagnostics::{Problem, Source};
-use crate::stages::StageConfig;
+use crate::stages::ResolvedConfig;
 use std::collections::BTreeMap;
 use std::ops::Range;
 
@@ -41,7 +41,7 @@ pub fn resolve(
     src: &Source,
     raw: &RawSnapshot,
     header: Range<usize>,
-    stages: &[(&str, &StageConfig)],
+    stages: &[(&str, &ResolvedConfig)],
 ) -> Result<Snapshot, Vec<Problem>> {
     let mut problems = Vec::new();
     let mut err = |span: Range<usize>, msg: String| {

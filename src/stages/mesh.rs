@@ -124,7 +124,7 @@ impl StageKind for MeshStage {
 
     /// Writes the shape's defaults into the settings, so that the cache
     /// key sees them: the same values [`MeshStage::geometry`] runs with.
-    fn resolve(&mut self) {
+    fn resolved(mut self) -> Self {
         match self.geometry() {
             Geometry::Plane { x_mm, y, z } => {
                 self.x_mm = Some(x_mm);
@@ -137,6 +137,7 @@ impl StageKind for MeshStage {
                 (self.h_deg, self.v_deg, self.r_mm) = (Some(h_deg), Some(v_deg), Some(r_mm));
             }
         }
+        self
     }
 
     fn validate(&self) -> Vec<Invalid> {

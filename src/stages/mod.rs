@@ -205,9 +205,11 @@ pub trait StageKind: Serialize + DeserializeOwned + Clone + Debug + Send + Sync 
     /// table name (`"stage"` rather than `"stage.table"`) means.
     const OUTPUTS: &'static [&'static str];
 
-    /// Fills in defaults that depend on other settings, so that the cache
-    /// key sees every value the stage will use.
-    fn resolve(&mut self) {}
+    /// The settings with the defaults that depend on other settings filled
+    /// in, so that the cache key sees every value the stage will use.
+    fn resolved(self) -> Self {
+        self
+    }
 
     /// The file or folder the stage reads, if any ([`StageFile`]).
     fn file(&self) -> Option<StageFile<'_>> {
@@ -237,9 +239,27 @@ pub trait StageKind: Serialize + DeserializeOwned + Clone + Debug + Send + Sync 
     fn run(&self, ctx: &Context, inputs: &StageInputs) -> Result<StageOutput>;
 }
 
+/// The settings of one stage after resolution — every default filled in —
+/// made only by [`StageConfig::resolve`]. A stage runs from this type alone
+/// and the cache key hashes its JSON ([`StageConfig::to_json`], reached
+/// through `Deref` with the other read-only queries), so settings as
+/// written can neither run nor key a cache entry.
+#[derive(Clone, Debug)]
+pub struct ResolvedConfig(StageConfig);
+
+impl std::ops::Deref for ResolvedConfig {
+    type Target = StageConfig;
+    fn deref(&self) -> &StageConfig {
+        &self.0
+    }
+}
+
 macro_rules! stage_kinds {
     ($($variant:ident => $ty:ty),* $(,)?) => {
-        /// The resolved settings of one stage, of any kind.
+        /// The settings of one stage, of any kind, as written (the raw
+        /// layer): defaults that depend on other settings not yet filled in.
+        /// [`StageConfig::resolve`] makes the [`ResolvedConfig`] a stage
+        /// runs from.
         #[derive(Clone, Debug)]
         pub enum StageConfig {
             $($variant(Box<$ty>)),*
@@ -272,8 +292,12 @@ macro_rules! stage_kinds {
             pub fn outputs(&self) -> &'static [&'static str] {
                 match self { $(StageConfig::$variant(_) => <$ty as StageKind>::OUTPUTS),* }
             }
-            pub fn resolve(&mut self) {
-                match self { $(StageConfig::$variant(c) => c.resolve()),* }
+            /// The resolved settings: every default filled in
+            /// ([`StageKind::resolved`]).
+            pub fn resolve(self) -> ResolvedConfig {
+                ResolvedConfig(match self {
+                    $(StageConfig::$variant(c) => StageConfig::$variant(Box::new(c.resolved()))),*
+                })
             }
             pub fn file(&self) -> Option<StageFile<'_>> {
                 match self { $(StageConfig::$variant(c) => c.file()),* }
@@ -296,9 +320,6 @@ macro_rules! stage_kinds {
                 out.extend(more);
                 out
             }
-            pub fn run(&self, ctx: &Context, inputs: &StageInputs) -> Result<StageOutput> {
-                match self { $(StageConfig::$variant(c) => c.run(ctx, inputs)),* }
-            }
             /// The settings as JSON: what the cache key hashes and what
             /// overrides patch.
             pub fn to_json(&self) -> serde_json::Value {
@@ -311,6 +332,13 @@ macro_rules! stage_kinds {
                 StageConfig::deserialize(kind, v)
                     .ok_or_else(|| anyhow!("unknown stage kind `{kind}`"))?
                     .map_err(|e| anyhow!("{}", crate::suggest::serde_message(&e.to_string())))
+            }
+        }
+
+        impl ResolvedConfig {
+            /// Runs the stage: only resolved settings run.
+            pub fn run(&self, ctx: &Context, inputs: &StageInputs) -> Result<StageOutput> {
+                match &self.0 { $(StageConfig::$variant(c) => c.run(ctx, inputs)),* }
             }
         }
 

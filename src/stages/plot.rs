@@ -164,10 +164,11 @@ impl StageKind for PlotStage {
         }
     }
 
-    fn resolve(&mut self) {
+    fn resolved(mut self) -> Self {
         if self.file.is_empty() {
             self.file = format!("{}.svg", self.plot.name());
         }
+        self
     }
 
     fn validate(&self) -> Vec<Invalid> {

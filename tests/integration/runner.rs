@@ -295,7 +295,7 @@ fn typed_key(
         json[top] = v.clone();
         // Settings that `resolve` derives and the file cannot hold are not
         // accepted as input: drop them, `resolve` fills them in again.
-        let mut c = loop {
+        let c = loop {
             match StageConfig::from_json(&kind, json.clone()) {
                 Ok(c) => break c,
                 Err(e) => {
@@ -312,7 +312,7 @@ fn typed_key(
                 }
             }
         };
-        c.resolve();
+        let c = c.resolve();
         let key = KeyFields {
             ltcal_version: ltcal::VERSION.into(),
             code: ltcal::CODE_FINGERPRINT.into(),
@@ -441,9 +441,7 @@ fn changing_any_resolved_setting_of_any_stage_kind_changes_the_key() {
                 e[0].message
             )
         });
-        let mut config = raw.stages[0].config.clone();
-        config.resolve();
-        let params = config.to_json();
+        let params = raw.stages[0].config.clone().resolve().to_json();
         let strict = |top: &str, v: &Value| -> Result<(Value, String), String> {
             let (resolved, key) = typed_key(kind, &params)(top, v)?;
             let c = StageConfig::from_json(kind, resolved.clone()).map_err(|e| e.to_string())?;
