@@ -1049,19 +1049,37 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<(PathBuf, 
         .iter()
         .map(|(n, b)| (format!("{n}.parquet"), b))
         .chain(entry.files.iter().map(|(n, b)| (n.clone(), b)));
+    let mut writes = Vec::new();
     for (name, bytes) in items {
         let path = out.join(&name);
         match crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES) {
             Ok(old) if old == *bytes => continue,
             Ok(old) => {
-                crate::fs::write_atomic(&path, bytes)?;
+                writes.push((path.clone(), bytes));
                 replaced.push((path, name, cache::hash_bytes(&old)));
             }
-            Err(_) => crate::fs::write_atomic(&path, bytes)?,
+            Err(_) => writes.push((path, bytes)),
         }
+    }
+    // Each file written atomically on a thread of its own, so that their
+    // syncs overlap instead of queueing: one after another they were most
+    // of a small calibration's process on a busy disk (issue 34).
+    for chunk in writes.chunks(PUBLISH_THREADS) {
+        std::thread::scope(|s| {
+            let written: Vec<_> = chunk
+                .iter()
+                .map(|(path, bytes)| s.spawn(|| crate::fs::write_atomic(path, bytes)))
+                .collect();
+            written
+                .into_iter()
+                .try_for_each(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+        })?;
     }
     Ok(replaced)
 }
+
+/// At most this many files of a stage are written at once by [`publish`].
+const PUBLISH_THREADS: usize = 16;
 
 #[cfg(test)]
 mod tests {
