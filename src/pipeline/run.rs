@@ -1061,25 +1061,33 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<(PathBuf, 
             Err(_) => writes.push((path, bytes)),
         }
     }
-    // Each file written atomically on a thread of its own, so that their
-    // syncs overlap instead of queueing: one after another they were most
-    // of a small calibration's process on a busy disk (issue 34).
+    write_all_atomic(&writes)?;
+    Ok(replaced)
+}
+
+/// At most this many files are written at once by [`write_all_atomic`].
+const PUBLISH_THREADS: usize = 16;
+
+/// Writes every `(path, bytes)` atomically, each on a thread of its own so
+/// that their syncs overlap instead of queueing: one after another they
+/// were most of a small calibration's process on a busy disk (issue 34).
+/// The first failure is returned, after every started write has ended.
+fn write_all_atomic(writes: &[(PathBuf, &Vec<u8>)]) -> Result<()> {
     for chunk in writes.chunks(PUBLISH_THREADS) {
         std::thread::scope(|s| {
             let written: Vec<_> = chunk
                 .iter()
                 .map(|(path, bytes)| s.spawn(|| crate::fs::write_atomic(path, bytes)))
                 .collect();
-            written
+            let results: Vec<Result<()>> = written
                 .into_iter()
-                .try_for_each(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                .map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                .collect();
+            results.into_iter().collect::<Result<()>>()
         })?;
     }
-    Ok(replaced)
+    Ok(())
 }
-
-/// At most this many files of a stage are written at once by [`publish`].
-const PUBLISH_THREADS: usize = 16;
 
 #[cfg(test)]
 mod tests {
@@ -1090,6 +1098,40 @@ mod tests {
     const TEXT: &str = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
         [stages.t]\nkind = \"inject\"\n\
         [stages.m]\nkind = \"measure\"\ninputs = { points = \"a\", errors = \"t\" }\n";
+
+    /// Issue 34: a stage's files are written in parallel, in chunks of
+    /// [`PUBLISH_THREADS`]; every one must land whole, and a failing one
+    /// must fail the publication.
+    #[test]
+    fn published_files_written_in_parallel_all_land_and_a_failure_is_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let bytes: Vec<Vec<u8>> = (0..2 * PUBLISH_THREADS + 3)
+            .map(|i| vec![i as u8; 1000 + i])
+            .collect();
+        let writes: Vec<(PathBuf, &Vec<u8>)> = bytes
+            .iter()
+            .enumerate()
+            .map(|(i, b)| (dir.path().join(format!("s/t{i}.parquet")), b))
+            .collect();
+        write_all_atomic(&writes).unwrap();
+        for (path, b) in &writes {
+            assert_eq!(&std::fs::read(path).unwrap(), *b);
+        }
+        let names = std::fs::read_dir(dir.path().join("s")).unwrap().count();
+        assert_eq!(names, writes.len(), "no temporary file left");
+        // A file where a folder must be: that write fails, the others land.
+        std::fs::write(dir.path().join("f"), b"x").unwrap();
+        let bad = vec![
+            (dir.path().join("s/ok.parquet"), &bytes[0]),
+            (dir.path().join("f/t.parquet"), &bytes[1]),
+        ];
+        let e = write_all_atomic(&bad).unwrap_err().to_string();
+        assert!(e.contains("f/t.parquet") || e.contains("creating"), "{e}");
+        assert_eq!(
+            std::fs::read(dir.path().join("s/ok.parquet")).unwrap(),
+            bytes[0]
+        );
+    }
 
     fn run_in(root: &Path, set: &[&str]) -> RunReport {
         let overrides: Vec<Override> = set.iter().map(|s| Override::parse(s).unwrap()).collect();
