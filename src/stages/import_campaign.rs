@@ -58,12 +58,12 @@ static LOADED: Mutex<Vec<(PathBuf, String, Arc<Campaign>)>> = Mutex::new(Vec::ne
 /// the hash of its files. The campaign is kept for the run ([`LOADED`]) when
 /// the folder did not change while it was read.
 fn check(path: &Path) -> Result<String, String> {
-    let hash =
-        || campaign::content_hash(path).map_err(|e| format!("`path`: {}: {e}", path.display()));
-    let before = hash()?;
+    // (The reader's problems, with their file and line, come first.)
+    let before = campaign::content_hash(path).ok();
     let c = campaign::read(path).map_err(|e| e.to_string())?;
-    let after = hash()?;
-    if before == after {
+    let after =
+        campaign::content_hash(path).map_err(|e| format!("`path`: {}: {e}", path.display()))?;
+    if before.as_ref() == Some(&after) {
         let mut loaded = LOADED.lock().unwrap_or_else(|e| e.into_inner());
         loaded.retain(|(p, _, _)| p != path);
         if loaded.len() == LOADED_MAX {
