@@ -335,15 +335,21 @@ impl<'a> Bundle<'a> {
                 continue;
             }
             let (po, _) = self.layout.point[o.target].expect("seen");
-            let mut parts: Vec<(usize, &[f64])> = Vec::with_capacity(3);
+            // At most three parts, on the stack: no allocation per reading.
+            let mut parts: [(usize, &[f64]); 3] = [(0, &[]); 3];
+            let mut n_parts = 0;
+            let mut part = |p| {
+                parts[n_parts] = p;
+                n_parts += 1;
+            };
             if nz3 > 0 {
-                parts.push((0, &jz_all[i * nz3..(i + 1) * nz3]));
+                part((0, &jz_all[i * nz3..(i + 1) * nz3]));
             }
-            if let Some((so, part)) = &b.station {
-                parts.push((*so, part));
+            if let Some((so, values)) = &b.station {
+                part((*so, values));
             }
-            parts.push((po, &b.point));
-            f(3, b.r.as_slice(), &parts);
+            part((po, &b.point));
+            f(3, b.r.as_slice(), &parts[..n_parts]);
         }
         for g in &self.net.gauge {
             let (Some((oa, _)), Some((ob, _))) = (self.layout.point[g.a], self.layout.point[g.b])
@@ -380,7 +386,21 @@ impl<'a> Bundle<'a> {
     /// The Jacobian, as its blocks, and the residuals of the network at `x`
     /// (`design`: of the consistent network, see [`Self::visit`]).
     fn jacobian_at(&self, x: &DVector<f64>, design: bool) -> (BlockJacobian, DVector<f64>) {
-        let mut j = BlockJacobian::new(self.layout.n_a, self.layout.n);
+        // Room for every block: a reading's three rows on the coordinates,
+        // its station and its reflector; a gauge length's row on two
+        // reflectors; a reference's three rows on one.
+        let (n_obs, n_gauge) = (self.net.obs.len(), self.net.gauge.len());
+        let n_refs = if self.use_references {
+            self.net.references.iter().flatten().count()
+        } else {
+            0
+        };
+        let room = [
+            n_obs + n_gauge + n_refs,
+            3 * n_obs + 2 * n_gauge + n_refs,
+            3 * (self.layout.n_z + 9) * n_obs + 6 * n_gauge + 9 * n_refs,
+        ];
+        let mut j = BlockJacobian::with_capacity(self.layout.n_a, self.layout.n, room);
         let mut r = Vec::new();
         self.visit(x, true, design, |rows, res, parts| {
             j.push(rows, parts);

@@ -69,14 +69,25 @@ impl BlockJacobian {
     /// An empty Jacobian over `n` unknowns whose first `n_a` form the dense
     /// part (`n − n_a` must be a multiple of 3).
     pub fn new(n_a: usize, n: usize) -> BlockJacobian {
+        BlockJacobian::with_capacity(n_a, n, [0; 3])
+    }
+
+    /// [`Self::new`] with room for `[blocks, parts, values]`: a bundle's
+    /// Jacobian holds millions of values, which growing by doubling copied
+    /// twice over and faulted in page by page (issue 34).
+    pub fn with_capacity(
+        n_a: usize,
+        n: usize,
+        [blocks, parts, values]: [usize; 3],
+    ) -> BlockJacobian {
         debug_assert_eq!((n - n_a) % 3, 0);
         BlockJacobian {
             n_a,
             n,
             m: 0,
-            blocks: Vec::new(),
-            parts: Vec::new(),
-            values: Vec::new(),
+            blocks: Vec::with_capacity(blocks),
+            parts: Vec::with_capacity(parts),
+            values: Vec::with_capacity(values),
         }
     }
 
@@ -275,7 +286,8 @@ impl BlockJacobian {
     /// columns as a dense `m × k` matrix (m·k values: the error-parameter
     /// coordinates, a handful of columns).
     pub fn split_leading(&self, k: usize) -> (BlockJacobian, DMatrix<f64>) {
-        let mut rest = BlockJacobian::new(self.n_a - k, self.n - k);
+        let room = [self.blocks.len(), self.parts.len(), self.values.len()];
+        let mut rest = BlockJacobian::with_capacity(self.n_a - k, self.n - k, room);
         let mut lead = DMatrix::zeros(self.m, k);
         let mut parts: Vec<(usize, &[f64])> = Vec::new();
         for blk in &self.blocks {

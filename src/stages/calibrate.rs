@@ -206,18 +206,24 @@ impl StageKind for CalibrateStage {
 
 /// The readings data snooping rejected, with their tests.
 fn rejected_table(c: &Campaign, rejected: &[Rejected]) -> Result<DataFrame> {
-    let net = Network::from_campaign(c)?;
     let readings: Vec<_> = rejected.iter().map(|r| &c.readings[r.test.obs]).collect();
-    let (size, unit): (Vec<f64>, Vec<&str>) = rejected
-        .iter()
-        .map(|r| {
-            let sigma = net.obs[r.test.obs].sigma[r.test.coordinate];
-            match r.test.coordinate {
-                2 => (r.test.size_sigma * sigma * 1e3, "µm"),
-                _ => (r.test.size_sigma * sigma * 1e6, "µrad"),
-            }
-        })
-        .unzip();
+    // The stated σ come from the campaign's network, built again only when
+    // something was rejected (7 ms at 24 000 readings, issue 34).
+    let (size, unit): (Vec<f64>, Vec<&str>) = if rejected.is_empty() {
+        (Vec::new(), Vec::new())
+    } else {
+        let net = Network::from_campaign(c)?;
+        rejected
+            .iter()
+            .map(|r| {
+                let sigma = net.obs[r.test.obs].sigma[r.test.coordinate];
+                match r.test.coordinate {
+                    2 => (r.test.size_sigma * sigma * 1e3, "µm"),
+                    _ => (r.test.size_sigma * sigma * 1e6, "µrad"),
+                }
+            })
+            .unzip()
+    };
     TableBuilder::new()
         .str(
             "station",
