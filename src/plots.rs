@@ -693,10 +693,11 @@ pub const MAX_MARKERS: usize = 1500;
 
 /// The markers to draw of `pixels` (each point's canvas position): all of
 /// them when they are at most `max`; else the first point in each occupied
-/// square cell of the canvas, the cell growing from 2 px by doubling until
-/// at most `max` cells are occupied — with the cell's size. Deterministic,
-/// and an isolated point (an outlier) always keeps its marker: thinning
-/// only drops points drawn within a cell of one that is drawn.
+/// square cell of the canvas, the cell growing from 2 px by half its size
+/// (2, 3, 4, 6, 9, 13, …) until at most `max` cells are occupied — with the
+/// cell's size. Deterministic, and an isolated point (an outlier) always
+/// keeps its marker: thinning only drops points drawn within a cell of one
+/// that is drawn.
 pub fn one_per_cell(pixels: &[(i32, i32)], max: usize) -> (Vec<usize>, Option<i32>) {
     if pixels.len() <= max {
         return ((0..pixels.len()).collect(), None);
@@ -711,7 +712,7 @@ pub fn one_per_cell(pixels: &[(i32, i32)], max: usize) -> (Vec<usize>, Option<i3
         if kept.len() <= max || cell >= 1 << 16 {
             return (kept, Some(cell));
         }
-        cell *= 2;
+        cell += (cell / 2).max(1);
     }
 }
 
@@ -2062,8 +2063,8 @@ mod tests {
         let pixels = [(0, 0), (1, 1), (10, 10), (11, 10), (100, 3)];
         assert_eq!(one_per_cell(&pixels, 5), (vec![0, 1, 2, 3, 4], None));
         assert_eq!(one_per_cell(&pixels, 4), (vec![0, 2, 4], Some(2)));
-        // Cells of 16 px: (0,0) and (10,10) share one.
-        assert_eq!(one_per_cell(&pixels, 2), (vec![0, 4], Some(16)));
+        // Cells of 13 px (2, 3, 4, 6, 9, 13): (0,0) and (10,10) share one.
+        assert_eq!(one_per_cell(&pixels, 2), (vec![0, 4], Some(13)));
     }
 
     #[test]
