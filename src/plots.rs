@@ -686,9 +686,41 @@ fn category_mesh<'a>(
         .map_err(err)
 }
 
+/// Markers a scatter panel draws at most: the residual figures of a
+/// 24 000-reading network drew every reading, 9 MB a figure and a 66 MB
+/// `report.html`.
+pub const MAX_MARKERS: usize = 1500;
+
+/// The markers to draw of `pixels` (each point's canvas position): all of
+/// them when they are at most `max`; else the first point in each occupied
+/// square cell of the canvas, the cell growing from 2 px by half its size
+/// (2, 3, 4, 6, 9, 13, …) until at most `max` cells are occupied — with the
+/// cell's size. Deterministic, and an isolated point (an outlier) always
+/// keeps its marker: thinning only drops points drawn within a cell of one
+/// that is drawn.
+pub fn one_per_cell(pixels: &[(i32, i32)], max: usize) -> (Vec<usize>, Option<i32>) {
+    if pixels.len() <= max {
+        return ((0..pixels.len()).collect(), None);
+    }
+    let mut cell = 2;
+    loop {
+        let mut seen = std::collections::HashSet::new();
+        let kept: Vec<usize> = (0..pixels.len())
+            .filter(|&i| seen.insert((pixels[i].0.div_euclid(cell), pixels[i].1.div_euclid(cell))))
+            .collect();
+        // A cell the size of any canvas holds one point: the loop ends.
+        if kept.len() <= max || cell >= 1 << 16 {
+            return (kept, Some(cell));
+        }
+        cell += (cell / 2).max(1);
+    }
+}
+
 /// Residuals against one factor (the "where" of a diagnosis): three
 /// stacked panels, az and el in µrad and d in µm, against the factor's
-/// value — or its group, with the group names under the axis.
+/// value — or its group, with the group names under the axis. A panel of
+/// more than [`MAX_MARKERS`] readings draws one per occupied cell
+/// ([`one_per_cell`]) and says so under its axis: "n of N readings drawn".
 pub fn residuals_by_factor(
     title: &str,
     x_label: &str,
@@ -717,13 +749,27 @@ pub fn residuals_by_factor(
                 .y_label_area_size(70)
                 .build_cartesian_2d(span(x0, x1)?, span(-m, m)?)
                 .map_err(err)?;
-            category_mesh(&mut chart, x_label, label, categories)?;
+            let points: Vec<(f64, f64)> = x
+                .iter()
+                .zip(values)
+                .filter(|(a, b)| a.is_finite() && b.is_finite())
+                .map(|(&a, &b)| (a, b))
+                .collect();
+            let pixels: Vec<(i32, i32)> = points.iter().map(|p| chart.backend_coord(p)).collect();
+            let (kept, cell) = one_per_cell(&pixels, MAX_MARKERS);
+            let x_desc = match cell {
+                None => x_label.to_string(),
+                Some(cell) => format!(
+                    "{x_label} — {} of {} readings drawn (one per {cell}-px cell)",
+                    kept.len(),
+                    points.len()
+                ),
+            };
+            category_mesh(&mut chart, &x_desc, label, categories)?;
             chart
                 .draw_series(
-                    x.iter()
-                        .zip(values)
-                        .filter(|(a, b)| a.is_finite() && b.is_finite())
-                        .map(|(&a, &b)| Circle::new((a, b), 2, RGBColor(30, 90, 200).filled())),
+                    kept.iter()
+                        .map(|&k| Circle::new(points[k], 2, RGBColor(30, 90, 200).filled())),
                 )
                 .map_err(err)?;
             chart
@@ -1953,6 +1999,72 @@ mod tests {
             )
             .is_err()
         );
+    }
+
+    /// Regression: the diagnosis page of a 24 000-reading network was
+    /// 66 MB, each residual figure drawing every reading (9 MB an SVG). A
+    /// panel now draws at most `MAX_MARKERS`, an outlier among them, and
+    /// says how many of how many.
+    #[test]
+    fn report_html_of_a_big_network_was_66_mb_residual_figures_draw_at_most_max_markers() {
+        let n = 24_000;
+        let x: Vec<f64> = (0..n).map(|i| i as f64).collect();
+        // Deterministic noise in ±1, and one outlier at 40.
+        let mut r: Vec<f64> = (0..n)
+            .map(|i| ((i * 7919 % 1000) as f64 / 500.0) - 1.0)
+            .collect();
+        r[12_345] = 40.0;
+        let svg = residuals_by_factor(
+            "big",
+            "time (s)",
+            None,
+            &x,
+            [("a", &r[..]), ("b", &r[..]), ("c", &r[..])],
+        )
+        .unwrap();
+        let markers = svg.matches("<circle").count();
+        assert!(markers <= 3 * MAX_MARKERS, "{markers} markers");
+        assert!(markers >= 3 * MAX_MARKERS / 4, "{markers} markers");
+        assert!(svg.len() < 500_000, "{} bytes", svg.len());
+        let said = format!("of {n} readings drawn (one per ");
+        assert_eq!(svg.matches(&said).count(), 3, "{said}");
+        // The outlier is drawn in each panel: the topmost marker sits high.
+        let tops: Vec<f64> = svg
+            .match_indices("<circle")
+            .map(|(at, _)| {
+                let tag = &svg[at..at + svg[at..].find('>').unwrap()];
+                let cy = tag
+                    .split("cy=\"")
+                    .nth(1)
+                    .unwrap()
+                    .split('"')
+                    .next()
+                    .unwrap();
+                cy.parse::<f64>().unwrap()
+            })
+            .collect();
+        let high = tops.iter().filter(|&&cy| cy < 60.0).count();
+        assert!(high >= 1, "the outlier was thinned out");
+        // Few readings: every one drawn, nothing said.
+        let svg = residuals_by_factor(
+            "small",
+            "time (s)",
+            None,
+            &x[..100],
+            [("a", &r[..100]), ("b", &r[..100]), ("c", &r[..100])],
+        )
+        .unwrap();
+        assert_eq!(svg.matches("<circle").count(), 300);
+        assert!(!svg.contains("readings drawn"));
+    }
+
+    #[test]
+    fn one_per_cell_keeps_the_first_point_of_each_cell_and_every_isolated_one() {
+        let pixels = [(0, 0), (1, 1), (10, 10), (11, 10), (100, 3)];
+        assert_eq!(one_per_cell(&pixels, 5), (vec![0, 1, 2, 3, 4], None));
+        assert_eq!(one_per_cell(&pixels, 4), (vec![0, 2, 4], Some(2)));
+        // Cells of 13 px (2, 3, 4, 6, 9, 13): (0,0) and (10,10) share one.
+        assert_eq!(one_per_cell(&pixels, 2), (vec![0, 4], Some(13)));
     }
 
     #[test]

@@ -2,12 +2,13 @@
 //! (plotters, no system fonts) — each stage a box coloured by its status,
 //! each input an arrow from producer to consumer labelled with its slot.
 //!
-//! The SVG uses a layered layout: one row per level of [`Graph`] (a stage
-//! sits one row below its deepest input), and within a row stages ordered by
+//! The SVG uses a layered layout: one row per level (a stage sits one row
+//! below its deepest input, a sweep's gathered table counting as an input
+//! from the per-point stage that produces it), and within a row stages ordered by
 //! the mean position of their inputs, which keeps most arrows short and
 //! uncrossed on pipelines like ours (parallel chains from shared sources).
 
-use super::plan::Graph;
+use super::names::PSEUDO_STAGE;
 use super::resolve::Pipeline;
 use super::status::Status;
 use crate::plots;
@@ -50,11 +51,21 @@ fn used(statuses: &Statuses) -> Vec<Status> {
 }
 
 /// `(producer, consumer, label)` for every input, in stage order. The label
-/// is the slot, with the producer's table when it is not its first one.
+/// is the slot, with the producer's table when it is not its first one. A
+/// sweep's gathered table (`sweep.evaluation.criteria`) is drawn from the
+/// per-point stage that produces it (`evaluation`), labelled with the whole
+/// reference: the stage after the sweep was drawn unconnected.
 fn edges(p: &Pipeline) -> Vec<(usize, usize, String)> {
     let mut out = Vec::new();
     for (j, s) in p.stages.iter().enumerate() {
         for (slot, r) in &s.inputs {
+            if r.stage == PSEUDO_STAGE {
+                let producer = r.table.split_once('.').map_or("", |(stage, _)| stage);
+                if let Some(i) = p.index(producer) {
+                    out.push((i, j, format!("{slot} ← {r}")));
+                }
+                continue;
+            }
             let Some(i) = p.index(&r.stage) else { continue };
             let primary = p.stages[i].config.outputs()[0];
             let label = if r.table.is_empty() || r.table == primary {
@@ -179,14 +190,34 @@ struct Layout {
     width: i32,
 }
 
-fn layout(p: &Pipeline, edges: &[(usize, usize, String)], box_w: i32) -> Layout {
-    let graph = Graph::new(p);
-    let mut level = vec![0; p.stages.len()];
-    for (l, stages) in graph.levels.iter().enumerate() {
-        for &i in stages {
-            level[i] = l;
+/// Each stage's row: one below its deepest producer along `edges` — the
+/// plan's levels, except that a stage reading a sweep's gathered table sits
+/// below the per-point stage that produces it, not in the first row.
+fn levels(n: usize, edges: &[(usize, usize, String)]) -> (Vec<usize>, Vec<Vec<usize>>) {
+    let mut level = vec![0; n];
+    // The resolver rejected cycles: `n` rounds of relaxation settle it.
+    for _ in 0..n {
+        let mut changed = false;
+        for &(i, j, _) in edges {
+            if level[j] < level[i] + 1 {
+                level[j] = level[i] + 1;
+                changed = true;
+            }
+        }
+        if !changed {
+            break;
         }
     }
+    let depth = level.iter().copied().max().map_or(0, |m| m + 1);
+    let mut rows = vec![Vec::new(); depth];
+    for (i, &l) in level.iter().enumerate() {
+        rows[l].push(i);
+    }
+    (level, rows)
+}
+
+fn layout(p: &Pipeline, edges: &[(usize, usize, String)], box_w: i32) -> Layout {
+    let (level, rows) = levels(p.stages.len(), edges);
     let width_of = |it: Item| match it {
         Item::Stage(_) => box_w,
         Item::Edge(_) => EDGE_W,
@@ -202,7 +233,7 @@ fn layout(p: &Pipeline, edges: &[(usize, usize, String)], box_w: i32) -> Layout 
         crossings: vec![Vec::new(); edges.len()],
         width: 0,
     };
-    for (row, stages) in graph.levels.iter().enumerate() {
+    for (row, stages) in rows.iter().enumerate() {
         let mut items: Vec<Item> = stages.iter().map(|&i| Item::Stage(i)).collect();
         items.extend(
             edges
@@ -285,8 +316,15 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
         + 20;
     let lay = layout(p, &edges, box_w);
     let title = format!("{}: stage graph", p.name);
+    // Room for the longest edge label beside a middle edge, on either side.
+    let label_w = edges
+        .iter()
+        .map(|(_, _, l)| text_width(l, 11.0) + 12)
+        .max()
+        .unwrap_or(0);
     let width = (lay.width + 2 * MARGIN)
         .max(text_width(&title, 18.0) + 2 * MARGIN)
+        .max(2 * label_w + 2 * MARGIN)
         .max(520);
     let top = MARGIN + 30;
     let height = top + lay.rows.len() as i32 * (BOX_H + ROW_GAP) - ROW_GAP + MARGIN + LEGEND_H;
@@ -345,12 +383,22 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
         ))
         .map_err(draw_err)?;
         let line = RGBColor(90, 90, 90);
-        // The boxes labels must keep off: the stages and the title.
+        // The boxes labels must keep off: the stages, and all beyond the
+        // canvas's sides (a long label beside the rightmost edge of the
+        // uncertainty-check graph ran off it) and below its last row (the
+        // legend).
+        let (far, cw, ch) = (1e6, f64::from(width), f64::from(height));
         let mut taken: Vec<plots::PixelBox> = (0..p.stages.len())
             .map(|i| {
                 let (x, y) = (x0 + lay.stage[i].0, row_y(lay.stage[i].1));
                 [x, y, x + box_w, y + BOX_H].map(f64::from)
             })
+            .chain([
+                [-far, -far, 0.0, far],
+                [cw, -far, far, far],
+                [-far, -far, far, 0.0],
+                [-far, ch - f64::from(MARGIN + LEGEND_H) + 8.0, far, far],
+            ])
             .collect();
         for (path, (_, _, label)) in paths.iter().zip(&edges) {
             root.draw(&PathElement::new(path.clone(), line.stroke_width(1)))
@@ -369,15 +417,24 @@ pub fn svg(p: &Pipeline, statuses: &Statuses) -> Result<String> {
             };
             let stretches: Vec<((i32, i32), (i32, i32))> =
                 path.windows(2).rev().map(|w| (w[0], w[1])).collect();
-            let candidates = stretches
+            let w = plots::text_width_px(label, 11.0);
+            let right: Vec<(f64, f64)> = stretches
                 .iter()
-                .flat_map(|&s| [0.7, 0.5, 0.3, 0.85, 0.15].map(move |t| along(s, t)));
-            let (lx, ly) = plots::place_label(
-                candidates,
-                plots::text_width_px(label, 11.0),
-                11.0,
-                &mut taken,
-            );
+                .flat_map(|&s| [0.7, 0.5, 0.3, 0.85, 0.15].map(move |t| along(s, t)))
+                .collect();
+            // The same places on the left of the edge, for a label that
+            // would run off the canvas's right side.
+            let leftward = right.iter().map(|&(x, y)| (x - 8.0 - w, y));
+            let (mut lx, ly) =
+                plots::place_label(right.iter().copied().chain(leftward), w, 11.0, &mut taken);
+            // Crowded everywhere: on the canvas at least.
+            let clamped = lx.clamp(2.0, (f64::from(width) - 2.0 - w).max(2.0));
+            if clamped != lx {
+                lx = clamped;
+                if let Some(b) = taken.last_mut() {
+                    *b = [lx, b[1], lx + w, b[3]];
+                }
+            }
             root.draw(&Text::new(
                 label.as_str(),
                 (lx.round() as i32, ly.round() as i32),
@@ -479,6 +536,91 @@ mod tests {
         assert!(m.contains("s0 -->|\"points\"| s2"), "{m}");
         assert!(m.contains("s2[\"m<br/><i>measure</i>\"]:::run"), "{m}");
         assert!(m.contains("classDef cached fill:#c6efce"), "{m}");
+    }
+
+    /// Regression (issue 33): in noise-sweep the plot stage after the sweep
+    /// was drawn in the first row, unconnected: its input, the gathered
+    /// `sweep.evaluation.criteria`, named no stage of the graph.
+    fn sweep_pipeline(e: &str) -> Pipeline {
+        let text = format!(
+            "[stages.t]\nkind = \"inject\"\n\
+             [stages.c]\nkind = \"simulate_campaign\"\ninputs = {{ errors = \"t\" }}\n\
+             layout = {{ kind = \"corner\", stations = 3 }}\n\
+             [stages.{e}]\nkind = \"calibrate\"\ninputs = {{ campaign = \"c\" }}\nobjective = \"bundle\"\n\
+             [[sweep.axis]]\npath = \"stages.c.seed\"\nvalues = [1, 2]\n\
+             [sweep]\ngather = [\"{e}.params\"]\n\
+             [stages.s]\nkind = \"spread\"\ninputs = {{ table = \"sweep.{e}.params\" }}\n"
+        );
+        load_source(&Source::new("p.toml", text.as_str()), &[]).unwrap_or_else(|e| panic!("{e:#}"))
+    }
+
+    #[test]
+    fn plot_stage_after_a_sweep_was_drawn_unconnected() {
+        let p = sweep_pipeline("e");
+        let e = edges(&p);
+        assert_eq!(
+            e.last().unwrap(),
+            &(2, 3, "table ← sweep.e.params".to_string())
+        );
+        let lay = layout(&p, &e, 100);
+        let rows: Vec<usize> = lay.stage.iter().map(|&(_, row)| row).collect();
+        assert_eq!(rows, [0, 1, 2, 3]);
+        let d = dot(&p, &Statuses::new());
+        assert!(
+            d.contains("\"e\" -> \"s\" [label=\"table ← sweep.e.params\"];"),
+            "{d}"
+        );
+    }
+
+    /// A long label beside the rightmost edge stays on the canvas (it ran
+    /// off it in the uncertainty-check graph).
+    #[test]
+    fn edge_labels_stay_on_the_canvas() {
+        let p = sweep_pipeline("a_calibration_whose_name_makes_a_long_label");
+        let s = svg(&p, &Statuses::new()).unwrap();
+        assert!(s.contains("table ← sweep.a_calibration_whose_name_makes_a_long_label.params"));
+        let width: f64 = s["<svg width=\"".len()..]
+            .split('"')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap();
+        for (at, _) in s.match_indices("<text ") {
+            let tag = &s[at..at + s[at..].find('>').unwrap()];
+            let body = s[at + tag.len() + 1..]
+                .split("</text>")
+                .next()
+                .unwrap()
+                .trim();
+            let x: f64 = tag
+                .split(" x=\"")
+                .nth(1)
+                .unwrap()
+                .split('"')
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap();
+            let size: f64 = tag
+                .split("font-size=\"")
+                .nth(1)
+                .unwrap()
+                .split('"')
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap();
+            let w = plots::text_width_px(body, size);
+            let (x0, x1) = if tag.contains("text-anchor=\"middle\"") {
+                (x - w / 2.0, x + w / 2.0)
+            } else {
+                (x, x + w)
+            };
+            assert!(
+                x0 >= -0.5 && x1 <= width + 0.5,
+                "{body:?} at {x0}..{x1} of {width}"
+            );
+        }
     }
 
     #[test]

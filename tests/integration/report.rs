@@ -1,6 +1,7 @@
-//! `results/<pipeline>/index.html`: what it shows, that it escapes what it
-//! quotes, and that a real browser renders every figure from the file
-//! system.
+//! `results/<pipeline>/index.html`: what it shows (figures first, tables by
+//! stage behind an index, a sweep's gathered tables, numbers rounded for
+//! reading), that it escapes what it quotes, and that a real browser
+//! renders every figure from the file system without a console error.
 
 use crate::cli::*;
 use crate::util::pipeline_path;
@@ -24,21 +25,28 @@ fn run_synthetic(results: &Path) {
     assert_code(&out, 0);
 }
 
-/// Headless Chromium, which CI installs (`.ci/run`).
-pub(crate) fn chromium() -> PathBuf {
+/// Headless Chromium, if installed.
+pub(crate) fn find_chromium() -> Option<PathBuf> {
     let path = std::env::var_os("PATH").unwrap_or_default();
     for dir in std::env::split_paths(&path).chain([PathBuf::from("/usr/bin")]) {
         for name in ["chromium", "chromium-browser"] {
             let p = dir.join(name);
             if p.is_file() {
-                return p;
+                return Some(p);
             }
         }
     }
-    panic!(
-        "this test needs Chromium to render index.html and none was found on PATH \
+    None
+}
+
+/// Headless Chromium, which CI installs (`.ci/run`).
+pub(crate) fn chromium() -> PathBuf {
+    find_chromium().unwrap_or_else(|| {
+        panic!(
+            "this test needs Chromium to render index.html and none was found on PATH \
          (.ci/run installs it: apt-get install -y chromium)"
-    );
+        )
+    })
 }
 
 /// `page` loaded by headless Chromium: its DOM after the load event, and
@@ -100,11 +108,11 @@ fn chromium_renders_every_figure_of_index_html() {
     assert_eq!(
         srcs,
         [
-            "graph.svg",
             "figure6/figure6.svg",
             "figure7/figure7.svg",
             "figure8/figure8.svg",
-            "figure8_noisy/figure8-noisy.svg"
+            "figure8_noisy/figure8-noisy.svg",
+            "graph.svg",
         ]
     );
     for t in &imgs {
@@ -138,16 +146,30 @@ fn index_html_shows_the_run_small_tables_and_links_large_ones() {
         25
     );
     // A summary table, shown with its numbers.
-    let sphere = &html[html.find("<h3 id=\"evaluate_sphere\">").unwrap()..];
-    let sphere = &sphere[..1 + sphere[1..].find("<h3 ").unwrap()];
+    let sphere = &html[html.find("<details id=\"evaluate_sphere\"").unwrap()..];
+    let sphere = &sphere[..sphere.find("</details>").unwrap()];
     assert!(sphere.contains(
         "<tr><th>statistic</th><th>before_um</th><th>after_um</th><th>reduction_pct</th></tr>"
     ));
-    assert!(sphere.contains("<td>rms</td><td class=\"num\">243.159857</td><td class=\"num\">0.000000</td><td class=\"num\">100.000000</td>"), "{sphere}");
-    // evaluate_sphere.points has 480 rows: linked, not shown.
+    // Rounded to 4 significant digits (no uncertainty column): 243.159857,
+    // 0.000000 and 100.000000 with six decimals whatever they meant.
+    let rms = "<tr><td>rms</td><td class=\"num\">243.2</td><td class=\"num\">";
+    let after = &sphere[sphere.find(rms).expect(sphere) + rms.len()..];
+    let (after_um, rest) = after.split_once("</td>").unwrap();
+    // Noise-free: zero up to rounding (4.35e-9 here), no longer "0.000000".
+    assert!(after_um.parse::<f64>().unwrap().abs() < 1e-6, "{after_um}");
+    assert!(
+        rest.starts_with("<td class=\"num\">100</td></tr>"),
+        "{rest}"
+    );
+    // evaluate_sphere.points has 480 rows: previewed and linked.
     assert!(sphere.contains(
-        "<p>480 rows, too many to show: <a href=\"evaluate_sphere/points.parquet\">points.parquet</a>."
+        "<h4>points <small><a href=\"evaluate_sphere/points.parquet\">points.parquet</a>, 480 rows × "
     ), "{sphere}");
+    assert!(sphere.contains(&format!(
+        "… {} more rows: <a href=\"evaluate_sphere/points.parquet\">points.parquet</a></td></tr>",
+        480 - 10
+    )), "{sphere}");
     // Every table link points at a file that exists.
     for (i, _) in html.match_indices("href=\"") {
         let target = html[i + 6..].split('"').next().unwrap();
@@ -180,7 +202,7 @@ fn index_html_escapes_what_it_quotes() {
     assert_code(&out, 0);
     let html = std::fs::read_to_string(dir.path().join("results/esc/index.html")).unwrap();
     assert!(html.contains(
-        "<p>&lt;script&gt;alert(&#39;x&#39;)&lt;/script&gt; &amp; &lt;b&gt;bold&lt;/b&gt;</p>"
+        "<p class=\"lead\">&lt;script&gt;alert(&#39;x&#39;)&lt;/script&gt; &amp; &lt;b&gt;bold&lt;/b&gt;</p>"
     ));
     assert!(!html.contains("<b>bold</b>"));
     assert_eq!(
@@ -188,4 +210,198 @@ fn index_html_escapes_what_it_quotes() {
         1,
         "only the page's own script"
     );
+}
+
+/// A sweep of two noise levels over the corner campaign, its criteria
+/// gathered and plotted.
+fn small_sweep(dir: &Path) -> PathBuf {
+    let path = dir.join("small-sweep.toml");
+    std::fs::write(
+        &path,
+        r#"[pipeline]
+name = "small-sweep"
+description = "Two noise levels, gathered and plotted"
+
+[stages.truth]
+kind = "inject"
+
+[stages.corner]
+kind = "simulate_campaign"
+inputs = { errors = "truth" }
+layout = { kind = "corner", stations = 3 }
+noise = { sigma_angle_urad = 1.0, sigma_range_um = 2.0 }
+
+[stages.calibration]
+kind = "calibrate"
+inputs = { campaign = "corner" }
+objective = "bundle"
+
+[stages.evaluation]
+kind = "evaluate_campaign"
+inputs = { campaign = "corner", params = "calibration" }
+
+[[sweep.axis]]
+path = "stages.corner.noise.sigma_angle_urad"
+values = [0.5, 1.0]
+
+[sweep]
+gather = ["evaluation.criteria"]
+
+[stages.figure]
+kind = "plot"
+plot = "metric"
+inputs = { table = "sweep.evaluation.criteria" }
+x = "sigma_angle_urad"
+y = "improvement_pct"
+filter = { criterion = "coordinates", station = "all", statistic = "average" }
+file = "figure.svg"
+"#,
+    )
+    .unwrap();
+    path
+}
+
+fn run_into(file: &Path, results: &Path) {
+    let out = ltcal(
+        results.parent().unwrap(),
+        &[
+            "run",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+            "-q",
+        ],
+    );
+    assert_code(&out, 0);
+}
+
+/// Regression (issue 33): a sweep's page said "No tables: the stage
+/// cached." for every per-point stage and never linked the gathered
+/// tables; its stage graph drew the plot after the sweep unconnected.
+#[test]
+fn sweep_page_said_no_tables_and_never_linked_the_gathered_tables() {
+    let dir = tempfile::tempdir().unwrap();
+    let results = dir.path().join("results");
+    run_into(&small_sweep(dir.path()), &results);
+    let folder = results.join("small-sweep");
+    let html = std::fs::read_to_string(folder.join("index.html")).unwrap();
+    assert!(!html.contains("No tables"), "{html}");
+    // The description line, then the figure before any table.
+    assert!(html.contains("<p class=\"lead\">Two noise levels, gathered and plotted</p>"));
+    let figure = html.find("<img src=\"figure/figure.svg\"").unwrap();
+    assert!(figure < html.find("<table>").unwrap());
+    // The gathered table: linked, sized and previewed; the stage that
+    // produces it at each point leads there.
+    let sweep = &html[html.find("<h2 id=\"sweep\">Sweep</h2>").unwrap()..];
+    assert!(
+        sweep.contains(
+            "<p>2 points (2 ran, 0 cached, 0 failed) over <code>sigma_angle_urad</code>.</p>"
+        ),
+        "{sweep}"
+    );
+    let rows = 2 * 16;
+    assert!(
+        sweep.contains(&format!(
+            "<h4>evaluation.criteria <small><a href=\"sweep/evaluation.criteria.parquet\">\
+         evaluation.criteria.parquet</a>, {rows} rows × 9 columns</small></h4>"
+        )),
+        "{sweep}"
+    );
+    // Up to 50 rows, shown whole (larger ones: their first 10).
+    let table = &sweep[..sweep.find("</table>").unwrap()];
+    assert_eq!(table.matches("<tr><td").count(), rows, "{table}");
+    assert!(folder.join("sweep/evaluation.criteria.parquet").is_file());
+    assert!(
+        html.contains(
+            "<p>Run at every sweep point; its tables stay in the cache, one set a point, and are \
+         gathered over the points: <a href=\"#sweep\">evaluation.criteria</a>.</p>"
+        ),
+        "{html}"
+    );
+    // The swept value as written: 0.5, not 0.500000.
+    assert!(sweep.contains("<td class=\"num\">0.5</td>"), "{sweep}");
+    // The graph draws the gathered table's edge into the plot.
+    let graph = std::fs::read_to_string(folder.join("graph.svg")).unwrap();
+    assert!(
+        graph.contains(">\ntable ← sweep.evaluation.criteria\n</text>"),
+        "{graph}"
+    );
+}
+
+/// Regression (issue 33): the corner pipeline's page listed its 110 tables
+/// flat, one of them 24 rows of empty cells. Now an index of the stages
+/// leads to collapsed sections, and columns without a value are named,
+/// not drawn.
+#[test]
+fn a_page_of_110_tables_was_a_flat_list_now_collapsed_stage_sections_behind_an_index() {
+    let dir = tempfile::tempdir().unwrap();
+    let results = dir.path().join("results");
+    run_into(&pipeline_path("corner.toml"), &results);
+    let html = std::fs::read_to_string(results.join("corner/index.html")).unwrap();
+    let stages = 24;
+    let nav = &html[html.find("<nav>").unwrap()..html.find("</nav>").unwrap()];
+    assert_eq!(nav.matches("<li>").count(), stages, "{nav}");
+    assert!(nav.contains("<li><a href=\"#corner\">corner</a> <small>(simulate_campaign, "));
+    assert_eq!(html.matches("<details id=").count(), stages);
+    assert_eq!(
+        html.matches(" open>").count(),
+        0,
+        "a big page starts collapsed"
+    );
+    assert!(html.matches("<h4>").count() >= 110);
+    // The targets of a campaign without reference coordinates.
+    let corner = &html[html.find("<details id=\"corner\"").unwrap()..];
+    let corner = &corner[..corner.find("</details>").unwrap()];
+    assert!(corner.contains(
+        "<p class=\"note\">Without a value in any row: x_mm, y_mm, z_mm, u_mm, aim_x_mm, aim_y_mm, aim_z_mm.</p>"
+    ), "{corner}");
+    assert!(!html.contains("<td></td><td></td><td></td>"));
+    // A link to a collapsed section opens it (the page's script).
+    assert!(html.contains("if (t && t.tagName === 'DETAILS') { t.open = true; }"));
+}
+
+/// The rendered DOM of `page` and its console messages; `None` (printed)
+/// when Chromium is not installed.
+fn render_checked(page: &Path) -> Option<(String, Vec<String>)> {
+    if find_chromium().is_none() {
+        eprintln!("skipped: no chromium on PATH to render {}", page.display());
+        return None;
+    }
+    let (dom, log) = render(page, true);
+    let console = log
+        .lines()
+        .filter(|l| l.contains(":CONSOLE"))
+        .map(str::to_string)
+        .collect();
+    Some((dom, console))
+}
+
+/// Issue 33, item 4: two pipeline pages — a plain one and a sweep's —
+/// render in headless Chromium without a console message, every image
+/// loaded, including the stage graph.
+#[test]
+fn chromium_renders_two_pipeline_pages_without_console_errors_and_every_image_loaded() {
+    let dir = tempfile::tempdir().unwrap();
+    let results = dir.path().join("results");
+    run_synthetic(&results);
+    run_into(&small_sweep(dir.path()), &results);
+    for (name, figures) in [(PIPELINE, 5), ("small-sweep", 2)] {
+        let page = results.join(name).join("index.html");
+        let Some((dom, console)) = render_checked(&page) else {
+            return;
+        };
+        assert_eq!(console, Vec::<String>::new(), "{name}");
+        assert!(
+            dom.contains("<body data-images=\"checked\">"),
+            "{name}: {dom}"
+        );
+        let imgs = images(&dom);
+        assert_eq!(imgs.len(), figures, "{name}: {imgs:?}");
+        for t in &imgs {
+            assert!(
+                t.contains("data-status=\"loaded\""),
+                "{name}: not rendered: {t}"
+            );
+        }
+    }
 }
