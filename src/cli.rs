@@ -49,10 +49,19 @@ struct PipelineArgs {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Run a pipeline: every stage whose result is not cached.
+    /// Run a pipeline: every stage whose result is not cached — or only
+    /// what the stages named need.
     Run {
         #[command(flatten)]
         p: PipelineArgs,
+        /// Run only these stages and what they need (the other stages are
+        /// served if cached, else skipped).
+        #[arg(value_name = "STAGE")]
+        stages: Vec<String>,
+        /// Recompute this stage even if cached, and what depends on it
+        /// among the stages run (repeatable).
+        #[arg(long, value_name = "STAGE")]
+        force: Vec<String>,
         /// Run every stage whose inputs exist even after a failure.
         #[arg(long)]
         keep_going: bool,
@@ -208,6 +217,19 @@ enum Command {
         /// (README, "Your own effects").
         #[arg(long, value_name = "FILE")]
         hypotheses: Option<PathBuf>,
+    },
+    /// Remove the cache entries and packs that no current pipeline and no
+    /// recorded run can reach (after a code change, the superseded ones).
+    Gc {
+        /// The pipelines whose caches to collect (default: every `*.toml`
+        /// under `pipelines/` beside the results folder).
+        pipelines: Vec<PathBuf>,
+        /// The folder that holds every pipeline's results.
+        #[arg(long, default_value = "results")]
+        results: PathBuf,
+        /// List what would be removed, with sizes, and remove nothing.
+        #[arg(long)]
+        dry_run: bool,
     },
     /// List the stage kinds.
     Kinds,
@@ -622,9 +644,16 @@ fn n_tables(n: usize) -> String {
     format!("{n} table{}", if n == 1 { "" } else { "s" })
 }
 
+/// `ltcal run`'s stages to run and to force.
+struct Targets {
+    stages: Vec<String>,
+    force: Vec<String>,
+}
+
 /// `ltcal run`: here, or on Slurm as a coordinator.
 fn run_command(
     p: &PipelineArgs,
+    targets: &Targets,
     keep_going: bool,
     threads: Option<usize>,
     quiet: bool,
@@ -632,6 +661,7 @@ fn run_command(
     detach: bool,
 ) -> Result<ExitCode> {
     let (pipeline, e) = load_to_run(p)?;
+    let selection = pipeline::select::Selection::new(&pipeline, &targets.stages, &targets.force)?;
     if let Some(n) = threads {
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
@@ -654,7 +684,12 @@ fn run_command(
                 "--detach submits to a cluster: use it with --executor slurm",
             ));
         }
-        return Ok(summarize(&run::run(&pipeline, &opts)?));
+        return Ok(summarize(&run::run_selected(&pipeline, &opts, &selection)?));
+    }
+    if !(targets.stages.is_empty() && targets.force.is_empty()) {
+        return Err(InputError::arg(
+            "--executor slurm runs the whole pipeline: name no stages and no --force",
+        ));
     }
     // The first Ctrl-C or SIGTERM sets the flag the coordinator
     // acts on (cancelling its jobs while it waits); a second one
@@ -816,12 +851,22 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Run {
             p,
+            stages,
+            force,
             keep_going,
             threads,
             quiet,
             executor,
             detach,
-        } => run_command(&p, keep_going, threads, quiet, executor, detach),
+        } => run_command(
+            &p,
+            &Targets { stages, force },
+            keep_going,
+            threads,
+            quiet,
+            executor,
+            detach,
+        ),
         Command::Status { p } => status_command(&p),
         Command::Verify { p, repair } => verify_command(&p, repair),
         Command::Task {
@@ -893,6 +938,11 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 ..Default::default()
             },
         ),
+        Command::Gc {
+            pipelines,
+            results,
+            dry_run,
+        } => gc_command(&pipelines, &results, dry_run),
         Command::Kinds => {
             let kinds: String = stages::summaries()
                 .into_iter()
@@ -910,6 +960,160 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// Every `*.toml` below `dir`, sorted, folders recursively (links not
+/// followed).
+fn toml_files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let Ok(t) = e.file_type() else { continue };
+            let path = e.path();
+            if t.is_dir() {
+                todo.push(path);
+            } else if t.is_file() && path.extension().is_some_and(|x| x == "toml") {
+                out.push(path);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The results folder a pipeline file that does not load may name: its
+/// `[pipeline] name`, else its stem — `None` for TOML with neither
+/// `[pipeline]` nor `[stages]` (a hypothesis file), which is no pipeline.
+fn claimed_folder(file: &Path) -> Option<String> {
+    let stem = || Some(file.file_stem()?.to_string_lossy().into_owned());
+    let Ok(text) = crate::fs::read_regular_file(file, pipeline::MAX_FILE_BYTES) else {
+        return stem();
+    };
+    match toml::from_str::<toml::Table>(&String::from_utf8_lossy(&text)) {
+        Err(_) => stem(),
+        Ok(t) if !t.contains_key("pipeline") && !t.contains_key("stages") => None,
+        Ok(t) => match t.get("pipeline").and_then(|p| p.get("name")) {
+            Some(toml::Value::String(n)) => Some(n.clone()),
+            _ => stem(),
+        },
+    }
+}
+
+/// `ltcal gc`: per results folder a pipeline names, what nothing reaches
+/// removed (listed on stdout with sizes; with `--dry-run`, only listed).
+/// A folder is collected only when every pipeline file naming it loads:
+/// otherwise what a broken file would reach is unknown, and nothing goes.
+fn gc_command(files: &[PathBuf], results: &Path, dry_run: bool) -> Result<ExitCode> {
+    use std::collections::BTreeMap;
+    let discovered = files.is_empty();
+    let files = if discovered {
+        let dir = results.parent().unwrap_or(Path::new("")).join("pipelines");
+        toml_files(&dir)
+    } else {
+        files.to_vec()
+    };
+    // Folder name → the pipelines reaching it (`None`: one did not load).
+    let mut folders: BTreeMap<String, Option<Vec<pipeline::resolve::Pipeline>>> = BTreeMap::new();
+    for file in &files {
+        match pipeline::load(file, &[]) {
+            Ok(p) => {
+                let pdir = results.join(&p.name);
+                let mut all = vec![];
+                for name in experiment::names(&pdir) {
+                    // An experiment whose overrides no longer apply keeps
+                    // what its records name.
+                    match pipeline::load_target(file, &[], Some(&name), results) {
+                        Ok((e, _)) => all.push(e),
+                        Err(why) => eprintln!(
+                            "note: experiment `{name}` of {} no longer loads ({}); its recorded \
+                             runs are kept",
+                            file.display(),
+                            why.to_string().lines().next().unwrap_or_default()
+                        ),
+                    }
+                }
+                let name = p.name.clone();
+                all.push(p);
+                if let Some(Some(v)) = folders.get_mut(&name) {
+                    v.extend(all);
+                } else {
+                    folders.entry(name).or_insert(Some(all));
+                }
+            }
+            Err(e) if !discovered => return Err(e),
+            // Not a pipeline (a hypothesis file), or a broken one: its
+            // folder, if it names one, is not collected.
+            Err(_) => {
+                if let Some(name) = claimed_folder(file) {
+                    if results.join(&name).join(".ltcal").is_dir() {
+                        eprintln!(
+                            "note: {} does not load: results/{name} is not collected",
+                            file.display()
+                        );
+                    }
+                    folders.insert(name, None);
+                }
+            }
+        }
+    }
+    let (mut removed, mut freed) = (0, 0);
+    let mut text = String::new();
+    for (name, pipelines) in &folders {
+        let Some(pipelines) = pipelines else { continue };
+        let pdir = results.join(name);
+        if !pdir.join(".ltcal").is_dir() {
+            continue;
+        }
+        let store = Store::new(&pdir);
+        let reach = pipeline::gc::reachable(pipelines, &store, &pdir);
+        let c = pipeline::gc::collect(&store, &reach, dry_run)?;
+        for item in &c.removed {
+            text += &format!(
+                "{:>10}  {}  {}\n",
+                pipeline::gc::human_bytes(item.bytes),
+                item.path.display(),
+                item.what
+            );
+        }
+        for (path, why) in &c.unreadable {
+            eprintln!(
+                "note: pack {} cannot be read ({why}): left to `ltcal verify --repair`",
+                path.display()
+            );
+        }
+        let partly: usize = c.partly.iter().map(|(_, n, _)| n).sum();
+        eprintln!(
+            "{name}: {} {} ({}); kept {} entries and {} packs ({}){}",
+            if dry_run { "would remove" } else { "removed" },
+            c.removed.len(),
+            pipeline::gc::human_bytes(c.freed()),
+            c.kept_entries,
+            c.kept_packs,
+            pipeline::gc::human_bytes(c.kept_bytes),
+            if partly == 0 {
+                String::new()
+            } else {
+                format!(
+                    ", {partly} unreachable entries among them in {} packs that also hold reachable ones",
+                    c.partly.len()
+                )
+            }
+        );
+        removed += c.removed.len();
+        freed += c.freed();
+    }
+    print_out(text)?;
+    eprintln!(
+        "gc: {removed} entries and packs, {} ({freed} bytes) {}",
+        pipeline::gc::human_bytes(freed),
+        if dry_run {
+            "would be freed (--dry-run: nothing removed)"
+        } else {
+            "freed"
+        }
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `ltcal show`: a published table, checked against the cache entry it

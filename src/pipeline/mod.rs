@@ -14,7 +14,8 @@
 //! [`panics`]) and writes the page [`report`]; [`explain`] says why a
 //! stage would run, [`graph`] draws the stages, [`snapshot`] records and
 //! checks result tables, [`published`] reads a published table back and
-//! says whether it is current. A run with `--set` is an [`experiment`],
+//! says whether it is current, [`gc`] removes what nothing reaches any
+//! more. A run with `--set` is an [`experiment`],
 //! published apart from the pipeline's results.
 
 pub mod cache;
@@ -23,6 +24,7 @@ pub mod diagnose;
 pub mod error;
 pub mod experiment;
 pub mod explain;
+pub mod gc;
 pub mod graph;
 pub mod names;
 pub mod overrides;
@@ -35,6 +37,7 @@ pub mod report;
 pub mod resolve;
 pub mod run;
 pub mod run_report;
+pub mod select;
 pub mod snapshot;
 pub mod snapshot_spec;
 pub mod status;
