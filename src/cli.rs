@@ -416,6 +416,19 @@ fn summarize(report: &run::RunReport) -> ExitCode {
     }
 }
 
+/// Prints the pipeline's `[summary]` from the run's results: on stdout
+/// (the results), each that cannot be given on stderr, saying why.
+fn headlines(p: &PipelineArgs, report: &run::RunReport) -> Result<()> {
+    let mut text = String::new();
+    for h in pipeline::summary::read(&pipeline::summary(&p.pipeline)?, report) {
+        match h.value {
+            Ok(v) => text += &format!("{} = {v}\n", h.name),
+            Err(why) => eprintln!("summary `{}` not available: {why}", h.name),
+        }
+    }
+    print_out(text)
+}
+
 /// `ltcal task`: one array task of a cluster run. Refuses, writing nothing,
 /// when its binary or the pipeline file is not the coordinator's — its
 /// entries would be keyed by another code, or computed from another file.
@@ -684,7 +697,10 @@ fn run_command(
                 "--detach submits to a cluster: use it with --executor slurm",
             ));
         }
-        return Ok(summarize(&run::run_selected(&pipeline, &opts, &selection)?));
+        let report = run::run_selected(&pipeline, &opts, &selection)?;
+        let code = summarize(&report);
+        headlines(p, &report)?;
+        return Ok(code);
     }
     if !(targets.stages.is_empty() && targets.force.is_empty()) {
         return Err(InputError::arg(
@@ -715,7 +731,11 @@ fn run_command(
         interrupted,
     };
     match cluster::run(&pipeline, &opts, &cluster, &cluster::slurm::Slurm)? {
-        cluster::Outcome::Finished(report) => Ok(summarize(&report)),
+        cluster::Outcome::Finished(report) => {
+            let code = summarize(&report);
+            headlines(p, &report)?;
+            Ok(code)
+        }
         cluster::Outcome::Detached { jobs, points } => {
             let named = e
                 .as_ref()

@@ -41,6 +41,7 @@ pub mod select;
 pub mod snapshot;
 pub mod snapshot_spec;
 pub mod status;
+pub mod summary;
 pub mod sweep;
 
 /// Where [`Source`] was first defined; kept for code written against it.
@@ -129,6 +130,15 @@ pub fn name(path: &Path) -> anyhow::Result<String> {
         resolve::resolve(&raw, &[]).map_err(InputError)?;
     }
     Ok(name)
+}
+
+/// The `[summary]` of the pipeline in `path`, as written (checked as at
+/// every load).
+pub fn summary(path: &Path) -> anyhow::Result<raw::RawSummary> {
+    let src = read(path).map_err(|p| InputError(vec![p]))?;
+    let raw =
+        raw::parse(&src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    Ok(raw.summary)
 }
 
 /// [`load`] for a cluster task: of the sweep, only the (increasing) points

@@ -455,3 +455,155 @@ fn run_of_named_stages_computes_only_what_they_need_and_force_recomputes_a_cache
         stderr(&o)
     );
 }
+
+#[test]
+fn run_prints_the_summarys_headline_numbers_on_stdout_and_its_stage_lines_on_stderr() {
+    let dir = tempfile::tempdir().unwrap();
+    let results = dir.path().join("results");
+    let file = crate::util::pipeline_path("synthetic-validation.toml");
+    let o = ltcal(
+        dir.path(),
+        &[
+            "run",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+        ],
+    );
+    assert_code(&o, 0);
+    // The cells `[summary]` names, at full precision, as `show` reads them.
+    let t = crate::util::table(
+        &results,
+        "synthetic-validation",
+        "evaluate_sphere_noisy",
+        "summary",
+    );
+    let rms = |c: &str| crate::util::cell(&t, "statistic", "rms", c);
+    assert_eq!(
+        stdout(&o),
+        format!(
+            "sphere_rms_before_um = {}\nsphere_rms_after_um = {}\nsphere_rms_reduction_pct = {}\n",
+            rms("before_um"),
+            rms("after_um"),
+            rms("reduction_pct")
+        )
+    );
+    // Figure 8's noisy sphere: 244 µm rms before, 12 µm after.
+    assert!(
+        (rms("before_um") - 243.836777).abs() < 1e-5,
+        "{}",
+        rms("before_um")
+    );
+    assert!(
+        (rms("after_um") - 12.010510).abs() < 1e-5,
+        "{}",
+        rms("after_um")
+    );
+    let err = stderr(&o);
+    assert!(err.contains("     ran  evaluate_sphere_noisy"), "{err}");
+    assert!(!err.contains("sphere_rms"), "{err}");
+    // Cached, the same numbers.
+    let again = ltcal(
+        dir.path(),
+        &[
+            "run",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+            "-q",
+        ],
+    );
+    assert_code(&again, 0);
+    assert_eq!(stdout(&again), stdout(&o));
+}
+
+#[test]
+fn a_summary_added_to_a_pipeline_changes_no_cache_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = chains(dir.path());
+    let results = dir.path().join("results");
+    let (o, _) = run_statuses(dir.path(), &file, &results, &[]);
+    assert_code(&o, 0);
+    assert_eq!(stdout(&o), "", "no [summary], no headline numbers");
+    let mut text = std::fs::read_to_string(&file).unwrap();
+    text += r#"
+[summary]
+improvement_pct = { table = "evaluation.criteria", column = "improvement_pct", where = { criterion = "coordinates", station = "all", statistic = "average" } }
+stations = { table = "other.truth_stations", column = "station", row = 3 }
+ambiguous = { table = "evaluation.criteria", column = "improvement_pct", where = { station = "all" } }
+"#;
+    std::fs::write(&file, text).unwrap();
+    let plan = ltcal(
+        dir.path(),
+        &[
+            "plan",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+            "--check",
+        ],
+    );
+    assert_code(&plan, 0);
+    let (o, s) = run_statuses(dir.path(), &file, &results, &[]);
+    assert_code(&o, 0);
+    assert!(s.iter().all(|(_, status)| status == "cached"), "{s:?}");
+    let t = crate::util::table(&results, "chains", "evaluation", "criteria");
+    let crit = crate::util::strs(&t, "criterion");
+    let st = crate::util::strs(&t, "station");
+    let stat = crate::util::strs(&t, "statistic");
+    let i = (0..t.height())
+        .find(|&i| crit[i] == "coordinates" && st[i] == "all" && stat[i] == "average")
+        .unwrap();
+    let imp = crate::util::col(&t, "improvement_pct")[i];
+    assert_eq!(
+        stdout(&o),
+        format!("improvement_pct = {imp}\nstations = \"S4\"\n")
+    );
+    assert!(
+        stderr(&o).contains(
+            "summary `ambiguous` not available: evaluation.criteria: 4 rows have station = \"all\": `where` must pick one"
+        ),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn a_summary_naming_a_missing_stage_table_or_column_is_reported_at_its_place_with_the_nearest_name()
+{
+    let dir = tempfile::tempdir().unwrap();
+    let file = chains(dir.path());
+    let mut text = std::fs::read_to_string(&file).unwrap();
+    text += r#"
+[summary]
+a = { table = "evaluaton.criteria", column = "improvement_pct" }
+b = { table = "evaluation.critera", column = "improvement_pct" }
+c = { table = "evaluation.criteria", column = "improvment_pct" }
+e = { table = "evaluation.criteria", column = "improvement_pct", row = 1, where = { station = "all" } }
+"#;
+    std::fs::write(&file, &text).unwrap();
+    let o = ltcal(dir.path(), &["plan", file.to_str().unwrap()]);
+    assert_code(&o, 2);
+    let err = stderr(&o);
+    for expected in [
+        "[summary] `a`: no stage `evaluaton`; did you mean `evaluation`?\n  --> {}:28:15",
+        "[summary] `b`: stage `evaluation` (evaluate_campaign) writes no table `critera`; it writes `criteria`, `table5`, `table6`, `table7`, `terms`; did you mean `criteria`?\n  --> {}:29:15",
+        "[summary] `c`: `evaluation.criteria` has no column `improvment_pct`; did you mean `improvement_pct`?\n  --> {}:30:47",
+        "[summary] `e`: `row` or `where`, not both\n  --> {}:31:72",
+    ] {
+        let expected = expected.replace("{}", file.to_str().unwrap());
+        assert!(err.contains(&expected), "{expected}\nnot in\n{err}");
+    }
+    std::fs::write(
+        &file,
+        text.replace("column = \"improvment_pct\"", "colum = \"improvement_pct\""),
+    )
+    .unwrap();
+    let o = ltcal(dir.path(), &["plan", file.to_str().unwrap()]);
+    assert_code(&o, 2);
+    assert!(
+        stderr(&o).contains("[summary]: unknown field `colum`, expected one of `table`, `column`, `row`, `where`; did you mean `column`?"),
+        "{}",
+        stderr(&o)
+    );
+}

@@ -409,7 +409,7 @@ const PIPELINE_LAYERS: &[&[&str]] = &[
     &["snapshot_spec", "experiment"],
     &["resolve", "run_report"],
     &["plan", "select"],
-    &["explain", "gc", "graph", "published"],
+    &["explain", "gc", "graph", "published", "summary"],
     &["report"],
     &["run"],
     &["snapshot", "cluster", "diagnose"],
