@@ -286,20 +286,42 @@ pub fn main() -> ExitCode {
     match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
-            if let Some(input) = e.downcast_ref::<InputError>() {
-                eprintln!("error: {input}");
-                ExitCode::from(2)
+            let (text, code) = if let Some(input) = e.downcast_ref::<InputError>() {
+                (input.to_string(), 2)
             } else if let Some(at) = e.downcast_ref::<crate::diagnostics::SourceError>() {
                 // A mistake found in a user's file while working (a
                 // hypothesis not finite at some reading).
-                eprintln!("error: {at}");
-                ExitCode::from(2)
+                (at.to_string(), 2)
             } else {
-                eprintln!("error: {e:#}");
-                ExitCode::from(1)
-            }
+                (format!("{e:#}"), 1)
+            };
+            anstream::eprintln!("{}", paint_error(&text));
+            ExitCode::from(code)
         }
     }
+}
+
+/// An error as printed: `error:` and the carets under the place in red
+/// and bold (`anstream` strips them where there is no terminal).
+fn paint_error(text: &str) -> String {
+    let red = anstyle::Style::new()
+        .bold()
+        .fg_color(Some(anstyle::AnsiColor::Red.into()));
+    let lines: Vec<String> = text
+        .lines()
+        .map(|l| {
+            // `   |     ^^^^`: the caret line under a quoted source line.
+            let rest = l.trim_start().strip_prefix('|').map(str::trim_start);
+            match rest {
+                Some(carets) if !carets.is_empty() && carets.chars().all(|c| c == '^') => {
+                    let at = l.len() - carets.len();
+                    format!("{}{red}{carets}{red:#}", &l[..at])
+                }
+                _ => l.to_string(),
+            }
+        })
+        .collect();
+    format!("{red}error:{red:#} {}", lines.join("\n"))
 }
 
 fn overrides(p: &PipelineArgs) -> Result<Vec<Override>> {

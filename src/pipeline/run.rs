@@ -317,7 +317,7 @@ fn execute_stages(
                 let (next, waiting) = &mut *lines;
                 waiting[pos] = Some(progress_line(&report));
                 while let Some(line) = waiting.get_mut(*next).and_then(Option::take) {
-                    eprintln!("{line}");
+                    anstream::eprintln!("{line}");
                     *next += 1;
                 }
             }
@@ -770,13 +770,27 @@ pub fn point_label(sw: &Sweep, values: &[serde_json::Value]) -> String {
         .join(", ")
 }
 
+/// A stage's line, its status coloured (stripped by `anstream` unless
+/// stderr is a terminal or `CLICOLOR_FORCE` is set, and with `NO_COLOR`).
 fn progress_line(r: &StageReport) -> String {
+    use anstyle::AnsiColor;
     let detail = match r.status {
         Status::Cached => String::new(),
         Status::Ran => format!("  {:.2} s  ({})", r.seconds, r.reason),
         _ => format!("  ({})", r.reason),
     };
-    format!("{:>8}  {}{detail}", r.status, r.stage)
+    let colour = match r.status {
+        Status::Ran => AnsiColor::Green,
+        Status::Failed => AnsiColor::Red,
+        Status::Skipped | Status::Run => AnsiColor::Yellow,
+        Status::Cached => AnsiColor::Cyan,
+    };
+    let style = anstyle::Style::new().fg_color(Some(colour.into()));
+    format!(
+        "{style}{:>8}{style:#}  {}{detail}",
+        r.status.to_string(),
+        r.stage
+    )
 }
 
 type Wired = Vec<(String, super::resolve::InputRef, Arc<Produced>)>;

@@ -607,3 +607,64 @@ e = { table = "evaluation.criteria", column = "improvement_pct", row = 1, where 
         stderr(&o)
     );
 }
+
+/// `ltcal <args>` in `cwd` with `env` set (and the colour variables of the
+/// test's own environment cleared).
+fn ltcal_env(cwd: &Path, args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
+    let mut c = std::process::Command::new(crate::cli::BIN);
+    c.current_dir(cwd).args(args);
+    for v in ["NO_COLOR", "CLICOLOR", "CLICOLOR_FORCE"] {
+        c.env_remove(v);
+    }
+    c.envs(env.iter().copied()).output().unwrap()
+}
+
+#[test]
+fn colour_only_when_forced_never_in_a_pipe_or_with_no_color() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = chains(dir.path());
+    let f = file.to_str().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[stages.a]\nkind = \"injct\"\n").unwrap();
+    let b = bad.to_str().unwrap();
+    const ESC: &str = "\x1b[";
+    // Piped (as here): plain text, stage lines and errors alike.
+    let o = ltcal_env(dir.path(), &["run", f], &[]);
+    assert_code(&o, 0);
+    assert!(stderr(&o).contains("     ran  truth"));
+    assert!(!stderr(&o).contains(ESC) && !stdout(&o).contains(ESC));
+    let o = ltcal_env(dir.path(), &["plan", b], &[]);
+    assert_code(&o, 2);
+    assert!(stderr(&o).starts_with("error: unknown stage kind `injct`"));
+    assert!(!stderr(&o).contains(ESC));
+    // Forced: the status, `error:` and the caret coloured.
+    let force = [("CLICOLOR_FORCE", "1")];
+    let o = ltcal_env(dir.path(), &["run", f, "--force", "truth"], &force);
+    assert_code(&o, 0);
+    assert!(
+        stderr(&o).contains("\x1b[32m     ran\x1b[0m  truth"),
+        "{:?}",
+        stderr(&o)
+    );
+    // Cached, in its own colour.
+    let o = ltcal_env(dir.path(), &["run", f], &force);
+    assert!(stderr(&o).contains("\x1b[36m  cached\x1b[0m  other"));
+    let o = ltcal_env(dir.path(), &["plan", b], &force);
+    assert_code(&o, 2);
+    let err = stderr(&o);
+    assert!(
+        err.starts_with("\x1b[1m\x1b[31merror:\x1b[0m unknown stage kind"),
+        "{err:?}"
+    );
+    assert!(
+        err.contains("|        \x1b[1m\x1b[31m^^^^^^^\x1b[0m"),
+        "{err:?}"
+    );
+    // NO_COLOR wins over a forced colour.
+    let o = ltcal_env(
+        dir.path(),
+        &["plan", b],
+        &[("CLICOLOR_FORCE", "1"), ("NO_COLOR", "1")],
+    );
+    assert!(!stderr(&o).contains(ESC), "{:?}", stderr(&o));
+}
