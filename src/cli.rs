@@ -231,8 +231,12 @@ enum Command {
         #[arg(long)]
         dry_run: bool,
     },
-    /// List the stage kinds.
-    Kinds,
+    /// List the stage kinds, or one kind's settings: name, type, default,
+    /// unit (from the name's suffix).
+    Kinds {
+        /// The kind whose settings to print.
+        kind: Option<String>,
+    },
     /// Print the completion script of a shell (README, "Shell completions"
     /// says where each shell reads it from).
     Completions {
@@ -985,7 +989,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             results,
             dry_run,
         } => gc_command(&pipelines, &results, dry_run),
-        Command::Kinds => {
+        Command::Kinds { kind: Some(kind) } => kind_command(&kind),
+        Command::Kinds { kind: None } => {
             let kinds: String = stages::summaries()
                 .into_iter()
                 .map(|(k, s)| format!("{k:10}  {s}\n"))
@@ -1155,6 +1160,52 @@ fn gc_command(files: &[PathBuf], results: &Path, dry_run: bool) -> Result<ExitCo
             "freed"
         }
     );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `ltcal kinds <kind>`: the kind's settings, one a line, from the
+/// deserializer that validates them ([`stages::settings`]).
+fn kind_command(kind: &str) -> Result<ExitCode> {
+    let Some(settings) = stages::settings::settings(kind) else {
+        return Err(InputError::arg(format!(
+            "unknown stage kind `{kind}`; one of: {}{}",
+            stages::KINDS.join(", "),
+            crate::suggest::hint(kind, stages::KINDS.iter().copied())
+        )));
+    };
+    let summary = stages::summaries()
+        .into_iter()
+        .find(|(k, _)| *k == kind)
+        .map_or("", |(_, s)| s);
+    let w = |f: fn(&stages::settings::Setting) -> usize, head: usize| {
+        settings.iter().map(f).max().unwrap_or(0).max(head)
+    };
+    let (wn, wk, wd) = (
+        w(|s| s.name.len(), 7),
+        w(|s| s.kind.len(), 4),
+        w(|s| s.default.chars().count(), 7),
+    );
+    let mut text = format!(
+        "{kind}: {summary}\n\n{:wn$}  {:wk$}  {:wd$}  unit\n",
+        "setting", "type", "default"
+    );
+    if settings.is_empty() {
+        text += "(no settings)\n";
+    }
+    for s in &settings {
+        let line = format!(
+            "{:wn$}  {:wk$}  {}{}  {}",
+            s.name,
+            s.kind,
+            s.default,
+            " ".repeat(wd - s.default.chars().count()),
+            s.unit
+        );
+        text += line.trim_end();
+        text += "\n";
+    }
+    text += &format!("\n(each setting's meaning: the doc at the top of src/stages/{kind}.rs)\n");
+    print_out(text)?;
     Ok(ExitCode::SUCCESS)
 }
 

@@ -668,3 +668,61 @@ fn colour_only_when_forced_never_in_a_pipe_or_with_no_color() {
     );
     assert!(!stderr(&o).contains(ESC), "{:?}", stderr(&o));
 }
+
+#[test]
+fn kinds_of_a_kind_lists_every_accepted_setting_and_no_unlisted_one_is_accepted() {
+    use ltcal::stages::{KINDS, StageConfig, settings::settings};
+    for kind in KINDS {
+        let listed = settings(kind).unwrap();
+        let o = ltcal(&crate::util::root(), &["kinds", kind]);
+        assert_code(&o, 0);
+        let out = stdout(&o);
+        for s in &listed {
+            // Listed, and accepted by the kind's deserializer: an unknown
+            // field error never names it.
+            assert!(
+                out.lines()
+                    .any(|l| l.split_whitespace().next() == Some(s.name.as_str())),
+                "{kind}: `{}` not printed\n{out}",
+                s.name
+            );
+            let one = serde_json::json!({ s.name.clone(): serde_json::Value::Null });
+            if let Err(e) = StageConfig::from_json(kind, one) {
+                assert!(
+                    !e.to_string().contains("unknown field"),
+                    "{kind}.{}: {e}",
+                    s.name
+                );
+            }
+        }
+        // A name not listed is refused, and the refusal lists exactly the
+        // listed names.
+        let err = StageConfig::from_json(kind, serde_json::json!({ "not_a_setting": 1 }))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("unknown field `not_a_setting`"),
+            "{kind}: {err}"
+        );
+        let expected: Vec<String> = listed.iter().map(|s| format!("`{}`", s.name)).collect();
+        if expected.is_empty() {
+            assert!(err.contains("there are no fields"), "{kind}: {err}");
+            assert!(stdout(&o).contains("(no settings)"), "{kind}");
+        } else {
+            // serde's wording: `a`; `a` or `b`; one of `a`, `b`, `c`.
+            let names = match &expected[..] {
+                [a] => format!("expected {a}"),
+                [a, b] => format!("expected {a} or {b}"),
+                all => format!("expected one of {}", all.join(", ")),
+            };
+            assert!(err.contains(&names), "{kind}: {err}");
+        }
+    }
+    let o = ltcal(&crate::util::root(), &["kinds", "measure"]);
+    let out = stdout(&o);
+    assert!(out.contains("seed     integer  0"), "{out}");
+    assert!(out.contains("\"front\""), "{out}");
+    let o = ltcal(&crate::util::root(), &["kinds", "mesure"]);
+    assert_code(&o, 2);
+    assert!(stderr(&o).contains("did you mean `measure`?"));
+}
