@@ -101,7 +101,7 @@ fn superseded_build(store: &Store, old: &str) -> (BTreeSet<String>, PathBuf, usi
     }
     for key in &packed {
         {
-            let e = with_code(&store.read(&key).unwrap().unwrap(), old);
+            let e = with_code(&store.read(key).unwrap().unwrap(), old);
             let manifest = serde_json::to_vec(&e.manifest).unwrap();
             let parts: Vec<&[u8]> = e
                 .manifest
