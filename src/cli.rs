@@ -49,10 +49,19 @@ struct PipelineArgs {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Run a pipeline: every stage whose result is not cached.
+    /// Run a pipeline: every stage whose result is not cached — or only
+    /// what the stages named need.
     Run {
         #[command(flatten)]
         p: PipelineArgs,
+        /// Run only these stages and what they need (the other stages are
+        /// served if cached, else skipped).
+        #[arg(value_name = "STAGE")]
+        stages: Vec<String>,
+        /// Recompute this stage even if cached, and what depends on it
+        /// among the stages run (repeatable).
+        #[arg(long, value_name = "STAGE")]
+        force: Vec<String>,
         /// Run every stage whose inputs exist even after a failure.
         #[arg(long)]
         keep_going: bool,
@@ -209,8 +218,25 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         hypotheses: Option<PathBuf>,
     },
-    /// List the stage kinds.
-    Kinds,
+    /// Remove the cache entries and packs that no current pipeline and no
+    /// recorded run can reach (after a code change, the superseded ones).
+    Gc {
+        /// The pipelines whose caches to collect (default: every `*.toml`
+        /// under `pipelines/` beside the results folder).
+        pipelines: Vec<PathBuf>,
+        /// The folder that holds every pipeline's results.
+        #[arg(long, default_value = "results")]
+        results: PathBuf,
+        /// List what would be removed, with sizes, and remove nothing.
+        #[arg(long)]
+        dry_run: bool,
+    },
+    /// List the stage kinds, or one kind's settings: name, type, default,
+    /// unit (from the name's suffix).
+    Kinds {
+        /// The kind whose settings to print.
+        kind: Option<String>,
+    },
     /// Print the completion script of a shell (README, "Shell completions"
     /// says where each shell reads it from).
     Completions {
@@ -264,20 +290,42 @@ pub fn main() -> ExitCode {
     match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
-            if let Some(input) = e.downcast_ref::<InputError>() {
-                eprintln!("error: {input}");
-                ExitCode::from(2)
+            let (text, code) = if let Some(input) = e.downcast_ref::<InputError>() {
+                (input.to_string(), 2)
             } else if let Some(at) = e.downcast_ref::<crate::diagnostics::SourceError>() {
                 // A mistake found in a user's file while working (a
                 // hypothesis not finite at some reading).
-                eprintln!("error: {at}");
-                ExitCode::from(2)
+                (at.to_string(), 2)
             } else {
-                eprintln!("error: {e:#}");
-                ExitCode::from(1)
-            }
+                (format!("{e:#}"), 1)
+            };
+            anstream::eprintln!("{}", paint_error(&text));
+            ExitCode::from(code)
         }
     }
+}
+
+/// An error as printed: `error:` and the carets under the place in red
+/// and bold (`anstream` strips them where there is no terminal).
+fn paint_error(text: &str) -> String {
+    let red = anstyle::Style::new()
+        .bold()
+        .fg_color(Some(anstyle::AnsiColor::Red.into()));
+    let lines: Vec<String> = text
+        .lines()
+        .map(|l| {
+            // `   |     ^^^^`: the caret line under a quoted source line.
+            let rest = l.trim_start().strip_prefix('|').map(str::trim_start);
+            match rest {
+                Some(carets) if !carets.is_empty() && carets.chars().all(|c| c == '^') => {
+                    let at = l.len() - carets.len();
+                    format!("{}{red}{carets}{red:#}", &l[..at])
+                }
+                _ => l.to_string(),
+            }
+        })
+        .collect();
+    format!("{red}error:{red:#} {}", lines.join("\n"))
 }
 
 fn overrides(p: &PipelineArgs) -> Result<Vec<Override>> {
@@ -392,6 +440,19 @@ fn summarize(report: &run::RunReport) -> ExitCode {
     } else {
         ExitCode::from(1)
     }
+}
+
+/// Prints the pipeline's `[summary]` from the run's results: on stdout
+/// (the results), each that cannot be given on stderr, saying why.
+fn headlines(p: &PipelineArgs, report: &run::RunReport) -> Result<()> {
+    let mut text = String::new();
+    for h in pipeline::summary::read(&pipeline::summary(&p.pipeline)?, report) {
+        match h.value {
+            Ok(v) => text += &format!("{} = {v}\n", h.name),
+            Err(why) => eprintln!("summary `{}` not available: {why}", h.name),
+        }
+    }
+    print_out(text)
 }
 
 /// `ltcal task`: one array task of a cluster run. Refuses, writing nothing,
@@ -622,9 +683,16 @@ fn n_tables(n: usize) -> String {
     format!("{n} table{}", if n == 1 { "" } else { "s" })
 }
 
+/// `ltcal run`'s stages to run and to force.
+struct Targets {
+    stages: Vec<String>,
+    force: Vec<String>,
+}
+
 /// `ltcal run`: here, or on Slurm as a coordinator.
 fn run_command(
     p: &PipelineArgs,
+    targets: &Targets,
     keep_going: bool,
     threads: Option<usize>,
     quiet: bool,
@@ -632,6 +700,7 @@ fn run_command(
     detach: bool,
 ) -> Result<ExitCode> {
     let (pipeline, e) = load_to_run(p)?;
+    let selection = pipeline::select::Selection::new(&pipeline, &targets.stages, &targets.force)?;
     if let Some(n) = threads {
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
@@ -654,7 +723,15 @@ fn run_command(
                 "--detach submits to a cluster: use it with --executor slurm",
             ));
         }
-        return Ok(summarize(&run::run(&pipeline, &opts)?));
+        let report = run::run_selected(&pipeline, &opts, &selection)?;
+        let code = summarize(&report);
+        headlines(p, &report)?;
+        return Ok(code);
+    }
+    if !(targets.stages.is_empty() && targets.force.is_empty()) {
+        return Err(InputError::arg(
+            "--executor slurm runs the whole pipeline: name no stages and no --force",
+        ));
     }
     // The first Ctrl-C or SIGTERM sets the flag the coordinator
     // acts on (cancelling its jobs while it waits); a second one
@@ -680,7 +757,11 @@ fn run_command(
         interrupted,
     };
     match cluster::run(&pipeline, &opts, &cluster, &cluster::slurm::Slurm)? {
-        cluster::Outcome::Finished(report) => Ok(summarize(&report)),
+        cluster::Outcome::Finished(report) => {
+            let code = summarize(&report);
+            headlines(p, &report)?;
+            Ok(code)
+        }
         cluster::Outcome::Detached { jobs, points } => {
             let named = e
                 .as_ref()
@@ -816,12 +897,22 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Run {
             p,
+            stages,
+            force,
             keep_going,
             threads,
             quiet,
             executor,
             detach,
-        } => run_command(&p, keep_going, threads, quiet, executor, detach),
+        } => run_command(
+            &p,
+            &Targets { stages, force },
+            keep_going,
+            threads,
+            quiet,
+            executor,
+            detach,
+        ),
         Command::Status { p } => status_command(&p),
         Command::Verify { p, repair } => verify_command(&p, repair),
         Command::Task {
@@ -893,7 +984,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 ..Default::default()
             },
         ),
-        Command::Kinds => {
+        Command::Gc {
+            pipelines,
+            results,
+            dry_run,
+        } => gc_command(&pipelines, &results, dry_run),
+        Command::Kinds { kind: Some(kind) } => kind_command(&kind),
+        Command::Kinds { kind: None } => {
             let kinds: String = stages::summaries()
                 .into_iter()
                 .map(|(k, s)| format!("{k:10}  {s}\n"))
@@ -910,6 +1007,206 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// Every `*.toml` below `dir`, sorted, folders recursively (links not
+/// followed).
+fn toml_files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let Ok(t) = e.file_type() else { continue };
+            let path = e.path();
+            if t.is_dir() {
+                todo.push(path);
+            } else if t.is_file() && path.extension().is_some_and(|x| x == "toml") {
+                out.push(path);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The results folder a pipeline file that does not load may name: its
+/// `[pipeline] name`, else its stem — `None` for TOML with neither
+/// `[pipeline]` nor `[stages]` (a hypothesis file), which is no pipeline.
+fn claimed_folder(file: &Path) -> Option<String> {
+    let stem = || Some(file.file_stem()?.to_string_lossy().into_owned());
+    let Ok(text) = crate::fs::read_regular_file(file, pipeline::MAX_FILE_BYTES) else {
+        return stem();
+    };
+    match toml::from_str::<toml::Table>(&String::from_utf8_lossy(&text)) {
+        Err(_) => stem(),
+        Ok(t) if !t.contains_key("pipeline") && !t.contains_key("stages") => None,
+        Ok(t) => match t.get("pipeline").and_then(|p| p.get("name")) {
+            Some(toml::Value::String(n)) => Some(n.clone()),
+            _ => stem(),
+        },
+    }
+}
+
+/// `ltcal gc`: per results folder a pipeline names, what nothing reaches
+/// removed (listed on stdout with sizes; with `--dry-run`, only listed).
+/// A folder is collected only when every pipeline file naming it loads:
+/// otherwise what a broken file would reach is unknown, and nothing goes.
+fn gc_command(files: &[PathBuf], results: &Path, dry_run: bool) -> Result<ExitCode> {
+    use std::collections::BTreeMap;
+    let discovered = files.is_empty();
+    let files = if discovered {
+        let dir = results.parent().unwrap_or(Path::new("")).join("pipelines");
+        toml_files(&dir)
+    } else {
+        files.to_vec()
+    };
+    // Folder name → the pipelines reaching it (`None`: one did not load).
+    let mut folders: BTreeMap<String, Option<Vec<pipeline::resolve::Pipeline>>> = BTreeMap::new();
+    for file in &files {
+        match pipeline::load(file, &[]) {
+            Ok(p) => {
+                let pdir = results.join(&p.name);
+                let mut all = vec![];
+                for name in experiment::names(&pdir) {
+                    // An experiment whose overrides no longer apply keeps
+                    // what its records name.
+                    match pipeline::load_target(file, &[], Some(&name), results) {
+                        Ok((e, _)) => all.push(e),
+                        Err(why) => eprintln!(
+                            "note: experiment `{name}` of {} no longer loads ({}); its recorded \
+                             runs are kept",
+                            file.display(),
+                            why.to_string().lines().next().unwrap_or_default()
+                        ),
+                    }
+                }
+                let name = p.name.clone();
+                all.push(p);
+                if let Some(Some(v)) = folders.get_mut(&name) {
+                    v.extend(all);
+                } else {
+                    folders.entry(name).or_insert(Some(all));
+                }
+            }
+            Err(e) if !discovered => return Err(e),
+            // Not a pipeline (a hypothesis file), or a broken one: its
+            // folder, if it names one, is not collected.
+            Err(_) => {
+                if let Some(name) = claimed_folder(file) {
+                    if results.join(&name).join(".ltcal").is_dir() {
+                        eprintln!(
+                            "note: {} does not load: results/{name} is not collected",
+                            file.display()
+                        );
+                    }
+                    folders.insert(name, None);
+                }
+            }
+        }
+    }
+    let (mut removed, mut freed) = (0, 0);
+    let mut text = String::new();
+    for (name, pipelines) in &folders {
+        let Some(pipelines) = pipelines else { continue };
+        let pdir = results.join(name);
+        if !pdir.join(".ltcal").is_dir() {
+            continue;
+        }
+        let store = Store::new(&pdir);
+        let reach = pipeline::gc::reachable(pipelines, &store, &pdir);
+        let c = pipeline::gc::collect(&store, &reach, dry_run)?;
+        for item in &c.removed {
+            text += &format!(
+                "{:>10}  {}  {}\n",
+                pipeline::gc::human_bytes(item.bytes),
+                item.path.display(),
+                item.what
+            );
+        }
+        for (path, why) in &c.unreadable {
+            eprintln!(
+                "note: pack {} cannot be read ({why}): left to `ltcal verify --repair`",
+                path.display()
+            );
+        }
+        let partly: usize = c.partly.iter().map(|(_, n, _)| n).sum();
+        eprintln!(
+            "{name}: {} {} ({}); kept {} entries and {} packs ({}){}",
+            if dry_run { "would remove" } else { "removed" },
+            c.removed.len(),
+            pipeline::gc::human_bytes(c.freed()),
+            c.kept_entries,
+            c.kept_packs,
+            pipeline::gc::human_bytes(c.kept_bytes),
+            if partly == 0 {
+                String::new()
+            } else {
+                format!(
+                    ", {partly} unreachable entries among them in {} packs that also hold reachable ones",
+                    c.partly.len()
+                )
+            }
+        );
+        removed += c.removed.len();
+        freed += c.freed();
+    }
+    print_out(text)?;
+    eprintln!(
+        "gc: {removed} entries and packs, {} ({freed} bytes) {}",
+        pipeline::gc::human_bytes(freed),
+        if dry_run {
+            "would be freed (--dry-run: nothing removed)"
+        } else {
+            "freed"
+        }
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `ltcal kinds <kind>`: the kind's settings, one a line, from the
+/// deserializer that validates them ([`stages::settings`]).
+fn kind_command(kind: &str) -> Result<ExitCode> {
+    let Some(settings) = stages::settings::settings(kind) else {
+        return Err(InputError::arg(format!(
+            "unknown stage kind `{kind}`; one of: {}{}",
+            stages::KINDS.join(", "),
+            crate::suggest::hint(kind, stages::KINDS.iter().copied())
+        )));
+    };
+    let summary = stages::summaries()
+        .into_iter()
+        .find(|(k, _)| *k == kind)
+        .map_or("", |(_, s)| s);
+    let w = |f: fn(&stages::settings::Setting) -> usize, head: usize| {
+        settings.iter().map(f).max().unwrap_or(0).max(head)
+    };
+    let (wn, wk, wd) = (
+        w(|s| s.name.len(), 7),
+        w(|s| s.kind.len(), 4),
+        w(|s| s.default.chars().count(), 7),
+    );
+    let mut text = format!(
+        "{kind}: {summary}\n\n{:wn$}  {:wk$}  {:wd$}  unit\n",
+        "setting", "type", "default"
+    );
+    if settings.is_empty() {
+        text += "(no settings)\n";
+    }
+    for s in &settings {
+        let line = format!(
+            "{:wn$}  {:wk$}  {}{}  {}",
+            s.name,
+            s.kind,
+            s.default,
+            " ".repeat(wd - s.default.chars().count()),
+            s.unit
+        );
+        text += line.trim_end();
+        text += "\n";
+    }
+    text += &format!("\n(each setting's meaning: the doc at the top of src/stages/{kind}.rs)\n");
+    print_out(text)?;
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `ltcal show`: a published table, checked against the cache entry it

@@ -1179,6 +1179,76 @@ impl Store {
         n
     }
 
+    /// The keys the cache's records name: every "last run" record (the
+    /// main results' and every experiment's, `.ltcal/last/`) and, per sweep
+    /// point and stage, the packs' latest record of a run there — what
+    /// `explain` compares with, so what [`super::gc`] keeps.
+    pub fn recorded_keys(&self) -> HashSet<String> {
+        let main = self.root.join("last");
+        let mut dirs = vec![main.clone()];
+        dirs.extend(
+            fs::read_dir(main.join("runs"))
+                .into_iter()
+                .flatten()
+                .flatten()
+                .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+                .map(|e| e.path()),
+        );
+        let mut keys: HashSet<String> = dirs
+            .iter()
+            .flat_map(|d| list(d, |n| n.ends_with(".json")))
+            .filter_map(|p| read_last(&p))
+            .map(|k| k.hash())
+            .collect();
+        self.refresh_packs();
+        let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
+        if let Some(p) = guard.as_ref() {
+            keys.extend(p.last.values().map(pack::key_hex));
+        }
+        keys
+    }
+
+    /// Every loose entry: its key and folder, by key.
+    pub fn loose_entries(&self) -> Vec<(String, PathBuf)> {
+        list(&self.entries(), |n| !n.starts_with('.'))
+            .into_iter()
+            .filter_map(|p| Some((p.file_name()?.to_string_lossy().into_owned(), p)))
+            .collect()
+    }
+
+    /// Every pack, by name (the time it was written), with its entries'
+    /// keys, or why its index cannot be read.
+    pub fn pack_files(&self) -> Vec<(PathBuf, Result<Vec<String>>)> {
+        list(&self.packs_dir(), |n| n.ends_with(".pack"))
+            .into_iter()
+            .map(|p| {
+                let keys = pack::read_index(&p)
+                    .map(|ix| ix.entries.iter().map(|(k, _)| pack::key_hex(k)).collect());
+                (p, keys)
+            })
+            .collect()
+    }
+
+    /// Takes a loose entry out for good, as [`Store::discard`] does a bad
+    /// one: renamed out of its key first (one step, so a reader finds the
+    /// whole entry or none — a killed process leaves a `.trash-` folder
+    /// that the next run removes), then deleted.
+    pub fn remove_entry(&self, dir: &Path) -> Result<()> {
+        crate::fs::refuse_links(&self.entries())?;
+        let trash = self.entries().join(format!(".trash-{}", temp_name()));
+        fs::rename(dir, &trash).with_context(|| format!("moving {} out", dir.display()))?;
+        fs::remove_dir_all(&trash).with_context(|| format!("removing {}", trash.display()))
+    }
+
+    /// Takes a pack out for good: one unlink, so a reader opens the whole
+    /// pack or none.
+    pub fn remove_pack(&self, path: &Path) -> Result<()> {
+        crate::fs::refuse_links(&self.packs_dir())?;
+        remove_any(path)?;
+        *self.packs.write().unwrap_or_else(|e| e.into_inner()) = None;
+        Ok(())
+    }
+
     /// Where the "last run" records of this store's results are: the main
     /// results' in `.ltcal/last/`, an experiment's below it (a stage's
     /// record is a file, `<stage>.json`, so the folder `runs` is no stage's).

@@ -14,7 +14,8 @@
 //! [`panics`]) and writes the page [`report`]; [`explain`] says why a
 //! stage would run, [`graph`] draws the stages, [`snapshot`] records and
 //! checks result tables, [`published`] reads a published table back and
-//! says whether it is current. A run with `--set` is an [`experiment`],
+//! says whether it is current, [`gc`] removes what nothing reaches any
+//! more. A run with `--set` is an [`experiment`],
 //! published apart from the pipeline's results.
 
 pub mod cache;
@@ -23,6 +24,7 @@ pub mod diagnose;
 pub mod error;
 pub mod experiment;
 pub mod explain;
+pub mod gc;
 pub mod graph;
 pub mod names;
 pub mod overrides;
@@ -35,9 +37,11 @@ pub mod report;
 pub mod resolve;
 pub mod run;
 pub mod run_report;
+pub mod select;
 pub mod snapshot;
 pub mod snapshot_spec;
 pub mod status;
+pub mod summary;
 pub mod sweep;
 
 /// Where [`Source`] was first defined; kept for code written against it.
@@ -126,6 +130,15 @@ pub fn name(path: &Path) -> anyhow::Result<String> {
         resolve::resolve(&raw, &[]).map_err(InputError)?;
     }
     Ok(name)
+}
+
+/// The `[summary]` of the pipeline in `path`, as written (checked as at
+/// every load).
+pub fn summary(path: &Path) -> anyhow::Result<raw::RawSummary> {
+    let src = read(path).map_err(|p| InputError(vec![p]))?;
+    let raw =
+        raw::parse(&src).map_err(|errs| InputError(errs.into_iter().map(Problem::At).collect()))?;
+    Ok(raw.summary)
 }
 
 /// [`load`] for a cluster task: of the sweep, only the (increasing) points

@@ -42,6 +42,27 @@ pub struct RawSnapshot {
     pub default_tolerance: Option<Spanned<f64>>,
 }
 
+/// One `[summary]` entry: a headline number, one cell of a result table —
+/// `name = { table = "stage.table", column = "c", row = 0 }`, or the row
+/// chosen by its values, `where = { statistic = "rms" }`. Printed on stdout
+/// after `ltcal run`; part of no stage's cache key (nothing computed
+/// depends on it).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawSummaryItem {
+    /// `"stage.table"`, or `"sweep.<stage>.<table>"` for a gathered one.
+    pub table: Spanned<String>,
+    pub column: Spanned<String>,
+    /// The row's index (default 0, or the one row `where` picks).
+    pub row: Option<Spanned<usize>>,
+    /// Column → value: the one row holding them all.
+    #[serde(rename = "where")]
+    pub filter: Option<Spanned<BTreeMap<String, toml::Value>>>,
+}
+
+/// `[summary]` as written: name → the cell, in file order.
+pub type RawSummary = Vec<(Spanned<String>, RawSummaryItem)>;
+
 /// One `inputs` entry: `slot = "stage"` or `slot = "stage.table"`.
 #[derive(Clone, Debug)]
 pub struct RawInput {
@@ -77,9 +98,13 @@ pub struct RawPipeline {
     pub sweep: Option<(super::sweep::RawSweep, Range<usize>)>,
     /// With the span of its header.
     pub executor: Option<(RawExecutor, Range<usize>)>,
+    /// The headline numbers, checked against the stages' tables and columns.
+    pub summary: RawSummary,
 }
 
-const TOP_LEVEL: &[&str] = &["pipeline", "stages", "snapshot", "sweep", "executor"];
+const TOP_LEVEL: &[&str] = &[
+    "pipeline", "stages", "snapshot", "sweep", "executor", "summary",
+];
 
 /// `[executor]`: where the stages run besides this machine.
 #[derive(Clone, Debug, Default, Deserialize)]
@@ -133,6 +158,7 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
     let mut snapshot = None;
     let mut sweep = None;
     let mut executor = None;
+    let mut summary = RawSummary::new();
     for (key, value) in root.into_inner() {
         let k = key_str(&key).to_string();
         match k.as_str() {
@@ -170,6 +196,13 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
                     }
                 }
             }
+            "summary" => match typed::<BTreeMap<Spanned<String>, RawSummaryItem>>(src, value) {
+                Ok(items) => summary = items.into_iter().collect(),
+                Err(mut e) => {
+                    e.message = format!("[summary]: {}", e.message);
+                    errors.push(e)
+                }
+            },
             "stages" => {
                 let span = value.span();
                 match value.into_inner() {
@@ -203,6 +236,17 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
             "the pipeline has no stages: add at least one `[stages.<name>]` table",
         ));
     }
+    if errors.is_empty() {
+        summary.sort_by_key(|(name, _)| name.span().start);
+        let gathered = sweep.as_ref().map_or_else(Vec::new, |(sw, _)| {
+            sw.gather.iter().map(|g| g.get_ref().clone()).collect()
+        });
+        errors.extend(
+            summary
+                .iter()
+                .filter_map(|(name, item)| check_summary(src, &stages, &gathered, name, item)),
+        );
+    }
     if !errors.is_empty() {
         errors.sort_by_key(|e| e.span.start);
         return Err(errors);
@@ -216,7 +260,98 @@ pub fn parse(src: &Source) -> Result<RawPipeline, Vec<SourceError>> {
         snapshot,
         sweep,
         executor,
+        summary,
     })
+}
+
+/// What is wrong with a `[summary]` entry, at its place: a stage, table or
+/// column that does not exist (with the nearest name), `row` with `where`.
+fn check_summary(
+    src: &Source,
+    stages: &[RawStage],
+    gathered: &[String],
+    name: &Spanned<String>,
+    item: &RawSummaryItem,
+) -> Option<SourceError> {
+    use crate::suggest::hint;
+    let at = |s: &Spanned<String>, m: String| {
+        Some(src.error(s.span(), format!("[summary] `{}`: {m}", name.get_ref())))
+    };
+    if !valid_name(name.get_ref()) {
+        return at(
+            name,
+            "a headline number's name may only use letters, digits, `_` and `-`".into(),
+        );
+    }
+    if let (Some(row), Some(_)) = (&item.row, &item.filter) {
+        return Some(src.error(
+            row.span(),
+            format!("[summary] `{}`: `row` or `where`, not both", name.get_ref()),
+        ));
+    }
+    let t = item.table.get_ref();
+    if let Some(g) = t.strip_prefix("sweep.") {
+        // A gathered table: its columns are the stage's and the axes'.
+        if !gathered.iter().any(|x| x == g) {
+            return at(
+                &item.table,
+                format!(
+                    "`{t}` is not a gathered table (`[sweep] gather` lists {}){}",
+                    gathered
+                        .iter()
+                        .map(|g| format!("`sweep.{g}`"))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    hint(g, gathered.iter().map(String::as_str))
+                ),
+            );
+        }
+        return None;
+    }
+    let Some((stage, table)) = t.split_once('.') else {
+        return at(
+            &item.table,
+            format!("`{t}`: write the table as `stage.table`"),
+        );
+    };
+    let Some(s) = stages.iter().find(|s| s.name == stage) else {
+        return at(
+            &item.table,
+            format!(
+                "no stage `{stage}`{}",
+                hint(stage, stages.iter().map(|s| s.name.as_str()))
+            ),
+        );
+    };
+    let outputs = s.config.outputs();
+    if !outputs.contains(&table) {
+        return at(
+            &item.table,
+            format!(
+                "stage `{stage}` ({}) writes no table `{table}`; it writes {}{}",
+                s.kind,
+                outputs
+                    .iter()
+                    .map(|o| format!("`{o}`"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                hint(table, outputs.iter().copied())
+            ),
+        );
+    }
+    let column = item.column.get_ref();
+    if let Some(cols) = s.config.columns(table) {
+        if !cols.contains(&column.as_str()) {
+            return at(
+                &item.column,
+                format!(
+                    "`{stage}.{table}` has no column `{column}`{}",
+                    hint(column, cols.iter().copied())
+                ),
+            );
+        }
+    }
+    None
 }
 
 fn parse_stage(

@@ -30,6 +30,7 @@ use super::panics;
 use super::plan::{Graph, key_fields, reason};
 use super::report;
 use super::resolve::{Pipeline, Stage, Sweep};
+use super::select::Selection;
 use super::status::Status;
 use super::sweep;
 use crate::stages::{Context, StageInputs};
@@ -151,10 +152,18 @@ struct Runner<'a> {
     parallel: bool,
     /// [`RunOptions::not_computed`].
     not_computed: Option<&'a BTreeMap<usize, (String, String)>>,
+    /// The stages it may compute, and those it computes even if cached.
+    selection: &'a Selection,
 }
 
 /// Runs the pipeline (and, with a `[sweep]`, every point of it).
 pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
+    run_selected(p, opts, &Selection::default())
+}
+
+/// [`run`], computing only what `selection` allows (a stage it does not is
+/// served if cached, else skipped) and its forced stages even if cached.
+pub fn run_selected(p: &Pipeline, opts: &RunOptions, selection: &Selection) -> Result<RunReport> {
     let started = SystemTime::now();
     let mut exp = opts.experiment.clone();
     let store = store(&opts.results_root, p, exp.as_ref());
@@ -189,6 +198,7 @@ pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
         progress: opts.progress,
         parallel: true,
         not_computed: opts.not_computed.as_deref(),
+        selection,
     };
     let (stages, produced, sweep) = match &p.sweep {
         None => {
@@ -307,7 +317,7 @@ fn execute_stages(
                 let (next, waiting) = &mut *lines;
                 waiting[pos] = Some(progress_line(&report));
                 while let Some(line) = waiting.get_mut(*next).and_then(Option::take) {
-                    eprintln!("{line}");
+                    anstream::eprintln!("{line}");
                     *next += 1;
                 }
             }
@@ -710,6 +720,7 @@ pub fn run_task(
         progress: false,
         parallel: false,
         not_computed: None,
+        selection: &Selection::default(),
     };
     let mut report = TaskReport::default();
     let mut flushed = Instant::now();
@@ -759,13 +770,27 @@ pub fn point_label(sw: &Sweep, values: &[serde_json::Value]) -> String {
         .join(", ")
 }
 
+/// A stage's line, its status coloured (stripped by `anstream` unless
+/// stderr is a terminal or `CLICOLOR_FORCE` is set, and with `NO_COLOR`).
 fn progress_line(r: &StageReport) -> String {
+    use anstyle::AnsiColor;
     let detail = match r.status {
         Status::Cached => String::new(),
         Status::Ran => format!("  {:.2} s  ({})", r.seconds, r.reason),
         _ => format!("  ({})", r.reason),
     };
-    format!("{:>8}  {}{detail}", r.status, r.stage)
+    let colour = match r.status {
+        Status::Ran => AnsiColor::Green,
+        Status::Failed => AnsiColor::Red,
+        Status::Skipped | Status::Run => AnsiColor::Yellow,
+        Status::Cached => AnsiColor::Cyan,
+    };
+    let style = anstyle::Style::new().fg_color(Some(colour.into()));
+    format!(
+        "{style}{:>8}{style:#}  {}{detail}",
+        r.status.to_string(),
+        r.stage
+    )
 }
 
 type Wired = Vec<(String, super::resolve::InputRef, Arc<Produced>)>;
@@ -792,9 +817,10 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
     let key = kf.hash();
     report.key = Some(key.clone());
     let t0 = Instant::now();
+    let forced = runner.selection.force.contains(&s.name);
     // A cached stage of a sweep point is taken on its manifest: its tables
     // are read only if something reads them.
-    if runner.lazy {
+    if runner.lazy && !forced {
         if let Some(Ok(m)) = store.manifest(&key) {
             report.status = Status::Cached;
             fill(&mut report, &m);
@@ -802,6 +828,7 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         }
     }
     report.reason = match store.lookup(&key) {
+        _ if forced => "forced (--force)".to_string(),
         Lookup::Hit(entry) => match decode(&entry) {
             Ok(prod) => return serve_cached(runner, s, &kf, &entry, prod, report),
             Err(e) => format!("its cached result could not be read: {e:#}"),
@@ -813,6 +840,14 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         }
         Lookup::Miss => reason(store, &s.name, runner.point, &kf),
     };
+    if !runner.selection.computes(&s.name) {
+        report.status = Status::Skipped;
+        report.reason = format!(
+            "not a target and not needed by one (a full run runs it: {})",
+            report.reason
+        );
+        return (report, None);
+    }
     let stage_inputs = match read_inputs(store, &inputs) {
         Ok(i) => i,
         Err(why) => {

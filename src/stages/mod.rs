@@ -34,6 +34,7 @@ pub mod paper_gap;
 pub mod plot;
 pub mod schema;
 pub mod sensitivity;
+pub mod settings;
 pub mod simulate_campaign;
 pub mod spread;
 

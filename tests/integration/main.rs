@@ -6,6 +6,7 @@ mod calibration;
 mod campaign_io;
 mod cli;
 mod columns;
+mod command_line;
 mod conventions;
 mod diagnose;
 mod diagnosis_page;
