@@ -180,6 +180,31 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
+/// At most this many files are written at once by [`write_all_atomic`].
+const PUBLISH_THREADS: usize = 16;
+
+/// Writes every `(path, bytes)` with [`write_atomic`], each on a thread of
+/// its own so that their syncs overlap instead of queueing: one after
+/// another they were most of a small calibration's process on a busy disk
+/// (a stage's published tables; issue 34).
+/// The first failure is returned, after every started write has ended.
+pub fn write_all_atomic(writes: &[(PathBuf, &Vec<u8>)]) -> Result<()> {
+    for chunk in writes.chunks(PUBLISH_THREADS) {
+        std::thread::scope(|s| {
+            let written: Vec<_> = chunk
+                .iter()
+                .map(|(path, bytes)| s.spawn(|| write_atomic(path, bytes)))
+                .collect();
+            let results: Vec<Result<()>> = written
+                .into_iter()
+                .map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                .collect();
+            results.into_iter().collect::<Result<()>>()
+        })?;
+    }
+    Ok(())
+}
+
 /// A folder built under a temporary name beside its final place and
 /// published by one rename, so that it appears whole or not at all: the one
 /// way ltcal publishes a folder (a cache entry, a campaign, a diagnosis).
@@ -663,5 +688,39 @@ mod tests {
         assert_eq!(std::fs::read(dest.join("files/f.svg")).unwrap(), b"<svg/>");
         assert_eq!(std::fs::read_dir(&root).unwrap().count(), 1);
         std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Issue 34: a stage's published files are written in parallel, in chunks of
+    /// [`PUBLISH_THREADS`]; every one must land whole, and a failing one
+    /// must fail the publication.
+    #[test]
+    fn published_files_written_in_parallel_all_land_and_a_failure_is_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let bytes: Vec<Vec<u8>> = (0..2 * PUBLISH_THREADS + 3)
+            .map(|i| vec![i as u8; 1000 + i])
+            .collect();
+        let writes: Vec<(PathBuf, &Vec<u8>)> = bytes
+            .iter()
+            .enumerate()
+            .map(|(i, b)| (dir.path().join(format!("s/t{i}.parquet")), b))
+            .collect();
+        write_all_atomic(&writes).unwrap();
+        for (path, b) in &writes {
+            assert_eq!(&std::fs::read(path).unwrap(), *b);
+        }
+        let names = std::fs::read_dir(dir.path().join("s")).unwrap().count();
+        assert_eq!(names, writes.len(), "no temporary file left");
+        // A file where a folder must be: that write fails, the others land.
+        std::fs::write(dir.path().join("f"), b"x").unwrap();
+        let bad = vec![
+            (dir.path().join("s/ok.parquet"), &bytes[0]),
+            (dir.path().join("f/t.parquet"), &bytes[1]),
+        ];
+        let e = write_all_atomic(&bad).unwrap_err().to_string();
+        assert!(e.contains("f/t.parquet") || e.contains("creating"), "{e}");
+        assert_eq!(
+            std::fs::read(dir.path().join("s/ok.parquet")).unwrap(),
+            bytes[0]
+        );
     }
 }

@@ -827,18 +827,24 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
             return (report, Some(on_manifest(&key, &m)));
         }
     }
-    report.reason = match store.lookup(&key) {
-        _ if forced => "forced (--force)".to_string(),
-        Lookup::Hit(entry) => match decode(&entry) {
+    // A forced stage is not looked up: its entry is neither read nor verified.
+    let lookup = if forced {
+        None
+    } else {
+        Some(store.lookup(&key))
+    };
+    report.reason = match lookup {
+        None => "forced (--force)".to_string(),
+        Some(Lookup::Hit(entry)) => match decode(&entry) {
             Ok(prod) => return serve_cached(runner, s, &kf, &entry, prod, report),
             Err(e) => format!("its cached result could not be read: {e:#}"),
         },
-        Lookup::Corrupt(why) => {
+        Some(Lookup::Corrupt(why)) => {
             let reason = format!("its cached result was corrupt and is recomputed: {why}");
             report.cache_problem = Some(why);
             reason
         }
-        Lookup::Miss => reason(store, &s.name, runner.point, &kf),
+        Some(Lookup::Miss) => reason(store, &s.name, runner.point, &kf),
     };
     if !runner.selection.computes(&s.name) {
         report.status = Status::Skipped;
@@ -1096,32 +1102,8 @@ fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<(PathBuf, 
             Err(_) => writes.push((path, bytes)),
         }
     }
-    write_all_atomic(&writes)?;
+    crate::fs::write_all_atomic(&writes)?;
     Ok(replaced)
-}
-
-/// At most this many files are written at once by [`write_all_atomic`].
-const PUBLISH_THREADS: usize = 16;
-
-/// Writes every `(path, bytes)` atomically, each on a thread of its own so
-/// that their syncs overlap instead of queueing: one after another they
-/// were most of a small calibration's process on a busy disk (issue 34).
-/// The first failure is returned, after every started write has ended.
-fn write_all_atomic(writes: &[(PathBuf, &Vec<u8>)]) -> Result<()> {
-    for chunk in writes.chunks(PUBLISH_THREADS) {
-        std::thread::scope(|s| {
-            let written: Vec<_> = chunk
-                .iter()
-                .map(|(path, bytes)| s.spawn(|| crate::fs::write_atomic(path, bytes)))
-                .collect();
-            let results: Vec<Result<()>> = written
-                .into_iter()
-                .map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
-                .collect();
-            results.into_iter().collect::<Result<()>>()
-        })?;
-    }
-    Ok(())
 }
 
 #[cfg(test)]
@@ -1133,40 +1115,6 @@ mod tests {
     const TEXT: &str = "[stages.a]\nkind = \"mesh\"\nshape = \"plane\"\n\
         [stages.t]\nkind = \"inject\"\n\
         [stages.m]\nkind = \"measure\"\ninputs = { points = \"a\", errors = \"t\" }\n";
-
-    /// Issue 34: a stage's files are written in parallel, in chunks of
-    /// [`PUBLISH_THREADS`]; every one must land whole, and a failing one
-    /// must fail the publication.
-    #[test]
-    fn published_files_written_in_parallel_all_land_and_a_failure_is_reported() {
-        let dir = tempfile::tempdir().unwrap();
-        let bytes: Vec<Vec<u8>> = (0..2 * PUBLISH_THREADS + 3)
-            .map(|i| vec![i as u8; 1000 + i])
-            .collect();
-        let writes: Vec<(PathBuf, &Vec<u8>)> = bytes
-            .iter()
-            .enumerate()
-            .map(|(i, b)| (dir.path().join(format!("s/t{i}.parquet")), b))
-            .collect();
-        write_all_atomic(&writes).unwrap();
-        for (path, b) in &writes {
-            assert_eq!(&std::fs::read(path).unwrap(), *b);
-        }
-        let names = std::fs::read_dir(dir.path().join("s")).unwrap().count();
-        assert_eq!(names, writes.len(), "no temporary file left");
-        // A file where a folder must be: that write fails, the others land.
-        std::fs::write(dir.path().join("f"), b"x").unwrap();
-        let bad = vec![
-            (dir.path().join("s/ok.parquet"), &bytes[0]),
-            (dir.path().join("f/t.parquet"), &bytes[1]),
-        ];
-        let e = write_all_atomic(&bad).unwrap_err().to_string();
-        assert!(e.contains("f/t.parquet") || e.contains("creating"), "{e}");
-        assert_eq!(
-            std::fs::read(dir.path().join("s/ok.parquet")).unwrap(),
-            bytes[0]
-        );
-    }
 
     fn run_in(root: &Path, set: &[&str]) -> RunReport {
         let overrides: Vec<Override> = set.iter().map(|s| Override::parse(s).unwrap()).collect();
