@@ -10,7 +10,7 @@
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use ltcal::calibrate::bundle::Repeated;
-use ltcal::calibrate::{Network, Norm, Objective, Settings, calibrate, monte_carlo};
+use ltcal::calibrate::{Network, Settings, calibrate, monte_carlo};
 use ltcal::campaign::Aim;
 use ltcal::effects::Effects;
 use ltcal::error_model::{ErrorModel, ErrorParams};
@@ -47,18 +47,11 @@ fn corner() -> Network {
     Network::from_campaign(&sim.campaign).unwrap()
 }
 
-const SETTINGS: Settings = Settings {
-    objective: Objective::Bundle,
-    norm: Norm::L2,
-    rank_tol: 1e-9,
-    max_iters: 100,
-};
-
 fn calibrate_corner(c: &mut Criterion) {
     let net = corner();
     let start = ErrorParams::zero(&ErrorModel::constant());
     c.bench_function("calibrate_corner", |b| {
-        b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &SETTINGS).unwrap())
+        b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &Settings::bundle()).unwrap())
     });
 }
 
@@ -77,7 +70,8 @@ fn monte_carlo_corner(c: &mut Criterion) {
     g.sample_size(10);
     g.bench_function("10000_trials", |b| {
         b.iter(|| {
-            let repeated = Repeated::new(black_box(&net), &start, &free, &SETTINGS).unwrap();
+            let repeated =
+                Repeated::new(black_box(&net), &start, &free, &Settings::bundle()).unwrap();
             monte_carlo::run(&net, &repeated, &free, &mc).unwrap()
         })
     });

@@ -23,7 +23,7 @@ mod common;
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use ltcal::calibrate::sparse::Normal;
-use ltcal::calibrate::{Network, Norm, Objective, Settings, bundle};
+use ltcal::calibrate::{Network, Settings, bundle};
 use ltcal::campaign::{self, Campaign};
 use ltcal::error_model::{ErrorModel, ErrorParams, ParamId};
 use ltcal::layout::Kind;
@@ -88,12 +88,7 @@ fn race_phases(c: &mut Criterion) {
     let start = ErrorParams::zero(&ErrorModel::constant());
     let held: Vec<usize> = HELD.map(|p| ParamId::parse(p).unwrap().index()).into();
     let free: Vec<bool> = (0..18).map(|i| !held.contains(&i)).collect();
-    let settings = Settings {
-        objective: Objective::Bundle,
-        norm: Norm::L2,
-        rank_tol: ltcal::stages::fitting::default_rank_tol(),
-        max_iters: 100,
-    };
+    let settings = Settings::bundle();
     let dir = tempfile::tempdir().unwrap();
     for (per_level, stations, faces) in &SIZES[..3] {
         let camp = hall(*per_level, *stations, *faces);

@@ -18,7 +18,7 @@
 mod common;
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use ltcal::calibrate::{Network, Norm, Objective, Settings, calibrate};
+use ltcal::calibrate::{Network, Settings, calibrate};
 use ltcal::campaign::Campaign;
 use ltcal::diagnose::{self, diagnose, models};
 use ltcal::error_model::{ErrorModel, ErrorParams};
@@ -65,21 +65,11 @@ fn id(c: &Campaign, stations: usize, faces: usize) -> BenchmarkId {
     )
 }
 
-/// The bundle adjustment as `calibrate` runs it by default.
-fn bundle() -> Settings {
-    Settings {
-        objective: Objective::Bundle,
-        norm: Norm::L2,
-        rank_tol: 1e-9,
-        max_iters: 100,
-    }
-}
-
 fn calibrate_scale(c: &mut Criterion) {
     let mut g = c.benchmark_group("calibrate_scale");
     g.sample_size(10).measurement_time(Duration::from_secs(4));
     let start = ErrorParams::zero(&ErrorModel::constant());
-    let settings = bundle();
+    let settings = Settings::bundle();
     for (per_level, stations, faces) in SERIES {
         let camp = campaign(per_level, stations, faces);
         let net = Network::from_campaign(&camp).unwrap();
@@ -96,7 +86,7 @@ fn calibrate_hall(c: &mut Criterion) {
     let camp = campaign_of(Kind::Hall, 200, 8, 1);
     let net = Network::from_campaign(&camp).unwrap();
     let start = ErrorParams::zero(&ErrorModel::constant());
-    let settings = bundle();
+    let settings = Settings::bundle();
     g.bench_function(id(&camp, 8, 1), |b| {
         b.iter(|| calibrate(black_box(&net), &start, &[true; 18], &settings).unwrap())
     });
@@ -113,7 +103,7 @@ fn mirror_hall(c: &mut Criterion) {
     let net = Network::from_campaign(&camp).unwrap();
     let start = ErrorParams::zero(&model);
     let free = vec![true; start.coefs().len()];
-    let settings = bundle();
+    let settings = Settings::bundle();
     g.bench_function(BenchmarkId::new("calibrate", camp.readings.len()), |b| {
         b.iter(|| calibrate(black_box(&net), &start, &free, &settings).unwrap())
     });

@@ -320,6 +320,20 @@ pub struct Settings {
     pub max_iters: u64,
 }
 
+impl Settings {
+    /// The bundle adjustment (Eq. 17) in L2 with the default rank threshold
+    /// and iteration limit: what every caller that is not a stage with its
+    /// own settings fits with.
+    pub fn bundle() -> Self {
+        Settings {
+            objective: Objective::Bundle,
+            norm: Norm::L2,
+            rank_tol: crate::identifiability::DEFAULT_REL_TOL,
+            max_iters: 100,
+        }
+    }
+}
+
 /// A calibration's outcome.
 #[derive(Clone, Debug)]
 pub struct Calibration {

@@ -70,7 +70,7 @@ pub mod output;
 pub mod page;
 
 use crate::calibrate::snooping::{self, WTest};
-use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
+use crate::calibrate::{self, Calibration, Network, Settings as CalSettings};
 use crate::campaign::{Aim, Campaign};
 use crate::error_model::{ErrorModel, ErrorParams, ParamId};
 use crate::hypothesis::Hypothesis;
@@ -1372,17 +1372,7 @@ fn base_calibration(net: &Network, s: &Settings) -> Result<Calibration> {
         .iter()
         .map(|k| !s.fixed.contains(&k.param))
         .collect();
-    calibrate::calibrate(
-        net,
-        &start,
-        &free,
-        &CalSettings {
-            objective: Objective::Bundle,
-            norm: Norm::L2,
-            rank_tol: crate::identifiability::DEFAULT_REL_TOL,
-            max_iters: 100,
-        },
-    )
+    calibrate::calibrate(net, &start, &free, &CalSettings::bundle())
 }
 
 /// Per reading, what the candidates and the factors need: its geometry at

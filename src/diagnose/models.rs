@@ -25,7 +25,7 @@
 
 use super::linear::LinearModel;
 use crate::calibrate::bundle::Linearisation;
-use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings as CalSettings};
+use crate::calibrate::{self, Calibration, Network, Settings as CalSettings};
 use crate::campaign::Campaign;
 use crate::error_model::{ErrorModel, ErrorParams};
 use crate::kinematics::nominal_jacobian;
@@ -58,17 +58,7 @@ pub struct ModelFit {
 fn adjust(net: &Network, tracker: TrackerModel) -> Result<(Calibration, Linearisation)> {
     let start = ErrorParams::zero(&ErrorModel::of(tracker));
     let free = vec![true; start.coefs().len()];
-    let cal = calibrate::calibrate(
-        net,
-        &start,
-        &free,
-        &CalSettings {
-            objective: Objective::Bundle,
-            norm: Norm::L2,
-            rank_tol: crate::identifiability::DEFAULT_REL_TOL,
-            max_iters: 100,
-        },
-    )?;
+    let cal = calibrate::calibrate(net, &start, &free, &CalSettings::bundle())?;
     let lin = cal
         .linearisation
         .clone()

@@ -43,7 +43,7 @@
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::bundle::Repeated;
 use crate::calibrate::monte_carlo::{self, Estimate, Outcome, Output};
-use crate::calibrate::{self, Calibration, Network, Norm, Objective};
+use crate::calibrate::{self, Calibration, Network};
 use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::plots::{self, CoverageRow, PlanPoint};
@@ -111,10 +111,9 @@ impl MonteCarloStage {
         let start = fitting::start(&model, inputs)?;
         let free = fitting::free(&start, &self.fixed);
         let settings = calibrate::Settings {
-            objective: Objective::Bundle,
-            norm: Norm::L2,
             rank_tol: self.rank_tol,
             max_iters: self.max_iters,
+            ..calibrate::Settings::bundle()
         };
         let cal = calibrate::calibrate(&net, &start, &free, &settings)?;
         let repeated = Repeated::new(&net, &start, &free, &settings)?;

@@ -109,7 +109,7 @@ impl Evaluate for Sphere<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calibrate::{self, Network, Norm, Objective, Settings};
+    use crate::calibrate::{self, Network, Settings};
     use crate::campaign::Aim;
     use crate::effects::Effects;
     use crate::error_model::ErrorModel;
@@ -185,12 +185,7 @@ mod tests {
             &net,
             &start,
             &[true, true],
-            &Settings {
-                objective: Objective::Bundle,
-                norm: Norm::L2,
-                rank_tol: crate::identifiability::DEFAULT_REL_TOL,
-                max_iters: 100,
-            },
+            &Settings::bundle(),
         )
         .unwrap();
         let est = &cal.estimate;

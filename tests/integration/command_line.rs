@@ -13,10 +13,28 @@ use std::path::{Path, PathBuf};
 /// evaluate per point: packs), a plot of the gathered table after it and
 /// a second chain outside the sweep (loose entries).
 fn gc_pipeline(dir: &Path) -> PathBuf {
-    let text = r#"
-[pipeline]
-name = "gcp"
+    let rest = r#"
+[[sweep.axis]]
+path = "stages.corner.seed"
+values = [1, 2, 3]
 
+[sweep]
+gather = ["evaluation.criteria"]
+
+[stages.figure]
+kind = "plot"
+plot = "metric"
+inputs = { table = "sweep.evaluation.criteria" }
+x = "seed"
+y = "improvement_pct"
+filter = { criterion = "coordinates", station = "all", statistic = "average" }
+"#;
+    write_pipeline(dir, "gcp", rest)
+}
+
+/// truth → corner → calibration → evaluation: the chain both fixtures start
+/// with.
+const CORNER_CHAIN: &str = r#"
 [stages.truth]
 kind = "inject"
 
@@ -33,23 +51,12 @@ objective = "bundle"
 [stages.evaluation]
 kind = "evaluate_campaign"
 inputs = { campaign = "corner", params = "calibration" }
-
-[[sweep.axis]]
-path = "stages.corner.seed"
-values = [1, 2, 3]
-
-[sweep]
-gather = ["evaluation.criteria"]
-
-[stages.figure]
-kind = "plot"
-plot = "metric"
-inputs = { table = "sweep.evaluation.criteria" }
-x = "seed"
-y = "improvement_pct"
-filter = { criterion = "coordinates", station = "all", statistic = "average" }
 "#;
-    let path = dir.join("gcp.toml");
+
+/// `<dir>/<name>.toml`: the pipeline `name`, [`CORNER_CHAIN`], then `rest`.
+fn write_pipeline(dir: &Path, name: &str, rest: &str) -> PathBuf {
+    let text = format!("\n[pipeline]\nname = \"{name}\"\n{CORNER_CHAIN}{rest}");
+    let path = dir.join(format!("{name}.toml"));
     std::fs::write(&path, text).unwrap();
     path
 }
@@ -293,35 +300,13 @@ fn gc_leaves_a_results_folder_alone_when_a_pipeline_naming_it_does_not_load() {
 /// Two chains from one truth: corner → calibration → evaluation, and an
 /// independent `plane` campaign.
 fn chains(dir: &Path) -> PathBuf {
-    let text = r#"
-[pipeline]
-name = "chains"
-
-[stages.truth]
-kind = "inject"
-
-[stages.corner]
-kind = "simulate_campaign"
-inputs = { errors = "truth" }
-layout = { kind = "corner", stations = 3 }
-
-[stages.calibration]
-kind = "calibrate"
-inputs = { campaign = "corner" }
-objective = "bundle"
-
-[stages.evaluation]
-kind = "evaluate_campaign"
-inputs = { campaign = "corner", params = "calibration" }
-
+    let rest = r#"
 [stages.other]
 kind = "simulate_campaign"
 inputs = { errors = "truth" }
 layout = { kind = "corner", stations = 4 }
 "#;
-    let path = dir.join("chains.toml");
-    std::fs::write(&path, text).unwrap();
-    path
+    write_pipeline(dir, "chains", rest)
 }
 
 /// `ltcal run <file> --results <dir> <args>`; the stage → status map of

@@ -1,7 +1,7 @@
 //! Other trackers (issue 15): each tracker model fitted to campaigns its own
 //! construction took, and to campaigns the other one took.
 
-use ltcal::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
+use ltcal::calibrate::{self, Calibration, Network, Settings};
 use ltcal::campaign::Aim;
 use ltcal::criteria;
 use ltcal::effects::Effects;
@@ -62,10 +62,8 @@ fn simulate_with(
 fn bundle(net: &Network, start: &ErrorParams) -> Calibration {
     let free = vec![true; start.coefs().len()];
     let s = Settings {
-        objective: Objective::Bundle,
-        norm: Norm::L2,
-        rank_tol: 1e-9,
         max_iters: 200,
+        ..Settings::bundle()
     };
     calibrate::calibrate(net, start, &free, &s).unwrap()
 }
