@@ -1185,28 +1185,52 @@ fn kind_command(kind: &str) -> Result<ExitCode> {
         w(|s| s.kind.len(), 4),
         w(|s| s.default.chars().count(), 7),
     );
+    let wu = w(|s| s.unit.chars().count(), 4);
     let mut text = format!(
-        "{kind}: {summary}\n\n{:wn$}  {:wk$}  {:wd$}  unit\n",
-        "setting", "type", "default"
+        "{kind}: {summary}\n\n{:wn$}  {:wk$}  {:wd$}  {:wu$}  meaning\n",
+        "setting", "type", "default", "unit"
     );
     if settings.is_empty() {
         text += "(no settings)\n";
     }
+    // The meaning wraps within 100 columns, continued under itself.
+    let indent = wn + wk + wd + wu + 8;
+    let width = 100usize.saturating_sub(indent).max(40);
+    let pad = |t: &str, w: usize| format!("{t}{}", " ".repeat(w - t.chars().count()));
     for s in &settings {
+        let mut lines = wrap(&s.doc, width).into_iter();
         let line = format!(
-            "{:wn$}  {:wk$}  {}{}  {}",
-            s.name,
-            s.kind,
-            s.default,
-            " ".repeat(wd - s.default.chars().count()),
-            s.unit
+            "{}  {}  {}  {}  {}",
+            pad(&s.name, wn),
+            pad(&s.kind, wk),
+            pad(&s.default, wd),
+            pad(s.unit, wu),
+            lines.next().unwrap_or_default()
         );
         text += line.trim_end();
         text += "\n";
+        for more in lines {
+            text += &format!("{}{more}\n", " ".repeat(indent));
+        }
     }
-    text += &format!("\n(each setting's meaning: the doc at the top of src/stages/{kind}.rs)\n");
     print_out(text)?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// `text`'s words in lines of at most `width` characters (a longer word
+/// alone on its line).
+fn wrap(text: &str, width: usize) -> Vec<String> {
+    let mut lines: Vec<String> = Vec::new();
+    for word in text.split_whitespace() {
+        match lines.last_mut() {
+            Some(l) if l.chars().count() + 1 + word.chars().count() <= width => {
+                l.push(' ');
+                l.push_str(word);
+            }
+            _ => lines.push(word.to_string()),
+        }
+    }
+    lines
 }
 
 /// `ltcal show`: a published table, checked against the cache entry it

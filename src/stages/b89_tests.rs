@@ -58,25 +58,36 @@ pub enum Parameters {
     Dh,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct B89TestsStage {
+    /// The tracker model: `api-tracker3` or `mirror-tracker`.
     #[serde(default)]
     pub model: TrackerModel,
+    /// The sensitivity's parameters: `physical` (16 misalignments) or `dh` (the
+    /// 18 DH constants and encoder harmonics).
     #[serde(default)]
     pub parameters: Parameters,
+    /// The reference length, m.
     #[serde(default = "default_length")]
     pub length_m: f64,
+    /// Bar centre distances of the length tests, m (horizontal).
     #[serde(default = "default_length_distances")]
     pub length_distances_m: Vec<f64>,
+    /// Bar centre heights above the tracker, m.
     #[serde(default = "default_length_heights")]
     pub length_heights_m: Vec<f64>,
+    /// Distances of the two-face tests, m.
     #[serde(default = "default_two_face_distances")]
     pub two_face_distances_m: Vec<f64>,
+    /// Heights of the two-face tests above the tracker, m.
     #[serde(default = "default_two_face_heights")]
     pub two_face_heights_m: Vec<f64>,
+    /// Azimuths every test is repeated at, degrees.
     #[serde(default = "default_azimuths")]
     pub azimuths_deg: Vec<f64>,
+    /// Misalignments by the model's ids, µm / µrad, added to any `params`
+    /// input.
     #[serde(default)]
     pub misalignments: BTreeMap<String, f64>,
 }

@@ -61,35 +61,51 @@ use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct BlindCheckStage {
+    /// Number of campaigns simulated and diagnosed.
     #[serde(default = "default_cases")]
     pub cases: usize,
+    /// The first case's number: cases `first_case … first_case + cases − 1`
+    /// (blocks of a split check).
     #[serde(default)]
     pub first_case: usize,
+    /// Seed of the whole check: a case is drawn from it and its number alone.
     #[serde(default)]
     pub seed: u64,
+    /// Layouts drawn from: `corner`, `hall`, `cmm-table`.
     #[serde(default = "default_layouts")]
     pub layouts: Vec<Kind>,
+    /// Range of station counts `[low, high]`, inclusive.
     #[serde(default = "default_stations")]
     pub stations: [usize; 2],
+    /// Range of the angle noise σ, µrad.
     #[serde(default = "default_angle")]
     pub noise_angle_urad: [f64; 2],
+    /// Range of the range noise σ, µm.
     #[serde(default = "default_range")]
     pub noise_range_um: [f64; 2],
+    /// Fraction of single-effect cases with no effect at all.
     #[serde(default = "default_none")]
     pub none_fraction: f64,
+    /// Effect ids drawn from.
     #[serde(default = "default_effects")]
     pub effects: Vec<String>,
+    /// Case kinds drawn besides `none`: `single`, `two-face`, `no-time`, `two-
+    /// effects`, `blunder`, `blunders`, `blunder-and-effect`.
     #[serde(default = "default_kinds")]
     pub kinds: Vec<CaseKind>,
+    /// The trackers' model, diagnosed as theirs.
     #[serde(default)]
     pub model: TrackerModel,
+    /// 1 σ of the trackers' kinematic errors, µm and µrad.
     #[serde(default = "default_tracker")]
     pub tracker_sigma: f64,
+    /// Δχ² above which a case's effect counts as detectable.
     #[serde(default = "default_detect")]
     pub detect_chi2: f64,
+    /// Monte Carlo draws of each diagnosis's noise floor.
     #[serde(default = "default_draws")]
     pub mc_draws: usize,
 }

@@ -31,9 +31,10 @@ use crate::table::TableRef;
 use anyhow::{Result, anyhow, bail};
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct BlindSummaryStage {
+    /// The confusion matrix's effects (`blind_check`'s default).
     #[serde(default = "default_effects")]
     pub effects: Vec<String>,
 }

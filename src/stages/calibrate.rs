@@ -43,24 +43,37 @@ use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct CalibrateStage {
+    /// `eq13`, `eq14`, `eq15` (the paper's criteria) or `bundle` (stations and
+    /// reflectors adjusted with the parameters).
     pub objective: Objective,
+    /// `l1` (the paper's |…|) or `l2`; the bundle is `l2`.
     #[serde(default)]
     pub norm: Norm,
+    /// The tracker model to fit; the campaign's by default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model: Option<TrackerModel>,
+    /// Parameters of `model` held at their start value.
     #[serde(default)]
     pub fixed: Vec<ParamId>,
+    /// Per parameter, the shape to fit: `fourier:k` or `poly:k`; constants by
+    /// default.
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
+    /// Relative singular-value threshold below which a direction counts as not
+    /// determined.
     #[serde(default = "fitting::default_rank_tol")]
     pub rank_tol: f64,
+    /// Iteration limit of the adjustment.
     #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
+    /// Bundle only: iterated data snooping (Baarda's w-test) removes blunders
+    /// before the final fit.
     #[serde(default)]
     pub reject_blunders: bool,
+    /// The data snooping's family-wise significance level.
     #[serde(default = "default_blunder_alpha")]
     pub blunder_alpha: f64,
 }

@@ -25,11 +25,13 @@ use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct CompareModelsStage {
+    /// Cross-validation folds, as the diagnosis's.
     #[serde(default = "default_folds")]
     pub folds: usize,
+    /// Seed of the folds.
     #[serde(default)]
     pub seed: u64,
 }

@@ -68,25 +68,34 @@ pub fn check_hypotheses(path: &Path) -> Result<String, String> {
     Ok(blake3::hash(&bytes).to_hex().to_string())
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct DiagnoseStage {
+    /// The tracker model to fit; the campaign's by default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model: Option<TrackerModel>,
+    /// The base model's shapes (its constants by default).
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
+    /// Parameters of the base model held at zero.
     #[serde(default)]
     pub fixed: Vec<ParamId>,
+    /// Cross-validation folds for the held-out residual of each candidate.
     #[serde(default = "default_folds")]
     pub folds: usize,
+    /// Monte Carlo draws of the noise floor.
     #[serde(default = "default_draws")]
     pub mc_draws: usize,
+    /// Family-wise significance level of the effect and blunder tests.
     #[serde(default = "default_alpha")]
     pub alpha: f64,
+    /// Effect ids to try; empty: every effect of effects.md.
     #[serde(default)]
     pub effects: Vec<String>,
+    /// Seed of the folds and Monte Carlo draws.
     #[serde(default)]
     pub seed: u64,
+    /// Members of the explanation set at most.
     #[serde(default = "default_max_steps")]
     pub max_steps: usize,
     /// A hypothesis file ([`crate::hypothesis`]): a researcher's effects,

@@ -23,7 +23,7 @@ use anyhow::{Result, bail};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct EvaluateStage {}
 

@@ -34,11 +34,13 @@ use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct ExportCampaignStage {
     /// The folder to write.
     pub path: PathBuf,
+    /// Replace a campaign folder already at `path` (never a folder of other
+    /// files).
     #[serde(default)]
     pub overwrite: bool,
 }

@@ -52,24 +52,36 @@ use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct IdentifyStage {
+    /// The tracker model to fit: `api-tracker3` or `mirror-tracker`.
     #[serde(default)]
     pub model: TrackerModel,
+    /// Parameters held at their start value (0 without a `start` input), e.g.
+    /// Table 3's `dz1`, `dy2`, `ez3`.
     #[serde(default)]
     pub fixed: Vec<ParamId>,
+    /// Per parameter, the shape to fit: `fourier:k` or `poly:k`; constants by
+    /// default.
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
+    /// Relative singular-value threshold below which a direction counts as not
+    /// determined.
     #[serde(default = "fitting::default_rank_tol")]
     pub rank_tol: f64,
+    /// Iteration limit of the nonlinear least squares.
     #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
+    /// `unweighted` (Eq. 11 as printed) or `noise` (weighted by the readings'
+    /// noise: maximum likelihood).
     #[serde(default)]
     pub weighting: Weighting,
     /// The readings' noise, 1 σ, when known (over what the readings carry).
     #[serde(default)]
     pub noise: Option<Noise>,
+    /// Where `std` comes from: `noise` (the known or estimated noise) or
+    /// `residual-scatter` (the textbook s²(JᵀJ)⁻¹, on request).
     #[serde(default)]
     pub std: StdMethod,
 }

@@ -43,13 +43,16 @@ use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct IncidenceFitStage {
+    /// The Table 9 grid file, relative to where ltcal runs.
     #[serde(default = "default_path")]
     pub path: PathBuf,
+    /// Total degree of the polynomial fit, 1 … 4.
     #[serde(default = "default_order")]
     pub poly_order: usize,
+    /// The stage name written into the effect snippet.
     #[serde(default = "default_snippet_stage")]
     pub snippet_stage: String,
 }

@@ -40,19 +40,28 @@ pub struct Random {
     pub seed: u64,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct InjectStage {
+    /// The tracker model: `api-tracker3` (the paper's DH chain) or `mirror-
+    /// tracker` (its ten misalignments).
     #[serde(default)]
     pub model: TrackerModel,
+    /// `table2` (every parameter 10 µm / 10 µrad, Table 2) or `zero`.
     #[serde(default)]
     pub preset: Preset,
+    /// Multiplies the preset (e.g. 0.2 for a compensated tracker).
     #[serde(default = "one")]
     pub scale: f64,
+    /// Per parameter, its shape: `fourier:k` (Eq. 9) or `poly:k` (Eq. 10);
+    /// constants by default.
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
+    /// Single coefficients set by id (`dx1`, `"ez1.sin2"`), in µm, µrad or
+    /// µm/mᵏ.
     #[serde(default)]
     pub values: BTreeMap<String, f64>,
+    /// Gaussian draws added to the preset: `{ sigma_um, sigma_urad, seed }`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub random: Option<Random>,
 }

@@ -83,19 +83,27 @@ pub struct LayoutCase {
     pub gauge: bool,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct LayoutDesignStage {
+    /// The layouts compared: `{ name, layout = { … }, faces, aim,
+    /// max_angle_deg, gauge }` each.
     #[serde(default)]
     pub layouts: Vec<LayoutCase>,
+    /// The tracker model analysed: the input campaign's, else `api-tracker3`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model: Option<TrackerModel>,
+    /// The noise that weights every row, 1 σ.
     #[serde(default = "default_noise")]
     pub noise: Noise,
+    /// Parameters held fixed.
     #[serde(default)]
     pub fixed: Vec<ParamId>,
+    /// Relative singular-value threshold below which a direction counts as not
+    /// determined.
     #[serde(default = "default_rank_tol")]
     pub rank_tol: f64,
+    /// Seed of the simulated layouts' station yaw and levelling.
     #[serde(default)]
     pub seed: u64,
 }

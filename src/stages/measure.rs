@@ -42,13 +42,17 @@ impl Faces {
     }
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct MeasureStage {
+    /// Which faces are read: `front`, `back` or `both`.
     #[serde(default)]
     pub face: Faces,
+    /// Reading noise, 1 σ: `{ sigma_angle_urad, sigma_range_um, sigma_range_ppm
+    /// }`; none by default.
     #[serde(default)]
     pub noise: Noise,
+    /// Seed of the noise draws.
     #[serde(default)]
     pub seed: u64,
 }

@@ -47,26 +47,35 @@ use nalgebra::Vector3;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct MeasurementUncertaintyStage {
+    /// The calibration, as a `calibrate` stage's settings (the bundle by
+    /// default).
     #[serde(default = "default_calibration")]
     pub calibration: CalibrateStage,
     /// The noise of the readings to come; `None`: the campaign's.
     #[serde(default)]
     pub noise: Option<Noise>,
+    /// The grid's x range `[low, high]`, mm, in the tracker's frame.
     #[serde(default = "default_xy")]
     pub x_mm: [f64; 2],
+    /// The grid's y range, mm.
     #[serde(default = "default_xy")]
     pub y_mm: [f64; 2],
+    /// The grid's z range, mm (z up).
     #[serde(default = "default_z")]
     pub z_mm: [f64; 2],
+    /// The grid's step, mm.
     #[serde(default = "default_step")]
     pub step_mm: f64,
+    /// Height of the plan view, mm.
     #[serde(default)]
     pub plan_z_mm: f64,
+    /// Plane of the elevation view, mm.
     #[serde(default)]
     pub elevation_y_mm: f64,
+    /// Grid points nearer the tracker are not measured, mm.
     #[serde(default = "default_min_range")]
     pub min_range_mm: f64,
 }

@@ -25,22 +25,32 @@ pub enum Shape {
     Sphere,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct MeshStage {
+    /// The mesh: `plane`, `cube` or `sphere` (Section 5.1).
     pub shape: Shape,
+    /// Plane only: the plane's distance from the tracker, mm (the paper's by
+    /// default).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub x_mm: Option<f64>,
+    /// Plane, cube: the x grid `{ from, to, step }`, mm (plane: along its
+    /// width).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub x: Option<Range>,
+    /// Plane, cube: the y grid `{ from, to, step }`, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub y: Option<Range>,
+    /// Plane, cube: the z grid `{ from, to, step }`, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub z: Option<Range>,
+    /// Sphere: the azimuths `{ from, to, step }`, degrees.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub h_deg: Option<Range>,
+    /// Sphere: the elevations `{ from, to, step }`, degrees.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub v_deg: Option<Range>,
+    /// Sphere: the radii `{ from, to, step }`, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub r_mm: Option<Range>,
 }

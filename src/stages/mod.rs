@@ -284,6 +284,17 @@ macro_rules! stage_kinds {
                 }
             }
 
+            /// The `///` doc of setting `name` of stage kind `kind`, read
+            /// from its settings struct ([`documented::DocumentedFields`]);
+            /// `None` for an unknown kind or setting.
+            pub fn setting_doc(kind: &str, name: &str) -> Option<&'static str> {
+                use documented::DocumentedFields;
+                match kind {
+                    $(<$ty as StageKind>::KIND => <$ty>::get_field_docs(name).ok(),)*
+                    _ => None,
+                }
+            }
+
             pub fn kind(&self) -> &'static str {
                 match self { $(StageConfig::$variant(_) => <$ty as StageKind>::KIND),* }
             }

@@ -25,14 +25,18 @@ use crate::table::TableBuilder;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct ModelBlindCheckStage {
+    /// The layout, as `simulate_campaign`'s (both faces).
     pub layout: Spec,
+    /// Reading noise, 1 σ.
     #[serde(default)]
     pub noise: Noise,
+    /// Number of campaigns.
     #[serde(default = "default_cases")]
     pub cases: usize,
+    /// Seed of the check.
     #[serde(default)]
     pub seed: u64,
 }

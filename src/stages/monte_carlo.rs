@@ -55,27 +55,39 @@ use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, Normal};
 use std::collections::BTreeMap;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct MonteCarloStage {
+    /// The tracker model to fit; the campaign's by default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model: Option<TrackerModel>,
+    /// Its shapes (constants by default).
     #[serde(default)]
     pub shapes: BTreeMap<ParamId, Shape>,
+    /// Parameters held at their start value.
     #[serde(default)]
     pub fixed: Vec<ParamId>,
+    /// Relative singular-value threshold below which a direction counts as not
+    /// determined.
     #[serde(default = "fitting::default_rank_tol")]
     pub rank_tol: f64,
+    /// Iteration limit of each trial's adjustment.
     #[serde(default = "fitting::default_max_iters")]
     pub max_iters: u64,
+    /// Trials per block, M (at least 100/(1 − coverage)).
     #[serde(default = "default_block")]
     pub block_trials: usize,
+    /// Significant digits the uncertainties must be stable to (GUM-S1 §7.9).
     #[serde(default = "default_digits")]
     pub digits: u32,
+    /// Trials at most, in whole blocks; the `trials` table says whether they
+    /// were stable.
     #[serde(default = "default_max_trials")]
     pub max_trials: usize,
+    /// Probability of the coverage intervals.
     #[serde(default = "default_coverage")]
     pub coverage: f64,
+    /// Seed of the trials: trial i is seeded by i, whatever the thread count.
     #[serde(default)]
     pub seed: u64,
 }

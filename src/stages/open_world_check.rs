@@ -77,39 +77,55 @@ use anyhow::Result;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct OpenWorldCheckStage {
+    /// Number of campaigns simulated and diagnosed.
     #[serde(default = "default_cases")]
     pub cases: usize,
+    /// The first case's number: cases `first_case … first_case + cases − 1`.
     #[serde(default)]
     pub first_case: usize,
+    /// Seed of the whole check: a case is drawn from it and its number alone.
     #[serde(default)]
     pub seed: u64,
+    /// Layouts drawn from: `corner`, `hall`, `cmm-table`.
     #[serde(default = "default_layouts")]
     pub layouts: Vec<Kind>,
+    /// Range of station counts `[low, high]`, inclusive.
     #[serde(default = "default_stations")]
     pub stations: [usize; 2],
+    /// Range of the angle noise σ, µrad.
     #[serde(default = "default_angle")]
     pub noise_angle_urad: [f64; 2],
+    /// Range of the range noise σ, µm.
     #[serde(default = "default_range")]
     pub noise_range_um: [f64; 2],
+    /// Case kinds: `unknown`, `unknown-and-effect`, `wrong-model-and-effect`.
     #[serde(default = "default_kinds")]
     pub kinds: Vec<CaseKind>,
+    /// Open-world effect ids drawn from (`tripod-knock`, `adm-cyclic`, …).
     #[serde(default = "default_unknowns")]
     pub unknowns: Vec<String>,
+    /// Catalogue effect ids drawn beside an unknown one.
     #[serde(default = "default_effects")]
     pub effects: Vec<String>,
+    /// The model the campaigns declare.
     #[serde(default)]
     pub model: TrackerModel,
+    /// The true model of wrong-model cases (default: the first other model).
     #[serde(default)]
     pub wrong_model: Option<TrackerModel>,
+    /// Range of the wrong-model cases' effect size, × the blind check's.
     #[serde(default = "default_large_size")]
     pub large_size: [f64; 2],
+    /// 1 σ of the trackers' kinematic errors, µm and µrad.
     #[serde(default = "default_tracker")]
     pub tracker_sigma: f64,
+    /// Δχ² above which a case's effect counts as detectable.
     #[serde(default = "default_detect")]
     pub detect_chi2: f64,
+    /// Monte Carlo draws of each diagnosis's noise floor.
     #[serde(default = "default_draws")]
     pub mc_draws: usize,
 }

@@ -41,9 +41,10 @@ pub const PAPER: [(&str, f64); 4] = [
     ("table8_distances", 25.53),
 ];
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct PaperGapStage {
+    /// The column naming the scenario (a sweep axis).
     #[serde(default = "default_scenario")]
     pub scenario: String,
 }

@@ -45,26 +45,33 @@ impl PlotKind {
     }
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct PlotStage {
+    /// The figure: `mesh-errors` (Figures 6–8), `criterion` (Figures 10, 15–18)
+    /// or `metric` (a column against another).
     pub plot: PlotKind,
+    /// The figure's title; the plot's own by default.
     #[serde(default)]
     pub title: String,
+    /// The SVG file's name; `<plot>.svg` by default.
     #[serde(default)]
     pub file: String,
     /// For `plot = "criterion"`: `distances`, `coordinates`,
     /// `reference_distances` or `reference_coordinates`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub criterion: Option<String>,
-    /// For `plot = "metric"`: the columns of the x axis, the y axis and
-    /// (optional) the series, and rows to keep (`{ column = value }`).
+    /// For `plot = "metric"`: the column of the x axis.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub x: Option<String>,
+    /// For `plot = "metric"`: the column of the y axis.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub y: Option<String>,
+    /// For `plot = "metric"`: the column whose values make separate series
+    /// (optional).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub series: Option<String>,
+    /// For `plot = "metric"`: rows to keep, `{ column = value }`.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub filter: BTreeMap<String, toml::Value>,
 }

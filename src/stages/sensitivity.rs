@@ -46,17 +46,24 @@ use nalgebra::Vector3;
 use polars::prelude::DataFrame;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct SensitivityStage {
+    /// The tracker model: `api-tracker3` or `mirror-tracker`.
     #[serde(default)]
     pub model: TrackerModel,
+    /// The sphere's azimuths `{ from, to, step }`, degrees (the paper's by
+    /// default).
     #[serde(default = "sphere_h_deg")]
     pub h_deg: Range,
+    /// The sphere's elevations `{ from, to, step }`, degrees.
     #[serde(default = "sphere_v_deg")]
     pub v_deg: Range,
+    /// The sphere's radii `{ from, to, step }`, mm.
     #[serde(default = "sphere_r_mm")]
     pub r_mm: Range,
+    /// An error "varies" with θ, φ or d when it differs by more than this × the
+    /// largest error.
     #[serde(default = "default_rel_tol")]
     pub rel_tol: f64,
 }

@@ -6,8 +6,11 @@
 //! accepts), caught by a deserializer that records them and stops; the
 //! defaults are the kind's settings deserialized from an empty table and
 //! written back as JSON (what the cache key hashes); a name's unit is its
-//! suffix (`_mm`, `_urad`, …). A second list kept by hand would fall
-//! behind the structs; this one cannot.
+//! suffix (`_mm`, `_urad`, …); its meaning is the field's `///` doc,
+//! which the settings struct carries at run time
+//! ([`documented::DocumentedFields`], a compile error when a field has
+//! none). A second list kept by hand would fall behind the structs; this
+//! one cannot.
 
 use super::StageConfig;
 use serde::de::{self, Visitor};
@@ -17,17 +20,21 @@ use serde::de::{self, Visitor};
 pub struct Setting {
     pub name: String,
     /// `number`, `integer`, `string`, `bool`, `array`, `table`; `optional`
-    /// when unset by default; `required` when it has no default.
+    /// when unset by default; `required` when it has no default; empty when
+    /// the kind's defaults cannot be probed.
     pub kind: String,
     /// The default as TOML would write it; empty when none.
     pub default: String,
     /// From the name's suffix; empty when it has none.
     pub unit: &'static str,
+    /// What the setting means: its field's doc, on one line.
+    pub doc: String,
 }
 
 /// The settings of stage kind `kind`, in the struct's order; `None` for an
 /// unknown kind.
 pub fn settings(kind: &str) -> Option<Vec<Setting>> {
+    let kind_name = kind;
     let mut fields: &'static [&'static str] = &[];
     let _ = StageConfig::deserialize(kind, Recorder(&mut fields))?;
     let (defaults, required) = defaults(kind);
@@ -37,9 +44,9 @@ pub fn settings(kind: &str) -> Option<Vec<Setting>> {
             .map(|&name| {
                 let d = defaults.as_ref().and_then(|d| d.get(name));
                 let (kind, default) = match d {
-                    None if defaults.is_none() => {
-                        ("see the kind's docs".to_string(), String::new())
-                    }
+                    // The kind's defaults could not be probed: the meaning
+                    // still says what the setting is.
+                    None if defaults.is_none() => (String::new(), String::new()),
                     // Left out of the JSON when unset.
                     None => ("optional".to_string(), String::new()),
                     Some(v) if required.contains(&name) => {
@@ -52,6 +59,11 @@ pub fn settings(kind: &str) -> Option<Vec<Setting>> {
                     kind,
                     default,
                     unit: unit(name),
+                    doc: StageConfig::setting_doc(kind_name, name)
+                        .unwrap_or_default()
+                        .split_whitespace()
+                        .collect::<Vec<_>>()
+                        .join(" "),
                 }
             })
             .collect(),
@@ -220,6 +232,15 @@ mod tests {
         let measure = settings("measure").unwrap();
         let seed = measure.iter().find(|s| s.name == "seed").unwrap();
         assert_eq!(seed.kind, "integer");
+        assert_eq!(seed.doc, "Seed of the noise draws.");
+        // Every setting of every kind says what it means: the derive refuses
+        // an undocumented field, and a serde name that is not the field's
+        // would find no doc here.
+        for k in super::super::KINDS {
+            for s in settings(k).unwrap() {
+                assert!(!s.doc.is_empty(), "{k}.{} has no doc", s.name);
+            }
+        }
         assert_eq!(unit("sigma_angle_urad"), "µrad");
         assert!(settings("nope").is_none());
     }

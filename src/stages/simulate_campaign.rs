@@ -50,34 +50,56 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct SimulateCampaignStage {
+    /// The campaign's name, written into its `meta`.
     #[serde(default = "default_name")]
     pub name: String,
+    /// Stations and reflectors: `{ kind = "corner" | "cmm-table" | "hall",
+    /// stations, pan_deg, levels, per_level, distance_mm, tracker_height_mm }`.
     pub layout: Spec,
+    /// Which faces are read: `front`, `back` or `both`.
     #[serde(default)]
     pub faces: Faces,
+    /// How each SMR faces: `stations-centroid` or `aim-columns` (written to
+    /// targets.csv).
     #[serde(default = "Aim::simulated_default")]
     pub aim: Aim,
+    /// SMR acceptance, degrees: readings beyond this incidence angle are not
+    /// taken.
     #[serde(default = "default_max_angle")]
     pub max_angle_deg: f64,
+    /// Reading noise, 1 σ: `{ sigma_angle_urad, sigma_range_um, sigma_range_ppm
+    /// }`.
     #[serde(default)]
     pub noise: Noise,
+    /// Effects of effects.md by id, each a table of its parameters
+    /// (`[stages.<name>.effects.incidence]`).
     #[serde(default)]
     pub effects: Effects,
+    /// Standard uncertainty of the gauge lengths, mm (a CMM-calibrated bar: 0.5
+    /// µm).
     #[serde(default = "default_gauge_u")]
     pub gauge_u_mm: f64,
+    /// Standard uncertainty of the reference coordinates, mm (CMM coordinates:
+    /// 2 µm).
     #[serde(default = "default_reference_u")]
     pub reference_u_mm: f64,
+    /// How far from level the stations stand, µrad (drawn within about this).
     #[serde(default = "default_level")]
     pub level_urad: f64,
+    /// Seconds between two readings, for the time column and time-driven
+    /// effects.
     #[serde(default = "default_interval")]
     pub interval_s: f64,
+    /// Write each reading's time (`t_s`).
     #[serde(default = "yes")]
     pub record_time: bool,
+    /// Write each reading's air temperature.
     #[serde(default = "yes")]
     pub record_temperature: bool,
+    /// Seed of every random draw (poses, noise, effects).
     #[serde(default)]
     pub seed: u64,
     /// A hypothesis file whose hypotheses are injected.

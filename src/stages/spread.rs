@@ -33,17 +33,22 @@ use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct SpreadStage {
+    /// Columns that key an output row (e.g. `coef`).
     #[serde(default = "default_by")]
     pub by: Vec<String>,
+    /// The column of the estimate.
     #[serde(default = "default_value")]
     pub value: String,
+    /// The column of its reported standard uncertainty.
     #[serde(default = "default_std")]
     pub std: String,
+    /// `within_band` when |ratio − 1| ≤ band_pct / 100.
     #[serde(default = "default_band")]
     pub band_pct: f64,
+    /// Keys reporting a smaller uncertainty are left out (round-off).
     #[serde(default = "default_min_std")]
     pub min_std: f64,
 }

@@ -711,3 +711,28 @@ fn kinds_of_a_kind_lists_every_accepted_setting_and_no_unlisted_one_is_accepted(
     assert_code(&o, 2);
     assert!(stderr(&o).contains("did you mean `measure`?"));
 }
+
+#[test]
+fn kinds_sent_the_reader_to_the_module_doc_now_it_prints_each_settings_meaning() {
+    let o = ltcal(&crate::util::root(), &["kinds", "measure"]);
+    assert_code(&o, 0);
+    let out = stdout(&o);
+    assert!(!out.contains("src/stages/"), "{out}");
+    let seed = out.lines().find(|l| l.starts_with("seed ")).unwrap();
+    assert!(seed.ends_with("Seed of the noise draws."), "{seed}");
+    // A long meaning wraps within 100 columns (the kind's summary line
+    // above the table aside), continued under itself.
+    let o = ltcal(&crate::util::root(), &["kinds", "calibrate"]);
+    let out = stdout(&o);
+    assert!(
+        out.lines().skip(2).all(|l| l.chars().count() <= 100),
+        "{out}"
+    );
+    let lines: Vec<&str> = out.lines().collect();
+    let i = lines
+        .iter()
+        .position(|l| l.starts_with("objective "))
+        .unwrap();
+    let column = lines[i].find("`eq13`").unwrap();
+    assert_eq!(lines[i + 1].find(|c: char| c != ' '), Some(column), "{out}");
+}
