@@ -195,8 +195,8 @@ fn products(
     let col3 = |m: &[f64], w: usize, a: usize| [m[a], m[w + a], m[2 * w + a]];
     let dot3 = |a: [f64; 3], b: [f64; 3]| {
         let mut s = 0.0;
-        for r in 0..3 {
-            s += a[r] * b[r];
+        for (x, y) in a.iter().zip(&b) {
+            s += x * y;
         }
         s
     };
@@ -445,8 +445,8 @@ impl LinearModel {
                         for (y, &cy) in nz.iter().enumerate().skip(x) {
                             let ky = lk.column(y);
                             let mut v = 0.0;
-                            for r in 0..3 {
-                                v += kx[r] * ky[r];
+                            for (a, b) in kx.iter().zip(ky.iter()) {
+                                v += a * b;
                             }
                             g_k[(cx, cy)] += v;
                             if y != x {
@@ -872,5 +872,68 @@ mod tests {
         let got = lm.cv_rms_um(&c_part);
         assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
         assert!((lm.cv_rms_um_of(r.as_slice(), 1)[0] - base).abs() < 1e-9 * base);
+    }
+
+    /// [`products`] as it was, with nalgebra's products and a search of
+    /// `u_x` per reading: the reference the written-out one must equal.
+    fn products_by_nalgebra(j: &BlockJacobian, c: &Signature, x: &DVector<f64>) -> Products {
+        let k = c.k;
+        let mut u_a = DMatrix::zeros(j.n_a(), k);
+        let mut u_x: Vec<(usize, DMatrix<f64>)> = Vec::new();
+        let mut ctc = DMatrix::zeros(k, k);
+        let mut ctx = DVector::zeros(k);
+        for (i, v) in c.blocks() {
+            let ci = DMatrix::from_row_slice(3, k, v);
+            ctc += ci.tr_mul(&ci);
+            ctx += ci.tr_mul(&x.fixed_rows::<3>(3 * i));
+            for (col, w, part) in j.dense_parts(i) {
+                let ji = DMatrix::from_row_slice(3, w, part);
+                let mut view = u_a.view_mut((col, 0), (w, k));
+                view += ji.tr_mul(&ci);
+            }
+            if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
+                let add = DMatrix::from_row_slice(3, 3, part).tr_mul(&ci);
+                match u_x.iter_mut().find(|(q, _)| *q == p) {
+                    Some((_, m)) => *m += add,
+                    None => u_x.push((p, add)),
+                }
+            }
+        }
+        Products { u_a, u_x, ctc, ctx }
+    }
+
+    /// Issue 34: a broad candidate (every reading, every reflector) made
+    /// `products` allocate matrices per reading and search its positions
+    /// per reading — quadratic in the reflectors. Written out, every
+    /// product is bit for bit nalgebra's, the positions in the same order;
+    /// the Schur solve of several columns is each column's own solve.
+    #[test]
+    fn broad_candidate_products_are_nalgebras_bit_for_bit_without_a_search_per_reading() {
+        let (j, _) = network();
+        let n_read = j.nrows() / 3;
+        let mut broad = Signature::new(3);
+        for i in 0..n_read {
+            for a in 0..3 {
+                for col in 0..3 {
+                    broad.add(i, a, col, ((7 * i + 3 * a + col) as f64).sin());
+                }
+            }
+        }
+        let x = DVector::from_fn(j.nrows(), |r, _| (r as f64 * 0.37).cos());
+        let got = products(&j, &broad, &x, |_| true);
+        let want = products_by_nalgebra(&j, &broad, &x);
+        assert!(want.u_x.len() > 1 && got.u_x.len() == want.u_x.len());
+        for ((p, a), (q, b)) in got.u_x.iter().zip(&want.u_x) {
+            assert_eq!((p, a), (q, b));
+        }
+        assert_eq!(got.u_a, want.u_a);
+        assert_eq!(got.ctc, want.ctc);
+        assert_eq!(got.ctx, want.ctx);
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let v = f.reduce_sparse(&got.u_a, &got.u_x);
+        let cols = f.solve_schur_columns(&v);
+        for c in 0..v.ncols() {
+            assert_eq!(cols.column(c), f.solve_schur(&v.column(c).into_owned()));
+        }
     }
 }
