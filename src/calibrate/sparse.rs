@@ -824,12 +824,17 @@ impl Factor {
         v
     }
 
-    /// `S⁻¹·V` for several columns.
+    /// `S⁻¹·V` for several columns: each column solved as
+    /// [`Factor::solve_schur`] solves it (the same numbers), in one pass
+    /// over `V` without a vector allocated per column.
     pub fn solve_schur_columns(&self, v: &DMatrix<f64>) -> DMatrix<f64> {
         let mut out = v.clone();
         for mut c in out.column_iter_mut() {
-            let x = self.solve_schur(&c.clone_owned());
-            c.copy_from(&x);
+            c.component_mul_assign(&self.d);
+        }
+        self.chol.solve_mut(&mut out);
+        for mut c in out.column_iter_mut() {
+            c.component_mul_assign(&self.d);
         }
         out
     }

@@ -182,25 +182,54 @@ fn products(
     let n_a = j.n_a();
     let mut u_a = DMatrix::zeros(n_a, k);
     let mut u_x: Vec<(usize, DMatrix<f64>)> = Vec::new();
+    // Each position's entry in `u_x` (in order of first appearance, which
+    // the reduction's sums follow): a search of `u_x` per reading was
+    // quadratic in the positions a broad candidate touches.
+    let mut slot_of: Vec<u32> = Vec::new();
     let mut ctc = DMatrix::zeros(k, k);
     let mut ctx = DVector::zeros(k);
+    // Every product below is the one nalgebra's `tr_mul` of the reading's
+    // 3-row blocks forms (each entry a three-term sum from zero, `x`'s
+    // three-row case as `(a + b) + c`), written out: no matrix allocated
+    // per reading, the same numbers.
+    let col3 = |m: &[f64], w: usize, a: usize| [m[a], m[w + a], m[2 * w + a]];
+    let dot3 = |a: [f64; 3], b: [f64; 3]| {
+        let mut s = 0.0;
+        for (x, y) in a.iter().zip(&b) {
+            s += x * y;
+        }
+        s
+    };
     for (i, v) in c.blocks() {
         if !keep(i) {
             continue;
         }
-        let ci = DMatrix::from_row_slice(3, k, v);
-        ctc += ci.tr_mul(&ci);
-        ctx += ci.tr_mul(&x.fixed_rows::<3>(3 * i));
+        for a in 0..k {
+            let ca = col3(v, k, a);
+            for b in 0..k {
+                ctc[(a, b)] += dot3(ca, col3(v, k, b));
+            }
+            ctx[a] += ca[0] * x[3 * i] + ca[1] * x[3 * i + 1] + ca[2] * x[3 * i + 2];
+        }
         for (col, w, part) in j.dense_parts(i) {
-            let ji = DMatrix::from_row_slice(3, w, part);
-            let mut view = u_a.view_mut((col, 0), (w, k));
-            view += ji.tr_mul(&ci);
+            for a in 0..w {
+                let ja = col3(part, w, a);
+                for b in 0..k {
+                    u_a[(col + a, b)] += dot3(ja, col3(v, k, b));
+                }
+            }
         }
         if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
-            let add = DMatrix::from_row_slice(3, 3, part).tr_mul(&ci);
-            match u_x.iter_mut().find(|(q, _)| *q == p) {
-                Some((_, m)) => *m += add,
-                None => u_x.push((p, add)),
+            let add = DMatrix::from_fn(3, k, |a, b| dot3(col3(part, 3, a), col3(v, k, b)));
+            if slot_of.is_empty() {
+                slot_of = vec![u32::MAX; j.points()];
+            }
+            match slot_of[p] {
+                u32::MAX => {
+                    slot_of[p] = u_x.len() as u32;
+                    u_x.push((p, add));
+                }
+                at => u_x[at as usize].1 += add,
             }
         }
     }
@@ -406,12 +435,23 @@ impl LinearModel {
                     base_sum += a.norm_squared();
                     k_rows(&j, &factor, i, &mut kr, &mut nz);
                     let lk = l * kr.select_columns(&nz);
-                    let lkt_lk = lk.tr_mul(&lk);
                     let lkt_a = lk.tr_mul(&a);
+                    // `lkᵀ·lk` (as `tr_mul` sums it: three terms from
+                    // zero), each pair once: its two entries are the same
+                    // sum of the same products.
                     for (x, &cx) in nz.iter().enumerate() {
                         h_k[cx] += lkt_a[x];
-                        for (y, &cy) in nz.iter().enumerate() {
-                            g_k[(cx, cy)] += lkt_lk[(x, y)];
+                        let kx = lk.column(x);
+                        for (y, &cy) in nz.iter().enumerate().skip(x) {
+                            let ky = lk.column(y);
+                            let mut v = 0.0;
+                            for (a, b) in kx.iter().zip(ky.iter()) {
+                                v += a * b;
+                            }
+                            g_k[(cx, cy)] += v;
+                            if y != x {
+                                g_k[(cy, cx)] += v;
+                            }
                         }
                     }
                 }
@@ -532,23 +572,35 @@ impl LinearModel {
             // Held-out readings where more than K_i·δ_A changes: those the
             // candidate touches, and those of reflectors whose fit it moves.
             let mut extra: Vec<usize> = c.readings.iter().copied().filter(|&i| !train(i)).collect();
-            let mut w_x: Vec<(usize, Vector3<f64>)> = Vec::new();
+            // Per position the candidate touches, `H_XX⁻¹·u_x·β_c`: the
+            // same product for each of its readings, formed once (and
+            // found by index, not by a search per reading).
+            let mut shift_of: Vec<Option<Vector3<f64>>> = Vec::new();
+            if !pr.u_x.is_empty() {
+                shift_of = vec![None; self.j.points()];
+            }
             for (p, ux) in &pr.u_x {
                 let w = ux * &bc;
-                w_x.push((*p, Vector3::new(w[0], w[1], w[2])));
+                let w = Vector3::new(w[0], w[1], w[2]);
+                shift_of[*p] = Some(f.factor.point_inverse(*p) * w);
                 extra.extend(self.readings_of_point[*p].iter().filter(|&&i| !train(i)));
             }
             extra.sort_unstable();
             extra.dedup();
             let c_rows: Vec<(usize, &[f64])> = c.blocks().collect();
+            // `W_pᵀ·δ_A` per position, shared by its readings' `K_i·δ_A`.
+            let mut wd_of: Vec<Option<Vector3<f64>>> = Vec::new();
+            if !extra.is_empty() {
+                wd_of = vec![None; self.j.points()];
+            }
             for i in extra {
                 let a = Vector3::new(f.res[3 * i], f.res[3 * i + 1], f.res[3 * i + 2]);
-                let kd = k_times(&self.j, &f.factor, i, &d_a);
+                let kd = k_times(&self.j, &f.factor, i, &d_a, &mut wd_of);
                 let mut s = Vector3::zeros();
                 if let (Some(p), Some(jx)) = (self.j.block_point(i), self.j.point_part(i))
-                    && let Some((_, w)) = w_x.iter().find(|(q, _)| *q == p)
+                    && let Some(Some(shift)) = shift_of.get(p)
                 {
-                    s += crate::calibrate::sparse::part3_mul(jx, &(f.factor.point_inverse(p) * w));
+                    s += crate::calibrate::sparse::part3_mul(jx, shift);
                 }
                 if let Ok(at) = c_rows.binary_search_by_key(&i, |(r, _)| *r) {
                     let ci = DMatrix::from_row_slice(3, c.k, c_rows[at].1);
@@ -664,8 +716,15 @@ fn k_rows(j: &BlockJacobian, f: &Factor, i: usize, out: &mut DMatrix<f64>, nz: &
     nz.dedup();
 }
 
-/// `K_i·δ_A` without forming `K_i`.
-fn k_times(j: &BlockJacobian, f: &Factor, i: usize, d_a: &DVector<f64>) -> Vector3<f64> {
+/// `K_i·δ_A` without forming `K_i`; `wd_of` caches each position's
+/// `W_pᵀ·δ_A` (the same for every reading of the position).
+fn k_times(
+    j: &BlockJacobian,
+    f: &Factor,
+    i: usize,
+    d_a: &DVector<f64>,
+    wd_of: &mut [Option<Vector3<f64>>],
+) -> Vector3<f64> {
     let mut out = [0.0; 3];
     for (col, w, part) in j.dense_parts(i) {
         for a in 0..3 {
@@ -674,13 +733,16 @@ fn k_times(j: &BlockJacobian, f: &Factor, i: usize, d_a: &DVector<f64>) -> Vecto
     }
     let mut v = Vector3::from(out);
     if let (Some(p), Some(jx)) = (j.block_point(i), j.point_part(i)) {
-        let (cols, w) = f.point_coupling(p);
-        let mut wd = Vector3::zeros();
-        for (k, &c) in cols.iter().enumerate() {
-            for a in 0..3 {
-                wd[a] += w[(k, a)] * d_a[c];
+        let wd = *wd_of[p].get_or_insert_with(|| {
+            let (cols, w) = f.point_coupling(p);
+            let mut wd = Vector3::zeros();
+            for (k, &c) in cols.iter().enumerate() {
+                for a in 0..3 {
+                    wd[a] += w[(k, a)] * d_a[c];
+                }
             }
-        }
+            wd
+        });
         v -= crate::calibrate::sparse::part3_mul(jx, &wd);
     }
     v
@@ -810,5 +872,68 @@ mod tests {
         let got = lm.cv_rms_um(&c_part);
         assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
         assert!((lm.cv_rms_um_of(r.as_slice(), 1)[0] - base).abs() < 1e-9 * base);
+    }
+
+    /// [`products`] as it was, with nalgebra's products and a search of
+    /// `u_x` per reading: the reference the written-out one must equal.
+    fn products_by_nalgebra(j: &BlockJacobian, c: &Signature, x: &DVector<f64>) -> Products {
+        let k = c.k;
+        let mut u_a = DMatrix::zeros(j.n_a(), k);
+        let mut u_x: Vec<(usize, DMatrix<f64>)> = Vec::new();
+        let mut ctc = DMatrix::zeros(k, k);
+        let mut ctx = DVector::zeros(k);
+        for (i, v) in c.blocks() {
+            let ci = DMatrix::from_row_slice(3, k, v);
+            ctc += ci.tr_mul(&ci);
+            ctx += ci.tr_mul(&x.fixed_rows::<3>(3 * i));
+            for (col, w, part) in j.dense_parts(i) {
+                let ji = DMatrix::from_row_slice(3, w, part);
+                let mut view = u_a.view_mut((col, 0), (w, k));
+                view += ji.tr_mul(&ci);
+            }
+            if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
+                let add = DMatrix::from_row_slice(3, 3, part).tr_mul(&ci);
+                match u_x.iter_mut().find(|(q, _)| *q == p) {
+                    Some((_, m)) => *m += add,
+                    None => u_x.push((p, add)),
+                }
+            }
+        }
+        Products { u_a, u_x, ctc, ctx }
+    }
+
+    /// Issue 34: a broad candidate (every reading, every reflector) made
+    /// `products` allocate matrices per reading and search its positions
+    /// per reading — quadratic in the reflectors. Written out, every
+    /// product is bit for bit nalgebra's, the positions in the same order;
+    /// the Schur solve of several columns is each column's own solve.
+    #[test]
+    fn broad_candidate_products_are_nalgebras_bit_for_bit_without_a_search_per_reading() {
+        let (j, _) = network();
+        let n_read = j.nrows() / 3;
+        let mut broad = Signature::new(3);
+        for i in 0..n_read {
+            for a in 0..3 {
+                for col in 0..3 {
+                    broad.add(i, a, col, ((7 * i + 3 * a + col) as f64).sin());
+                }
+            }
+        }
+        let x = DVector::from_fn(j.nrows(), |r, _| (r as f64 * 0.37).cos());
+        let got = products(&j, &broad, &x, |_| true);
+        let want = products_by_nalgebra(&j, &broad, &x);
+        assert!(want.u_x.len() > 1 && got.u_x.len() == want.u_x.len());
+        for ((p, a), (q, b)) in got.u_x.iter().zip(&want.u_x) {
+            assert_eq!((p, a), (q, b));
+        }
+        assert_eq!(got.u_a, want.u_a);
+        assert_eq!(got.ctc, want.ctc);
+        assert_eq!(got.ctx, want.ctx);
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let v = f.reduce_sparse(&got.u_a, &got.u_x);
+        let cols = f.solve_schur_columns(&v);
+        for c in 0..v.ncols() {
+            assert_eq!(cols.column(c), f.solve_schur(&v.column(c).into_owned()));
+        }
     }
 }
