@@ -333,14 +333,53 @@ impl Entry {
     }
 }
 
-/// What a lookup found.
+/// What a lookup found: the entry with every table and file verified
+/// against its manifest, or why the stage must run.
 #[derive(Debug)]
 pub enum Lookup {
     Hit(Box<Entry>),
-    Miss,
-    /// The entry existed but failed verification; a loose one has been
-    /// removed, a packed copy is passed over from now on by every lookup.
+    Miss(Miss),
+}
+
+/// Why a stage's cached result is not served. The runner's report says it
+/// in these words ([`Miss`]'s `Display`), except for [`Miss::Absent`],
+/// whose reason is what changed since the stage last ran (`plan::reason`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Miss {
+    /// No entry under the key.
+    Absent,
+    /// The entry existed but failed verification (what was wrong); a loose
+    /// one has been removed, a packed copy is passed over from now on by
+    /// every lookup.
     Corrupt(String),
+    /// The entry verified, but a table of it could not be decoded.
+    Unreadable(String),
+    /// `--force`: not looked up, neither read nor verified.
+    Forced,
+}
+
+impl Miss {
+    /// The damage found in the cache, for the report's `cache_problem`: a
+    /// damaged cache is made visible, not silently repaired.
+    pub fn damage(&self) -> Option<&str> {
+        match self {
+            Miss::Corrupt(why) => Some(why),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Miss {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Miss::Absent => write!(f, "its cached result is missing"),
+            Miss::Corrupt(why) => {
+                write!(f, "its cached result was corrupt and is recomputed: {why}")
+            }
+            Miss::Unreadable(why) => write!(f, "its cached result could not be read: {why}"),
+            Miss::Forced => write!(f, "forced (--force)"),
+        }
+    }
 }
 
 pub fn hash_bytes(b: &[u8]) -> String {
@@ -533,7 +572,7 @@ impl Store {
                 }
                 Err(why) => {
                     self.discard(&dir);
-                    Lookup::Corrupt(why.to_string())
+                    Lookup::Miss(Miss::Corrupt(why.to_string()))
                 }
             };
         }
@@ -541,9 +580,9 @@ impl Store {
             return Lookup::Hit(Box::new(e));
         }
         match self.packed(key, |path, span| read_packed(path, span, key)) {
-            None => Lookup::Miss,
+            None => Lookup::Miss(Miss::Absent),
             Some(Ok(e)) => Lookup::Hit(Box::new(e)),
-            Some(Err(why)) => Lookup::Corrupt(why.to_string()),
+            Some(Err(why)) => Lookup::Miss(Miss::Corrupt(why.to_string())),
         }
     }
 
@@ -1578,8 +1617,14 @@ mod tests {
         let mut b = fs::read(&f).unwrap();
         b[0] ^= 1;
         fs::write(&f, b).unwrap();
-        assert!(matches!(store.lookup(&k.hash()), Lookup::Corrupt(_)));
-        assert!(matches!(store.lookup(&k.hash()), Lookup::Miss));
+        assert!(matches!(
+            store.lookup(&k.hash()),
+            Lookup::Miss(Miss::Corrupt(why)) if why.contains("readings.parquet does not match its manifest")
+        ));
+        assert!(matches!(
+            store.lookup(&k.hash()),
+            Lookup::Miss(Miss::Absent)
+        ));
         fs::remove_dir_all(&dir).unwrap();
     }
 }
