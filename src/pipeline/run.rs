@@ -1135,7 +1135,9 @@ mod tests {
             not_computed: None,
             experiment: None,
         };
-        run(&p, &opts).unwrap()
+        execute_pipeline(&p, &opts, &Selection::default())
+            .unwrap()
+            .report
     }
 
     fn statuses(r: &RunReport) -> Vec<(&str, Status)> {
