@@ -52,7 +52,7 @@ gather = ["evaluation.criteria"]
 
 fn run_once(file: &Path, results: PathBuf) {
     let p = pipeline::load(file, &[]).unwrap();
-    let r = run::run(
+    let r = ltcal::pipeline::publish::run(
         &p,
         &run::RunOptions {
             results_root: results,
@@ -131,7 +131,7 @@ fn cached_sweep(c: &mut Criterion) {
         let results = dir.path().join("results");
         let rerun = |expect_ran: usize| {
             let p = pipeline::load(&file, &[]).unwrap();
-            let r = run::run(
+            let r = ltcal::pipeline::publish::run(
                 &p,
                 &run::RunOptions {
                     results_root: results.clone(),

@@ -6,7 +6,7 @@
 
 use crate::pipeline::{
     self, InputError, cache::Store, cluster, experiment, experiment::Experiment, explain, graph,
-    plan, published, resolve::Override, run, snapshot, status::Status,
+    plan, publish, published, resolve::Override, run, snapshot, status::Status,
 };
 use crate::stages;
 use crate::table;
@@ -545,7 +545,7 @@ fn task_command(
 fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCode> {
     let (pipeline, e) = load_to_run(p)?;
     let snap = snapshot::of(&pipeline).map_err(|e| InputError::arg(e.to_string()))?;
-    let report = run::run(
+    let report = publish::run(
         &pipeline,
         &run::RunOptions {
             results_root: p.results.clone(),
@@ -723,7 +723,7 @@ fn run_command(
                 "--detach submits to a cluster: use it with --executor slurm",
             ));
         }
-        let report = run::run_selected(&pipeline, &opts, &selection)?;
+        let report = publish::run_selected(&pipeline, &opts, &selection)?;
         let code = summarize(&report);
         headlines(p, &report)?;
         return Ok(code);

@@ -7,7 +7,7 @@
 
 use anyhow::Context as _;
 use ltcal::campaign::{self, Problem};
-use ltcal::pipeline::{self, cluster, published, resolve::Override, run, status::Status};
+use ltcal::pipeline::{self, cluster, publish, published, resolve::Override, run, status::Status};
 use ltcal::stages::{self, StageKind as _};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -221,14 +221,14 @@ pub fn run(
             let pipeline = pipeline.clone();
             match jobs {
                 // All cores: rayon's global pool, as the command line.
-                None => Box::new(move || run::run(&pipeline, &opts)),
+                None => Box::new(move || publish::run(&pipeline, &opts)),
                 // A pool of its own: the global one is sized once per process.
                 Some(n) => {
                     let pool = rayon::ThreadPoolBuilder::new()
                         .num_threads(n)
                         .build()
                         .context("starting the worker threads")?;
-                    Box::new(move || pool.install(|| run::run(&pipeline, &opts)))
+                    Box::new(move || pool.install(|| publish::run(&pipeline, &opts)))
                 }
             }
         }

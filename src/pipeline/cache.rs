@@ -9,6 +9,9 @@
 //! another `ltcal run` on the same folder, or the next run after a SIGKILL —
 //! sees a complete entry or none. On reuse every file is hashed again: a
 //! truncated, flipped or edited file is reported and the entry recomputed.
+//! A cached sweep point is taken on its manifests, and a table read from
+//! it ([`Store::table`]) is hashed alone, against its manifest: what is
+//! not read is not served.
 //!
 //! A sweep point's entries are not loose folders but go into **packs**
 //! ([`super::pack`]): kept in memory ([`Store::put_packed`]) until the
@@ -333,14 +336,53 @@ impl Entry {
     }
 }
 
-/// What a lookup found.
+/// What a lookup found: the entry with every table and file verified
+/// against its manifest, or why the stage must run.
 #[derive(Debug)]
 pub enum Lookup {
     Hit(Box<Entry>),
-    Miss,
-    /// The entry existed but failed verification; a loose one has been
-    /// removed, a packed copy is passed over from now on by every lookup.
+    Miss(Miss),
+}
+
+/// Why a stage's cached result is not served. The runner's report says it
+/// in these words ([`Miss`]'s `Display`), except for [`Miss::Absent`],
+/// whose reason is what changed since the stage last ran (`plan::reason`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Miss {
+    /// No entry under the key.
+    Absent,
+    /// The entry existed but failed verification (what was wrong); a loose
+    /// one has been removed, a packed copy is passed over from now on by
+    /// every lookup.
     Corrupt(String),
+    /// The entry verified, but a table of it could not be decoded.
+    Unreadable(String),
+    /// `--force`: not looked up, neither read nor verified.
+    Forced,
+}
+
+impl Miss {
+    /// The damage found in the cache, for the report's `cache_problem`: a
+    /// damaged cache is made visible, not silently repaired.
+    pub fn damage(&self) -> Option<&str> {
+        match self {
+            Miss::Corrupt(why) => Some(why),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Miss {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Miss::Absent => write!(f, "its cached result is missing"),
+            Miss::Corrupt(why) => {
+                write!(f, "its cached result was corrupt and is recomputed: {why}")
+            }
+            Miss::Unreadable(why) => write!(f, "its cached result could not be read: {why}"),
+            Miss::Forced => write!(f, "forced (--force)"),
+        }
+    }
 }
 
 pub fn hash_bytes(b: &[u8]) -> String {
@@ -365,11 +407,19 @@ pub struct Store {
     experiment: Option<String>,
 }
 
+/// How many packs a store keeps open (far below the usual limit of 1 024
+/// open files a process); a pack beyond them is opened per read.
+const MAX_OPEN_PACKS: usize = 256;
+
 /// What the packs of the folder hold, by key: 40-odd bytes an entry, so
 /// that a coordinator of 100 000 points holds their keys, not their data.
 #[derive(Default)]
 struct Packs {
     files: Vec<PathBuf>,
+    /// The first [`MAX_OPEN_PACKS`] packs, kept open since their index was
+    /// read: a cached sweep's entries are read by position, without an
+    /// open (and a check of every folder on the way) per entry.
+    open: Vec<Option<fs::File>>,
     seen: HashSet<PathBuf>,
     by_key: HashMap<Key, Vec<(u32, Span)>>,
     /// Stage names, each once.
@@ -393,10 +443,12 @@ impl Packs {
         }
     }
 
-    fn add(&mut self, path: PathBuf, ix: pack::Index) {
+    fn add(&mut self, path: PathBuf, ix: pack::Index, file: Option<fs::File>) {
         let id = self.files.len() as u32;
         self.seen.insert(path.clone());
         self.files.push(path);
+        let kept = self.open.iter().filter(|f| f.is_some()).count();
+        self.open.push(file.filter(|_| kept < MAX_OPEN_PACKS));
         for (k, span) in ix.entries {
             self.by_key.entry(k).or_default().push((id, span));
         }
@@ -533,17 +585,17 @@ impl Store {
                 }
                 Err(why) => {
                     self.discard(&dir);
-                    Lookup::Corrupt(why.to_string())
+                    Lookup::Miss(Miss::Corrupt(why.to_string()))
                 }
             };
         }
         if let Some(e) = self.pending_entry(key) {
             return Lookup::Hit(Box::new(e));
         }
-        match self.packed(key, |path, span| read_packed(path, span, key)) {
-            None => Lookup::Miss,
+        match self.packed(key, |f, span| read_packed(f, span, key)) {
+            None => Lookup::Miss(Miss::Absent),
             Some(Ok(e)) => Lookup::Hit(Box::new(e)),
-            Some(Err(why)) => Lookup::Corrupt(why.to_string()),
+            Some(Err(why)) => Lookup::Miss(Miss::Corrupt(why.to_string())),
         }
     }
 
@@ -557,7 +609,7 @@ impl Store {
         if let Some(e) = self.pending_entry(key) {
             return Some(Ok(e));
         }
-        self.packed(key, |path, span| read_packed(path, span, key))
+        self.packed(key, |f, span| read_packed(f, span, key))
     }
 
     /// [`Store::read`], keeping only the manifest.
@@ -570,44 +622,82 @@ impl Store {
     /// tables nothing reads — their tables' hashes, for the keys of the
     /// stages after them. A table is verified when it is read
     /// ([`Store::table`]).
+    ///
+    /// Packs are asked first: a cached sweep point's entries are there,
+    /// and asking for a loose folder first cost a failed `statx` per stage
+    /// per point. Either copy is verified alike.
     pub fn manifest(&self, key: &str) -> Option<Result<Manifest>> {
+        if let Some(m) = self.packed(key, |f, span| {
+            parse_manifest(&pack::read_manifest_at(f, span)?, key)
+        }) {
+            return Some(m);
+        }
         let dir = self.entry_dir(key);
         if dir.symlink_metadata().is_ok() {
             return Some(read_manifest_file(&dir).and_then(|b| parse_manifest(&b, key)));
         }
-        if let Some(e) = self.pending_entry(key) {
-            return Some(Ok(e.manifest));
-        }
-        self.packed(key, |path, span| {
-            parse_manifest(&pack::read_manifest(path, span)?, key)
-        })
+        self.pending_entry(key).map(|e| Ok(e.manifest))
     }
 
-    /// One table of the entry for `key`, verified against `hash` (its
-    /// manifest's); the entry is read and verified whole to get it.
+    /// One table of the entry for `key`: its manifest checked to belong to
+    /// the key and to record the table with `hash` (the hash the reader
+    /// took from it), and the table's bytes hashed against it. Only this
+    /// table is read and hashed: a damaged other table of the entry is not
+    /// served by this, and is found when it is read, by `verify`, or by the
+    /// run's closing [`Store::heal`] (the pack or entry changed since it
+    /// was last found good).
     pub fn table(&self, key: &str, name: &str, hash: &str) -> Result<Vec<u8>> {
-        let Some(entry) = self.read(key) else {
-            bail!("its cache entry {} is gone", short(key));
+        let recorded = |m: &Manifest| -> Result<usize> {
+            m.tables
+                .iter()
+                .position(|t| t.name == name && t.hash == hash)
+                .ok_or_else(|| {
+                    anyhow!(
+                        "table {name} of entry {} does not match its manifest",
+                        short(key)
+                    )
+                })
         };
-        let mut entry = entry?;
-        // `read` has hashed every table against the entry's manifest: the
-        // bytes are the manifest's; that manifest must be the one `hash`
-        // came from.
-        if !entry
-            .manifest
-            .tables
-            .iter()
-            .any(|t| t.name == name && t.hash == hash)
-        {
-            bail!(
-                "table {name} of entry {} does not match its manifest",
-                short(key)
-            );
+        let file = format!("{name}.parquet");
+        let checked = |b: Vec<u8>| -> Result<Vec<u8>> {
+            if hash_bytes(&b) != hash {
+                bail!("table {file} does not match its manifest (truncated, corrupted or edited)");
+            }
+            Ok(b)
+        };
+        // Packs first, as [`Store::manifest`].
+        let packed = self.packed(key, |f, span| {
+            let bytes = pack::read_span_at(f, span)?;
+            let mut at = None;
+            let blob = pack::split(&bytes, |m| {
+                let m = parse_manifest(m, key)?;
+                at = Some(recorded(&m)?);
+                Ok(m.tables.len() + m.files.len())
+            })?;
+            let at = at.expect("split parsed the manifest");
+            checked(blob.parts[at].to_vec())
+        });
+        if let Some(Ok(b)) = packed {
+            return Ok(b);
         }
-        entry
-            .tables
-            .remove(name)
-            .ok_or_else(|| anyhow!("its cache entry has no table `{name}`"))
+        let dir = self.entry_dir(key);
+        if dir.symlink_metadata().is_ok() {
+            recorded(&parse_manifest(&read_manifest_file(&dir)?, key)?)?;
+            let b = read_part(&dir.join(&file), MAX_TABLE_BYTES, &format!("table {file}"))?;
+            return checked(b);
+        }
+        if let Some(b) = self.pending_table(key, name) {
+            return Ok(b);
+        }
+        packed.unwrap_or_else(|| Err(anyhow!("its cache entry {} is gone", short(key))))
+    }
+
+    /// A table of an entry this process has not yet packed.
+    fn pending_table(&self, key: &str, name: &str) -> Option<Vec<u8>> {
+        let p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        p.by_key
+            .get(key)
+            .and_then(|&i| p.entries[i].tables.get(name).cloned())
     }
 
     fn pending_entry(&self, key: &str) -> Option<Entry> {
@@ -617,7 +707,11 @@ impl Store {
 
     /// Reads `key` from the first of its packed copies that `read` accepts;
     /// the first copy's problem when none does.
-    fn packed<T>(&self, key: &str, read: impl Fn(&Path, Span) -> Result<T>) -> Option<Result<T>> {
+    fn packed<T>(
+        &self,
+        key: &str,
+        read: impl Fn(&fs::File, Span) -> Result<T>,
+    ) -> Option<Result<T>> {
         let k = pack::key_bytes(key)?;
         self.load_packs();
         let guard = self.packs.read().unwrap_or_else(|e| e.into_inner());
@@ -626,7 +720,11 @@ impl Store {
         let mut first_problem = None;
         for &(file, span) in copies {
             let path = &packs.files[file as usize];
-            match read(path, span) {
+            let got = match packs.open.get(file as usize).and_then(Option::as_ref) {
+                Some(f) => read(f, span),
+                None => pack::open_pack(path).and_then(|f| read(&f, span)),
+            };
+            match got {
                 Ok(v) => return Some(Ok(v)),
                 Err(e) => {
                     first_problem
@@ -665,8 +763,8 @@ impl Store {
             .collect();
         new.sort();
         for path in new {
-            match pack::read_index(&path) {
-                Ok(ix) => packs.add(path, ix),
+            match pack::open_index(&path) {
+                Ok((ix, file)) => packs.add(path, ix, Some(file)),
                 Err(e) => {
                     packs.seen.insert(path.clone());
                     packs.unreadable.push((path, e.to_string()));
@@ -706,7 +804,11 @@ impl Store {
                 for &(file, span) in copies {
                     v.packed += 1;
                     let path = &p.files[file as usize];
-                    if let Err(why) = read_packed(path, span, &hex) {
+                    let got = match p.open.get(file as usize).and_then(Option::as_ref) {
+                        Some(f) => read_packed(f, span, &hex),
+                        None => pack::open_pack(path).and_then(|f| read_packed(&f, span, &hex)),
+                    };
+                    if let Err(why) = got {
                         bad.push(format!(
                             "entry {} in pack {}: {why:#}",
                             short(&hex),
@@ -843,8 +945,8 @@ impl Store {
     /// rewriting its good entries, records and failures as a new pack
     /// (returned) first when its index can be read.
     fn heal_pack(&self, path: &Path) -> Result<Option<(Healed, Option<PathBuf>)>> {
-        let ix = match pack::read_index(path) {
-            Ok(ix) => ix,
+        let (ix, file) = match pack::open_index(path) {
+            Ok(open) => open,
             Err(why) => {
                 remove_any(path)?;
                 return Ok(Some((
@@ -861,7 +963,7 @@ impl Store {
         let mut bad = Vec::new();
         for (key, span) in &ix.entries {
             let hex = pack::key_hex(key);
-            match pack::read_span(path, *span).and_then(|bytes| {
+            match pack::read_span_at(&file, *span).and_then(|bytes| {
                 verify_packed(&bytes, &hex)?;
                 Ok(bytes)
             }) {
@@ -1031,7 +1133,7 @@ impl Store {
             let mut guard = self.packs.write().unwrap_or_else(|e| e.into_inner());
             guard
                 .get_or_insert_with(Packs::default)
-                .add(path.clone(), index);
+                .add(path.clone(), index, None);
         }
         *pending = Pending::default();
         Ok(Some(path))
@@ -1351,8 +1453,8 @@ fn read_part(path: &Path, max: u64, what: &str) -> Result<Vec<u8>> {
 }
 
 /// An entry read from a pack and verified as a loose one is.
-fn read_packed(path: &Path, span: Span, key: &str) -> Result<Entry> {
-    verify_packed(&pack::read_span(path, span)?, key)
+fn read_packed(f: &fs::File, span: Span, key: &str) -> Result<Entry> {
+    verify_packed(&pack::read_span_at(f, span)?, key)
 }
 
 /// The entry of `key` from its bytes in a pack, verified as a loose one is.
@@ -1578,8 +1680,14 @@ mod tests {
         let mut b = fs::read(&f).unwrap();
         b[0] ^= 1;
         fs::write(&f, b).unwrap();
-        assert!(matches!(store.lookup(&k.hash()), Lookup::Corrupt(_)));
-        assert!(matches!(store.lookup(&k.hash()), Lookup::Miss));
+        assert!(matches!(
+            store.lookup(&k.hash()),
+            Lookup::Miss(Miss::Corrupt(why)) if why.contains("readings.parquet does not match its manifest")
+        ));
+        assert!(matches!(
+            store.lookup(&k.hash()),
+            Lookup::Miss(Miss::Absent)
+        ));
         fs::remove_dir_all(&dir).unwrap();
     }
 }

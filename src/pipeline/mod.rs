@@ -31,6 +31,7 @@ pub mod overrides;
 pub mod pack;
 pub mod panics;
 pub mod plan;
+pub mod publish;
 pub mod published;
 pub mod raw;
 pub mod report;

@@ -279,6 +279,14 @@ fn decode_index(bytes: &[u8], file_len: u64) -> Result<Index> {
 
 /// Reads a pack's index, checking its trailer and its hash.
 pub fn read_index(path: &Path) -> Result<Index> {
+    open_index(path).map(|(ix, _)| ix)
+}
+
+/// [`read_index`], and the pack kept open: the entries it indexes are then
+/// read by position through this file ([`read_span_at`],
+/// [`read_manifest_at`]), not by opening the pack — and checking every
+/// folder on its way for links — once per entry.
+pub fn open_index(path: &Path) -> Result<(Index, File)> {
     let (f, len) = open(path)?;
     if len < (MAGIC.len() + TRAILER) as u64 {
         bail!("too short to be a pack");
@@ -298,7 +306,7 @@ pub fn read_index(path: &Path) -> Result<Index> {
     if blake3::hash(&index).as_bytes() != &trailer[16..48] {
         bail!("the index does not match its hash (corrupted)");
     }
-    decode_index(&index, offset)
+    Ok((decode_index(&index, offset)?, f))
 }
 
 /// Opens a pack: a regular file of at most [`MAX_PACK_BYTES`]; its length.
@@ -306,10 +314,15 @@ fn open(path: &Path) -> Result<(File, u64)> {
     crate::fs::open_regular_file(path, MAX_PACK_BYTES).map_err(|e| anyhow!("{}", e.reason))
 }
 
-/// Opens a pack to read `span` of it, which must lie within the file as it
-/// is now (a pack cut short since its index was read).
-fn open_for(path: &Path, span: Span) -> Result<File> {
-    let (f, len) = open(path)?;
+/// Opens a pack to read entries of it by position.
+pub fn open_pack(path: &Path) -> Result<File> {
+    open(path).map(|(f, _)| f)
+}
+
+/// Checks that `span` lies within the open pack `f` as it is now (a pack
+/// cut short since its index was read).
+fn within(f: &File, span: Span) -> Result<()> {
+    let len = f.metadata()?.len();
     if span
         .offset
         .checked_add(span.len)
@@ -317,14 +330,22 @@ fn open_for(path: &Path, span: Span) -> Result<File> {
     {
         bail!("the entry lies beyond the pack's end (the pack was cut short)");
     }
-    Ok(f)
+    Ok(())
 }
 
 /// Reads one entry's bytes from a pack.
 pub fn read_span(path: &Path, span: Span) -> Result<Vec<u8>> {
-    let f = open_for(path, span)?;
+    let f = open_pack(path)?;
+    within(&f, span)?;
+    read_span_at(&f, span)
+}
+
+/// Reads one entry's bytes from an open pack. Its index bounded `span` by
+/// the pack's length when it was read; a pack cut short since fails the
+/// read (no length is asked per entry: a cached sweep reads thousands).
+pub fn read_span_at(f: &File, span: Span) -> Result<Vec<u8>> {
     let mut buf = vec![0u8; span.len as usize];
-    f.read_exact_at(&mut buf, span.offset)?;
+    read_at(f, &mut buf, span.offset)?;
     Ok(buf)
 }
 
@@ -353,19 +374,37 @@ pub fn split(bytes: &[u8], parts: impl FnOnce(&[u8]) -> Result<usize>) -> Result
 
 /// Just the manifest of an entry: its length, then its bytes.
 pub fn read_manifest(path: &Path, span: Span) -> Result<Vec<u8>> {
-    let f = open_for(path, span)?;
+    let f = open_pack(path)?;
+    within(&f, span)?;
+    read_manifest_at(&f, span)
+}
+
+/// [`read_manifest`] from an open pack (as [`read_span_at`]).
+pub fn read_manifest_at(f: &File, span: Span) -> Result<Vec<u8>> {
     if span.len < 4 {
         bail!("the manifest ends early");
     }
     let mut n = [0u8; 4];
-    f.read_exact_at(&mut n, span.offset)?;
+    read_at(f, &mut n, span.offset)?;
     let n = u32::from_le_bytes(n) as u64;
     if n + 4 > span.len {
         bail!("the manifest ends early");
     }
     let mut buf = vec![0u8; n as usize];
-    f.read_exact_at(&mut buf, span.offset + 4)?;
+    read_at(f, &mut buf, span.offset + 4)?;
     Ok(buf)
+}
+
+/// A positioned read of a whole buffer; the pack's end reached first is
+/// said as such.
+fn read_at(f: &File, buf: &mut [u8], offset: u64) -> Result<()> {
+    f.read_exact_at(buf, offset).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::UnexpectedEof {
+            anyhow!("the entry lies beyond the pack's end (the pack was cut short)")
+        } else {
+            e.into()
+        }
+    })
 }
 
 #[cfg(test)]

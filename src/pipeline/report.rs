@@ -26,7 +26,7 @@
 use super::graph;
 use super::names::PSEUDO_STAGE;
 use super::resolve::Pipeline;
-use super::run_report::{RunReport, StageReport};
+use super::run_report::{RunReport, StageReport, Tables};
 use super::status::Status;
 use crate::fs::write_atomic;
 use crate::table;
@@ -46,10 +46,6 @@ pub const PREVIEW_ROWS: usize = 10;
 const OPEN_TABLES: usize = 24;
 /// Significant digits of a number without an uncertainty.
 const SIGNIFICANT: i32 = 4;
-
-/// Stage → table → frame, as the run produced or reused them (a sweep's
-/// gathered tables under [`PSEUDO_STAGE`]).
-pub type Tables = BTreeMap<String, BTreeMap<String, Arc<DataFrame>>>;
 
 /// Escapes text for HTML content and quoted attribute values.
 pub fn escape(s: &str) -> String {

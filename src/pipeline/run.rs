@@ -1,9 +1,12 @@
 //! The runner: executes a resolved pipeline level by level, stages of a level
 //! in parallel (rayon), reusing cached results, and publishes every stage's
-//! tables and figures under `results/<pipeline>/<stage>/`, the run report
-//! (`run.json`) and the page [`super::report`] (`index.html`) — or, for an
-//! [`super::experiment`] (a run with `--set`), the same under
-//! `results/<pipeline>/runs/<name>/`, the cache being shared.
+//! tables and figures under `results/<pipeline>/<stage>/` — or, for an
+//! [`super::experiment`] (a run with `--set`), under
+//! `results/<pipeline>/runs/<name>/`, the cache being shared. It returns
+//! what it did ([`RunReport`]) and the tables it holds; the run's record
+//! (`run.json`) and page (`index.html`) are published by a later layer,
+//! [`super::publish`], which the page's renderer ([`super::report`]) sits
+//! below: executing knows nothing of how a run is shown.
 //!
 //! A published file that differs from the stage's cached result is
 //! replaced. It is reported as edited or damaged only when it is not what
@@ -24,11 +27,10 @@
 //! report says so (`cache_problem`), so that a damaged cache is visible
 //! rather than silently repaired.
 
-use super::cache::{self, Entry, KeyFields, Lookup, Manifest, Store};
+use super::cache::{self, Entry, KeyFields, Lookup, Manifest, Miss, Store};
 use super::experiment::{self, Experiment};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
-use super::report;
 use super::resolve::{Pipeline, Stage, Sweep};
 use super::select::Selection;
 use super::status::Status;
@@ -59,7 +61,7 @@ pub struct RunOptions {
     pub experiment: Option<Experiment>,
 }
 
-pub use super::run_report::{RunReport, StageReport, SweepReport};
+pub use super::run_report::{RunReport, StageReport, SweepReport, Tables};
 
 /// A stage's outputs as the next stages see them.
 struct Produced {
@@ -156,14 +158,23 @@ struct Runner<'a> {
     selection: &'a Selection,
 }
 
-/// Runs the pipeline (and, with a `[sweep]`, every point of it).
-pub fn run(p: &Pipeline, opts: &RunOptions) -> Result<RunReport> {
-    run_selected(p, opts, &Selection::default())
+/// What executing a pipeline came to: the run's report and the tables the
+/// run holds in memory, for a later layer to publish ([`super::publish`]).
+pub struct Executed {
+    pub report: RunReport,
+    pub tables: Tables,
 }
 
-/// [`run`], computing only what `selection` allows (a stage it does not is
-/// served if cached, else skipped) and its forced stages even if cached.
-pub fn run_selected(p: &Pipeline, opts: &RunOptions, selection: &Selection) -> Result<RunReport> {
+/// Executes the pipeline (and, with a `[sweep]`, every point of it),
+/// computing only what `selection` allows (a stage it does not is served if
+/// cached, else skipped) and its forced stages even if cached. Every
+/// stage's tables and figures are published as they are computed or served;
+/// the run's own record and page are not ([`super::publish::run`]).
+pub fn execute_pipeline(
+    p: &Pipeline,
+    opts: &RunOptions,
+    selection: &Selection,
+) -> Result<Executed> {
     let started = SystemTime::now();
     let mut exp = opts.experiment.clone();
     let store = store(&opts.results_root, p, exp.as_ref());
@@ -249,8 +260,7 @@ pub fn run_selected(p: &Pipeline, opts: &RunOptions, selection: &Selection) -> R
             .collect(),
         healed: store.heal(false),
     };
-    crate::fs::write_atomic(&dir.join("run.json"), &serde_json::to_vec_pretty(&report)?)?;
-    let tables: report::Tables = produced
+    let tables: Tables = produced
         .into_iter()
         .map(|(stage, prod)| {
             let t = prod
@@ -261,12 +271,11 @@ pub fn run_selected(p: &Pipeline, opts: &RunOptions, selection: &Selection) -> R
             (stage, t)
         })
         .collect();
-    report::write(&dir, p, &report, &tables)?;
-    Ok(report)
+    Ok(Executed { report, tables })
 }
 
 /// A report per stage and what the stages produced, by stage name.
-type Executed = (Vec<StageReport>, BTreeMap<String, Arc<Produced>>);
+type StagesDone = (Vec<StageReport>, BTreeMap<String, Arc<Produced>>);
 
 /// Runs stages level by level, a level's stages in parallel. `external`
 /// holds tables of producers that are not among `stages` (a sweep's
@@ -275,7 +284,7 @@ fn execute_stages(
     runner: &Runner,
     stages: &[Stage],
     external: BTreeMap<String, Arc<Produced>>,
-) -> Executed {
+) -> StagesDone {
     let graph = Graph::of(stages);
     let produced: Mutex<BTreeMap<String, Arc<Produced>>> = Mutex::new(external);
     let mut reports: Vec<Option<StageReport>> = vec![None; stages.len()];
@@ -828,23 +837,23 @@ fn execute(runner: &Runner, s: &Stage, inputs: Wired) -> (StageReport, Option<Pr
         }
     }
     // A forced stage is not looked up: its entry is neither read nor verified.
-    let lookup = if forced {
-        None
+    let answer = if forced {
+        Lookup::Miss(Miss::Forced)
     } else {
-        Some(store.lookup(&key))
+        store.lookup(&key)
     };
-    report.reason = match lookup {
-        None => "forced (--force)".to_string(),
-        Some(Lookup::Hit(entry)) => match decode(&entry) {
+    let miss = match answer {
+        Lookup::Hit(entry) => match decode(&entry) {
             Ok(prod) => return serve_cached(runner, s, &kf, &entry, prod, report),
-            Err(e) => format!("its cached result could not be read: {e:#}"),
+            Err(e) => Miss::Unreadable(format!("{e:#}")),
         },
-        Some(Lookup::Corrupt(why)) => {
-            let reason = format!("its cached result was corrupt and is recomputed: {why}");
-            report.cache_problem = Some(why);
-            reason
-        }
-        Some(Lookup::Miss) => reason(store, &s.name, runner.point, &kf),
+        Lookup::Miss(miss) => miss,
+    };
+    report.cache_problem = miss.damage().map(str::to_string);
+    report.reason = match miss {
+        // What changed since it last ran, or that its result went missing.
+        Miss::Absent => reason(store, &s.name, runner.point, &kf),
+        miss => miss.to_string(),
     };
     if !runner.selection.computes(&s.name) {
         report.status = Status::Skipped;
@@ -1126,7 +1135,9 @@ mod tests {
             not_computed: None,
             experiment: None,
         };
-        run(&p, &opts).unwrap()
+        execute_pipeline(&p, &opts, &Selection::default())
+            .unwrap()
+            .report
     }
 
     fn statuses(r: &RunReport) -> Vec<(&str, Status)> {

@@ -7,9 +7,16 @@ use super::cache;
 use super::experiment::Experiment;
 use super::names;
 use super::status::Status;
+use polars::prelude::DataFrame;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Stage → table → frame, as a run produced or reused them (a sweep's
+/// gathered tables under `sweep`): what the page previews without reading
+/// them back.
+pub type Tables = BTreeMap<String, BTreeMap<String, Arc<DataFrame>>>;
 
 /// What happened to one stage.
 #[derive(Clone, Debug, Serialize)]

@@ -588,7 +588,7 @@ fn read_back(results: &Path, file: &Path) -> Verdict {
             seen |= names_a_file(&m, &dir);
         }
     }
-    match run::run(&p, &opts(results)) {
+    match ltcal::pipeline::publish::run(&p, &opts(results)) {
         Err(e) => {
             let m = format!("{e:#}");
             if !names_a_file(&m, &dir) {

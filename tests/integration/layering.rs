@@ -410,8 +410,9 @@ const PIPELINE_LAYERS: &[&[&str]] = &[
     &["resolve", "run_report"],
     &["plan", "select"],
     &["explain", "gc", "graph", "published", "summary"],
-    &["report"],
     &["run"],
+    &["report"],
+    &["publish"],
     &["snapshot", "cluster", "diagnose"],
     &[""],
 ];

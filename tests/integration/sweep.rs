@@ -515,6 +515,68 @@ fn packs_of(results: &Path, name: &str) -> Vec<PathBuf> {
     v
 }
 
+/// The position in `pack` of the last byte of part `part` (tables, then
+/// files, in manifest order) of the first entry of stage `stage`.
+fn last_byte_of(pack: &Path, stage: &str, part: usize) -> usize {
+    use ltcal::pipeline::pack;
+    let ix = pack::read_index(pack).unwrap();
+    let (_, span) = ix
+        .entries
+        .iter()
+        .find(|(_, span)| {
+            let m = pack::read_manifest(pack, *span).unwrap();
+            let m: serde_json::Value = serde_json::from_slice(&m).unwrap();
+            m["stage"] == stage
+        })
+        .unwrap();
+    let bytes = pack::read_span(pack, *span).unwrap();
+    let blob = pack::split(&bytes, |m| {
+        let m: serde_json::Value = serde_json::from_slice(m).unwrap();
+        Ok(m["tables"].as_array().unwrap().len() + m["files"].as_array().unwrap().len())
+    })
+    .unwrap();
+    let b = blob.parts[part];
+    span.offset as usize + (b.as_ptr() as usize - bytes.as_ptr() as usize) + b.len() - 1
+}
+
+/// A cached sweep point's gathered table is read and verified alone, not
+/// its whole entry: a damaged table of the entry that nothing reads
+/// (`evaluation.terms`, the last of its five) is never served, the gathered
+/// table is unchanged, and the run's closing heal finds the pack changed,
+/// reads it whole and takes the damaged entry out, saying so.
+#[test]
+fn a_damaged_table_nothing_reads_is_not_served_and_the_run_heals_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "unread", 2, 2);
+    let results = dir.path().join("r");
+    run_pipeline(&file, &results, &[]);
+    let clean = gathered(&results, "unread");
+    let pack = packs_of(&results, "unread").remove(0);
+    let at = last_byte_of(&pack, "evaluation", 4);
+    let mut bytes = std::fs::read(&pack).unwrap();
+    bytes[at] ^= 0x01;
+    std::fs::write(&pack, &bytes).unwrap();
+    let r = run_pipeline(&file, &results, &[]);
+    assert!(
+        r.stages.iter().all(|s| s.cache_problem.is_none()),
+        "{:?}",
+        r.stages
+    );
+    assert_eq!(gathered(&results, "unread"), clean);
+    assert_eq!(r.healed.len(), 1, "{:?}", r.healed);
+    assert!(
+        r.healed[0]
+            .damage
+            .contains("terms.parquet does not match its manifest"),
+        "{}",
+        r.healed[0]
+    );
+    // The entry taken out is computed again, and the same.
+    let r = run_pipeline(&file, &results, &[]);
+    assert_eq!(r.sweep.as_ref().unwrap().ran, 1);
+    assert_eq!(gathered(&results, "unread"), clean);
+}
+
 /// A sweep point's damaged packed entry was recomputed without a word: the
 /// per-stage line of a sweep dropped every `cache_problem`, and a pack
 /// whose index could not be read was skipped silently.
@@ -526,22 +588,12 @@ fn a_damaged_pack_is_reported_and_its_points_recomputed() {
     run_pipeline(&file, &results, &[]);
     let clean = gathered(&results, "damaged");
     let pack = packs_of(&results, "damaged").remove(0);
-    // The last byte of a gathered stage's entry (a byte of its tables): read
-    // by the gather, it fails its hash, is reported and recomputed. (A
-    // damaged entry nothing reads is never read, so never served.)
-    use ltcal::pipeline::pack;
-    let ix = pack::read_index(&pack).unwrap();
-    let (_, span) = ix
-        .entries
-        .iter()
-        .find(|(_, span)| {
-            let m = pack::read_manifest(&pack, *span).unwrap();
-            let m: serde_json::Value = serde_json::from_slice(&m).unwrap();
-            m["stage"] == "evaluation"
-        })
-        .unwrap();
+    // The last byte of the gathered table in its stage's entry: read by the
+    // gather, it fails its hash, is reported and recomputed. (A damaged
+    // table nothing reads is never read, so never served:
+    // `a_damaged_table_nothing_reads_is_not_served_and_the_run_heals_it`.)
+    let at = last_byte_of(&pack, "evaluation", 0);
     let mut bytes = std::fs::read(&pack).unwrap();
-    let at = (span.offset + span.len - 1) as usize;
     bytes[at] ^= 0x01;
     std::fs::write(&pack, &bytes).unwrap();
     let r = run_pipeline(&file, &results, &[]);

@@ -17,7 +17,7 @@ pub fn pipeline_path(name: &str) -> PathBuf {
 pub fn run_pipeline(file: &Path, results: &Path, sets: &[&str]) -> run::RunReport {
     let overrides: Vec<Override> = sets.iter().map(|s| Override::parse(s).unwrap()).collect();
     let p = pipeline::load(file, &overrides).unwrap_or_else(|e| panic!("{e}"));
-    let report = run::run(
+    let report = ltcal::pipeline::publish::run(
         &p,
         &run::RunOptions {
             results_root: results.to_path_buf(),

@@ -54,6 +54,7 @@ pub use settings::SlurmSettings;
 
 use super::cache::Store;
 use super::plan;
+use super::publish;
 use super::resolve::{Pipeline, Sweep};
 use super::run::{self, RunOptions, point_label};
 use super::run_report::RunReport;
@@ -360,7 +361,7 @@ pub fn run(
         not_computed: Some(Arc::new(failed)),
         ..opts.clone()
     };
-    let report = run::run(p, &run_opts)?;
+    let report = publish::run(p, &run_opts)?;
     Ok(Outcome::Finished(Box::new(report)))
 }
 
