@@ -52,6 +52,7 @@ const SETTINGS: Settings = Settings {
     norm: Norm::L2,
     rank_tol: 1e-9,
     max_iters: 100,
+    std: ltcal::calibrate::BundleStd::Auto,
 };
 
 fn calibrate_corner(c: &mut Criterion) {

@@ -93,6 +93,7 @@ fn race_phases(c: &mut Criterion) {
         norm: Norm::L2,
         rank_tol: ltcal::stages::fitting::default_rank_tol(),
         max_iters: 100,
+        std: ltcal::calibrate::BundleStd::Auto,
     };
     let dir = tempfile::tempdir().unwrap();
     for (per_level, stations, faces) in &SIZES[..3] {

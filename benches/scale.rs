@@ -72,6 +72,7 @@ fn bundle() -> Settings {
         norm: Norm::L2,
         rank_tol: 1e-9,
         max_iters: 100,
+        std: ltcal::calibrate::BundleStd::Auto,
     }
 }
 

@@ -1381,6 +1381,7 @@ fn base_calibration(net: &Network, s: &Settings) -> Result<Calibration> {
             norm: Norm::L2,
             rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
+            std: crate::calibrate::BundleStd::ScaledStatedNoise,
         },
     )
 }

@@ -67,6 +67,7 @@ fn adjust(net: &Network, tracker: TrackerModel) -> Result<(Calibration, Linearis
             norm: Norm::L2,
             rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
+            std: crate::calibrate::BundleStd::ScaledStatedNoise,
         },
     )?;
     let lin = cal

@@ -115,6 +115,7 @@ impl MonteCarloStage {
             norm: Norm::L2,
             rank_tol: self.rank_tol,
             max_iters: self.max_iters,
+            std: calibrate::BundleStd::Auto,
         };
         let cal = calibrate::calibrate(&net, &start, &free, &settings)?;
         let repeated = Repeated::new(&net, &start, &free, &settings)?;

@@ -190,6 +190,7 @@ mod tests {
                 norm: Norm::L2,
                 rank_tol: crate::identifiability::DEFAULT_REL_TOL,
                 max_iters: 100,
+                std: calibrate::BundleStd::Auto,
             },
         )
         .unwrap();

@@ -41,6 +41,7 @@ fn settings(objective: Objective, norm: Norm) -> Settings {
         norm,
         rank_tol: 1e-9,
         max_iters: 200,
+        std: ltcal::calibrate::BundleStd::Auto,
     }
 }
 

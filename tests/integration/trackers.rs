@@ -66,6 +66,7 @@ fn bundle(net: &Network, start: &ErrorParams) -> Calibration {
         norm: Norm::L2,
         rank_tol: 1e-9,
         max_iters: 200,
+        std: ltcal::calibrate::BundleStd::Auto,
     };
     calibrate::calibrate(net, start, &free, &s).unwrap()
 }
