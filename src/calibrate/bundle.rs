@@ -32,9 +32,7 @@ use super::{
 use crate::determined::Determined;
 use crate::error_model::{ErrorParams, Evaluator, Links};
 use crate::identifiability::{Analysis, Combination};
-use crate::identify::{
-    VC_MAX_ITERS, VC_MIN_REDUNDANCY, VC_ROUND_OFF, helmert_round, helmert_u,
-};
+use crate::identify::{VC_MAX_ITERS, VC_ROUND_OFF, helmert_round, helmert_u};
 use crate::kinematics::nominal_jacobian;
 use crate::solver::{LevenbergMarquardt, LmJacobian, NormalEquations};
 use anyhow::{Result, anyhow, bail};
@@ -945,10 +943,10 @@ struct Components {
 /// until none moves by more than [`crate::identify::VC_TOL`]. The
 /// redundancy numbers come from the factorised normal matrix, reflector
 /// blocks through the Schur complement ([`hat_diagonal`]). The angle and
-/// range groups must have redundancy; the gauge and the references keep
-/// their stated σ when theirs is below
-/// [`crate::identify::VC_MIN_REDUNDANCY`] (a handful of lengths, or
-/// references that only fix the frame).
+/// range groups must have redundancy (at least
+/// [`crate::identify::VC_MIN_REDUNDANCY`]); the gauge and the references
+/// keep their stated σ when theirs is below [`HELD_BELOW_REDUNDANCY`] at
+/// the first round.
 fn variance_components(
     setup: &Setup,
     net: &Network,
@@ -993,7 +991,7 @@ fn variance_components(
         }
         let which = estimated.get_or_insert_with(|| {
             (0..4)
-                .filter(|&g| g <= RANGE || redundancy[g] >= VC_MIN_REDUNDANCY)
+                .filter(|&g| g <= RANGE || redundancy[g] >= HELD_BELOW_REDUNDANCY)
                 .collect()
         });
         let mut now: Vec<f64> = which.iter().map(|&g| s2[g]).collect();
@@ -1013,6 +1011,13 @@ fn variance_components(
     }
     Ok(Components { s2, redundancy })
 }
+
+/// The redundancy below which the gauge's or the references' σ is held at
+/// its stated value rather than estimated: their component's uncertainty
+/// `u(σ)/σ = 1/√(2r)` is then above 22 % — a few gauge lengths, or
+/// references that do little more than fix the frame, cannot say how far
+/// their σ was off.
+const HELD_BELOW_REDUNDANCY: f64 = 10.0;
 
 /// The diagonal of block `b`'s share of the hat matrix `J_b·N⁻¹·J_bᵀ`
 /// (its first `rows` entries), from the dense part's covariance `S⁻¹`
@@ -1378,6 +1383,72 @@ mod tests {
         assert_eq!(one.estimate.std, three.estimate.std);
         assert_eq!(one.fit.chi2, three.fit.chi2);
         assert_eq!(one.point_std, three.point_std);
+    }
+
+    /// The redundancy numbers behind the variance components come from the
+    /// factorised normal matrix, each reflector through its Schur blocks:
+    /// they must be the dense hat matrix's, row by row, and sum to the
+    /// degrees of freedom.
+    #[test]
+    fn redundancy_numbers_from_the_schur_blocks_match_the_dense_hat_matrix() {
+        let net = corner_network();
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let setup = Setup::new(&net, &start, &[true; 18]).unwrap();
+        let det = analyse_setup(&net, &start, &setup, identifiability::DEFAULT_REL_TOL).unwrap();
+        let basis = det.basis().clone();
+        let layout = setup.layout(&net, basis.ncols());
+        let problem = setup.problem(&net, &start, &basis, &layout);
+        let (j, _) = problem.jacobian_at(&setup.initial(&layout), false);
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let sinv = f.dense_covariance();
+        let groups = RowGroups::new(&net, &layout, setup.use_references);
+        let jd = j.to_dense();
+        assert_eq!(groups.group.len(), jd.nrows());
+        let q = (jd.transpose() * &jd).try_inverse().unwrap();
+        let (mut total, mut reflector_blocks) = (0.0, 0);
+        for (b, &(row, rows)) in groups.blocks.iter().enumerate() {
+            reflector_blocks += usize::from(j.block_point(b).is_some());
+            let h = hat_diagonal(&j, &f, &sinv, b, rows);
+            for k in 0..rows {
+                let want = jd.row(row + k).dot(&(&q * jd.row(row + k).transpose()).transpose());
+                assert!((h[k] - want).abs() < 1e-8, "row {}: {} vs {want}", row + k, h[k]);
+                total += 1.0 - h[k];
+            }
+        }
+        assert!(reflector_blocks > 0);
+        let dof = (jd.nrows() - layout.n) as f64;
+        assert!((total - dof).abs() < 1e-6, "{total} vs {dof}");
+    }
+
+    /// Issue 31: with the angles' σ stated three times too small and the
+    /// ranges' right, the χ² test refutes the stated noise and the
+    /// default re-weights by the components, which find the 3 and the 1.
+    #[test]
+    fn variance_components_find_the_understated_angle_group() {
+        let net = corner_network().scaled(&[1.0 / 9.0, 1.0, 1.0, 1.0]);
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let settings = Settings {
+            objective: super::super::Objective::Bundle,
+            norm: Norm::L2,
+            rank_tol: identifiability::DEFAULT_REL_TOL,
+            max_iters: 100,
+            std: BundleStd::Auto,
+        };
+        let cal = calibrate(&net, &start, &[true; 18], &settings).unwrap();
+        assert_eq!(cal.fit.std_from, "variance-components");
+        assert!(cal.fit.chi2_p.unwrap() < STATED_NOISE_ALPHA);
+        let (a, r) = (
+            cal.fit.sigma_angle_factor.unwrap(),
+            cal.fit.sigma_range_factor.unwrap(),
+        );
+        assert!((a.factor - 3.0).abs() < 3.0 * a.u, "{a:?}");
+        assert!((r.factor - 1.0).abs() < 3.0 * r.u, "{r:?}");
+        assert!(a.u > 0.0 && a.u < 0.1 * a.factor, "{a:?}");
+        // The same network with its noise stated right keeps it.
+        let right = calibrate(&corner_network(), &start, &[true; 18], &settings).unwrap();
+        assert_eq!(right.fit.std_from, "stated-noise");
+        let a = right.fit.sigma_angle_factor.unwrap();
+        assert!((a.factor - 1.0).abs() < 3.0 * a.u, "{a:?}");
     }
 
     #[test]
