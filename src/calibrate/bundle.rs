@@ -23,6 +23,23 @@
 //! are eliminated first (a 3 × 3 block each, Schur complement), leaving a
 //! small dense system in the error parameters, the poses and the few
 //! positions a gauge couples.
+//!
+//! The covariance is the inverse normal matrix of the weighting the
+//! estimates come from (`std`, [`BundleStd`]). One global factor
+//! `max(χ²/dof, 1)` on the stated-noise covariance — the former default —
+//! misleads when only one group's σ is understated (the mix inflates what
+//! the other group determines and not enough what that group does) and
+//! inflates every fit whose χ²/dof exceeds 1 by chance. Instead, Helmert's
+//! variance components of the groups — angles (az, el), ranges, and the
+//! gauge and references where they have the redundancy — are estimated
+//! from the residuals, in Förstner's iterated form shared with
+//! [`crate::identify`] ([`variance_components`]). By default the stated
+//! noise stands, unscaled, while the χ² test accepts it
+//! ([`STATED_NOISE_ALPHA`]); when the test refutes it, the network is
+//! re-weighted by the components and fitted again from the stated-noise
+//! solution, and its covariance is that fit's. `chi2`, the residuals and
+//! the linearisation (the w-tests of data snooping) stay those of the
+//! stated noise: they are its test.
 
 use super::register::{Rigid, align};
 use super::sparse::{self, BlockJacobian, Normal};
@@ -679,7 +696,16 @@ pub fn calibrate(
     let layout = setup.layout(net, basis.ncols());
     let x0 = setup.initial(&layout);
     let r0 = setup.problem(net, start, &basis, &layout).residuals(&x0);
-    let stated = solve(&setup, net, start, &basis, &layout, &x0, Some(&r0), settings)?;
+    let stated = solve(
+        &setup,
+        net,
+        start,
+        &basis,
+        &layout,
+        &x0,
+        Some(&r0),
+        settings,
+    )?;
     let m = stated.r.len();
     let chi2 = stated.r.norm_squared();
     let dof = m.saturating_sub(layout.n).max(1);
@@ -698,15 +724,15 @@ pub fn calibrate(
         BundleStd::Auto => refuted,
     };
     let (std_from, var_factor, reweighted) = match (&components, use_components) {
-        (_, false) if settings.std != BundleStd::ScaledStatedNoise => {
-            ("stated-noise", 1.0, None)
-        }
+        (_, false) if settings.std != BundleStd::ScaledStatedNoise => ("stated-noise", 1.0, None),
         (Ok(c), true) => {
             // The estimates and their covariance from the fit weighted by
             // the estimated σ, started at the stated-noise solution.
             let net_w = net.scaled(&c.s2);
             let setup_w = setup.reweighted(&net_w);
-            let fit = solve(&setup_w, &net_w, start, &basis, &layout, &stated.x, None, settings)?;
+            let fit = solve(
+                &setup_w, &net_w, start, &basis, &layout, &stated.x, None, settings,
+            )?;
             ("variance-components", 1.0, Some(fit))
         }
         _ => ("scaled-stated-noise", (chi2 / dof as f64).max(1.0), None),
@@ -1410,8 +1436,15 @@ mod tests {
             reflector_blocks += usize::from(j.block_point(b).is_some());
             let h = hat_diagonal(&j, &f, &sinv, b, rows);
             for k in 0..rows {
-                let want = jd.row(row + k).dot(&(&q * jd.row(row + k).transpose()).transpose());
-                assert!((h[k] - want).abs() < 1e-8, "row {}: {} vs {want}", row + k, h[k]);
+                let want = jd
+                    .row(row + k)
+                    .dot(&(&q * jd.row(row + k).transpose()).transpose());
+                assert!(
+                    (h[k] - want).abs() < 1e-8,
+                    "row {}: {} vs {want}",
+                    row + k,
+                    h[k]
+                );
                 total += 1.0 - h[k];
             }
         }

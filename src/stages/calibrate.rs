@@ -320,12 +320,18 @@ fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
             "sigma_angle_factor",
             vec![f.sigma_angle_factor.map(|c| c.factor)],
         )
-        .opt_f64("sigma_angle_factor_u", vec![f.sigma_angle_factor.map(|c| c.u)])
+        .opt_f64(
+            "sigma_angle_factor_u",
+            vec![f.sigma_angle_factor.map(|c| c.u)],
+        )
         .opt_f64(
             "sigma_range_factor",
             vec![f.sigma_range_factor.map(|c| c.factor)],
         )
-        .opt_f64("sigma_range_factor_u", vec![f.sigma_range_factor.map(|c| c.u)])
+        .opt_f64(
+            "sigma_range_factor_u",
+            vec![f.sigma_range_factor.map(|c| c.u)],
+        )
         .f64("rms_before", vec![f.rms_before])
         .f64("rms_after", vec![f.rms_after])
         .f64("mean_abs_before", vec![f.mean_abs_before])
