@@ -1435,17 +1435,12 @@ mod tests {
         for (b, &(row, rows)) in groups.blocks.iter().enumerate() {
             reflector_blocks += usize::from(j.block_point(b).is_some());
             let h = hat_diagonal(&j, &f, &sinv, b, rows);
-            for k in 0..rows {
+            for (k, &h) in h.iter().enumerate().take(rows) {
                 let want = jd
                     .row(row + k)
                     .dot(&(&q * jd.row(row + k).transpose()).transpose());
-                assert!(
-                    (h[k] - want).abs() < 1e-8,
-                    "row {}: {} vs {want}",
-                    row + k,
-                    h[k]
-                );
-                total += 1.0 - h[k];
+                assert!((h - want).abs() < 1e-8, "row {}: {} vs {want}", row + k, h);
+                total += 1.0 - h;
             }
         }
         assert!(reflector_blocks > 0);

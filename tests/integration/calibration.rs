@@ -519,6 +519,9 @@ fn eq17_registration_converges_and_matches_an_independent_procrustes_on_the_corn
     }
 }
 
+/// A station's pose: rotation and position.
+type Pose = (nalgebra::Rotation3<f64>, nalgebra::Vector3<f64>);
+
 /// Each free station's true pose relative to the station that fixes the
 /// frame (station → that station's frame), in the network's order.
 fn relative_truth(
@@ -543,12 +546,7 @@ fn relative_truth(
 /// every free station's position and rotation (their errors against the
 /// truth relative to the fixed station, the three axes pooled, as the
 /// stations table's std pools them), by name.
-fn bundle_ratios(
-    fits: &[(
-        &Calibration,
-        &[(nalgebra::Rotation3<f64>, nalgebra::Vector3<f64>)],
-    )],
-) -> Vec<(String, f64)> {
+fn bundle_ratios(fits: &[(&Calibration, &[Pose])]) -> Vec<(String, f64)> {
     use ltcal::stages::spread::Spread;
     let mut out = Vec::new();
     for k in 0..18 {
@@ -576,7 +574,7 @@ fn bundle_ratios(
             let var: f64 = (0..3)
                 .map(|k| {
                     let v: Vec<f64> = fits.iter().map(|f| error(f)[k]).collect();
-                    let s: Vec<f64> = fits.iter().map(|f| std(f)).collect();
+                    let s: Vec<f64> = fits.iter().map(std).collect();
                     Spread::of(&v, &s).unwrap().spread.powi(2)
                 })
                 .sum();
