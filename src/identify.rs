@@ -199,7 +199,7 @@ pub const VC_MAX_ITERS: u64 = 50;
 pub const VC_ROUND_OFF: f64 = 1e-6;
 /// Least redundancy a group needs for its component to mean anything:
 /// below one reading's worth, `u(σ²)/σ² = √(2/r)` exceeds 140 %.
-const VC_MIN_REDUNDANCY: f64 = 1.0;
+pub const VC_MIN_REDUNDANCY: f64 = 1.0;
 
 /// What the identification found.
 #[derive(Clone, Debug)]
@@ -554,31 +554,59 @@ pub fn variance_components(
         let f = fit(obs, start, free, settings, Weighting::Noise, Some(noise))?;
         let [(qa, ra_now), (qr, rr_now)] = group_sums(&f)?;
         (ra, rr) = (ra_now, rr_now);
-        for (group, r) in [("angle", ra), ("range", rr)] {
-            // NaN included: only a number at or above the least will do.
-            if r.is_nan() || r < VC_MIN_REDUNDANCY {
-                bail!(
-                    "the {group} readings have a redundancy of {r:.3} (at least \
-                     {VC_MIN_REDUNDANCY} needed): the fit absorbs their noise"
-                );
-            }
-        }
-        // Förstner's update: the group's vᵀPv over its redundancy is the
-        // factor by which its prior variance was off.
-        let (na, nr) = (s2a * qa / ra, s2r * qr / rr);
-        for (group, v) in [("angle", na), ("range", nr)] {
-            if !(v.is_finite() && v > 0.0) {
-                bail!("the {group} variance component came out {v:e}: the residuals carry none");
-            }
-        }
-        converged = (na / s2a - 1.0).abs().max((nr / s2r - 1.0).abs()) < VC_TOL;
-        (s2a, s2r) = (na, nr);
+        let mut s2 = [s2a, s2r];
+        converged = helmert_round(&mut s2, &[("angle", qa, ra), ("range", qr, rr)])?;
+        [s2a, s2r] = s2;
         if s2a.max(s2r) < VC_ROUND_OFF * VC_ROUND_OFF {
             // Exact readings: the residuals are round-off, which never settles.
             break;
         }
     }
     Ok(components(s2a, s2r, ra, rr, round, converged))
+}
+
+/// One round of Förstner's update of the variance components `s2` of the
+/// groups `(name, vᵀPv, r_g)` — `v` whitened by the current components, `r_g`
+/// the group's redundancy number: the group's `vᵀPv / r_g` is the factor by
+/// which its variance was off. Returns whether every component moved by less
+/// than [`VC_TOL`] relatively; fails, saying which, when a group has less
+/// than [`VC_MIN_REDUNDANCY`] or a component comes out zero or not finite.
+/// Shared by the identification and the bundle adjustment
+/// ([`crate::calibrate::bundle`]).
+pub fn helmert_round(s2: &mut [f64], groups: &[(&str, f64, f64)]) -> Result<bool> {
+    for &(group, _, r) in groups {
+        // NaN included: only a number at or above the least will do.
+        if r.is_nan() || r < VC_MIN_REDUNDANCY {
+            bail!(
+                "the {group} readings have a redundancy of {r:.3} (at least \
+                 {VC_MIN_REDUNDANCY} needed): the fit absorbs their noise"
+            );
+        }
+    }
+    let next: Vec<f64> = s2
+        .iter()
+        .zip(groups)
+        .map(|(s2, &(_, q, r))| s2 * q / r)
+        .collect();
+    for (&v, &(group, ..)) in next.iter().zip(groups) {
+        if !(v.is_finite() && v > 0.0) {
+            bail!("the {group} variance component came out {v:e}: the residuals carry none");
+        }
+    }
+    let change = s2
+        .iter()
+        .zip(&next)
+        .map(|(old, new)| (new / old - 1.0).abs())
+        .fold(0.0, f64::max);
+    s2.copy_from_slice(&next);
+    Ok(change < VC_TOL)
+}
+
+/// Helmert's standard uncertainty of a component `σ` (or of a factor on
+/// it) estimated with redundancy `r`: `u(σ²) ≈ σ²·√(2/r)`, carried to σ,
+/// `u(σ) = u(σ²)/(2σ) = σ/√(2r)`.
+pub fn helmert_u(sigma: f64, r: f64) -> f64 {
+    sigma / (2.0 * r).sqrt()
 }
 
 /// The components with Helmert's uncertainty `u(σ²) ≈ σ²·√(2/r)`, carried
@@ -594,9 +622,9 @@ fn components(
     let (sa, sr) = (s2a.sqrt(), s2r.sqrt());
     VarianceComponents {
         sigma_angle_urad: sa,
-        sigma_angle_urad_u: sa / (2.0 * ra).sqrt(),
+        sigma_angle_urad_u: helmert_u(sa, ra),
         sigma_range_um: sr,
-        sigma_range_um_u: sr / (2.0 * rr).sqrt(),
+        sigma_range_um_u: helmert_u(sr, rr),
         redundancy_angle: ra,
         redundancy_range: rr,
         iterations,

@@ -23,13 +23,33 @@
 //! are eliminated first (a 3 × 3 block each, Schur complement), leaving a
 //! small dense system in the error parameters, the poses and the few
 //! positions a gauge couples.
+//!
+//! The covariance is the inverse normal matrix of the weighting the
+//! estimates come from (`std`, [`BundleStd`]). One global factor
+//! `max(χ²/dof, 1)` on the stated-noise covariance — the former default —
+//! misleads when only one group's σ is understated (the mix inflates what
+//! the other group determines and not enough what that group does) and
+//! inflates every fit whose χ²/dof exceeds 1 by chance. Instead, Helmert's
+//! variance components of the groups — angles (az, el), ranges, and the
+//! gauge and references where they have the redundancy — are estimated
+//! from the residuals, in Förstner's iterated form shared with
+//! [`crate::identify`] ([`variance_components`]). By default the stated
+//! noise stands, unscaled, while the χ² test accepts it
+//! ([`STATED_NOISE_ALPHA`]); when the test refutes it, the network is
+//! re-weighted by the components and fitted again from the stated-noise
+//! solution, and its covariance is that fit's. `chi2`, the residuals and
+//! the linearisation (the w-tests of data snooping) stay those of the
+//! stated noise: they are its test.
 
 use super::register::{Rigid, align};
 use super::sparse::{self, BlockJacobian, Normal};
-use super::{Calibration, FitSummary, Network, Norm, Settings, gauge_scale_ppm};
+use super::{
+    BundleStd, Calibration, FitSummary, Network, Norm, Settings, SigmaFactor, gauge_scale_ppm,
+};
 use crate::determined::Determined;
 use crate::error_model::{ErrorParams, Evaluator, Links};
 use crate::identifiability::{Analysis, Combination};
+use crate::identify::{VC_MAX_ITERS, VC_ROUND_OFF, helmert_round, helmert_u};
 use crate::kinematics::nominal_jacobian;
 use crate::solver::{LevenbergMarquardt, LmJacobian, NormalEquations};
 use anyhow::{Result, anyhow, bail};
@@ -506,6 +526,7 @@ const FIRST_GUESS_TOL_MM: f64 = 1e-4;
 
 /// What the analysis and the fit share: the free coefficients, the frame,
 /// the first guess of every pose and position, the reading weights.
+#[derive(Clone)]
 struct Setup {
     free_index: Vec<usize>,
     use_references: bool,
@@ -533,6 +554,19 @@ impl Setup {
                 .map(|o| design_weight(o, o.reading))
                 .collect(),
         })
+    }
+
+    /// The same setup with the readings weighted by `net`'s σ (the
+    /// network re-weighted by its variance components).
+    fn reweighted(&self, net: &Network) -> Setup {
+        Setup {
+            weights: net
+                .obs
+                .iter()
+                .map(|o| design_weight(o, o.reading))
+                .collect(),
+            ..self.clone()
+        }
     }
 
     fn layout(&self, net: &Network, n_z: usize) -> Layout {
@@ -660,39 +694,55 @@ pub fn calibrate(
     let det = analyse_setup(net, start, &setup, settings.rank_tol)?;
     let basis = det.basis().clone();
     let layout = setup.layout(net, basis.ncols());
-    let last = Mutex::new(None);
     let x0 = setup.initial(&layout);
     let r0 = setup.problem(net, start, &basis, &layout).residuals(&x0);
-    let problem = Bundle {
-        last: Some(&last),
-        known: Some((&x0, &r0)),
-        ..setup.problem(net, start, &basis, &layout)
-    };
-    let fit = LevenbergMarquardt::new()
-        .with_initial_lambda(INITIAL_LAMBDA)
-        .and_then(|lm| lm.minimize(problem, x0.clone(), settings.max_iters))
-        .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?;
-    let problem = setup.problem(net, start, &basis, &layout);
-    let x = fit.x;
-    let params = problem.params(&x);
-    let (jacobian, r, normal) = match last.into_inner().unwrap_or_else(|e| e.into_inner()) {
-        Some(l) if l.x == x => (l.jacobian, l.residuals, l.normal),
-        _ => {
-            let (j, r) = problem.jacobian_at(&x, false);
-            let normal = Arc::new(Normal::assemble(&j, None, |_| true));
-            (j, r, normal)
-        }
-    };
-    let m = r.len();
-    let chi2 = r.norm_squared();
+    let stated = solve(
+        &setup,
+        net,
+        start,
+        &basis,
+        &layout,
+        &x0,
+        Some(&r0),
+        settings,
+    )?;
+    let m = stated.r.len();
+    let chi2 = stated.r.norm_squared();
     let dof = m.saturating_sub(layout.n).max(1);
     let chi2_p = statrs::distribution::ChiSquared::new(dof as f64)
         .ok()
         .map(|d| statrs::distribution::ContinuousCDF::sf(&d, chi2));
-    // Covariance with the a-priori noise, inflated when the fit says the
-    // noise was understated.
-    let var_factor = (chi2 / dof as f64).max(1.0);
-    let factor = normal
+    let groups = RowGroups::new(net, &layout, setup.use_references);
+    let components = variance_components(&setup, net, start, &basis, &layout, &stated, &groups);
+    // Which covariance: the stated noise unless asked otherwise or refuted
+    // by the χ² test; the variance components where they are to be used
+    // and could be estimated; else the former global scaling.
+    let refuted = chi2_p.is_some_and(|p| p < STATED_NOISE_ALPHA);
+    let use_components = match settings.std {
+        BundleStd::StatedNoise | BundleStd::ScaledStatedNoise => false,
+        BundleStd::VarianceComponents => true,
+        BundleStd::Auto => refuted,
+    };
+    let (std_from, var_factor, reweighted) = match (&components, use_components) {
+        (_, false) if settings.std != BundleStd::ScaledStatedNoise => ("stated-noise", 1.0, None),
+        (Ok(c), true) => {
+            // The estimates and their covariance from the fit weighted by
+            // the estimated σ, started at the stated-noise solution.
+            let net_w = net.scaled(&c.s2);
+            let setup_w = setup.reweighted(&net_w);
+            let fit = solve(
+                &setup_w, &net_w, start, &basis, &layout, &stated.x, None, settings,
+            )?;
+            ("variance-components", 1.0, Some(fit))
+        }
+        _ => ("scaled-stated-noise", (chi2 / dof as f64).max(1.0), None),
+    };
+    let last = reweighted.as_ref().unwrap_or(&stated);
+    let problem = setup.problem(net, start, &basis, &layout);
+    let x = &last.x;
+    let params = problem.params(x);
+    let factor = last
+        .normal
         .factor(0.0)
         .ok_or_else(|| anyhow!("singular normal matrix at the solution"))?;
     let cov_a = factor.dense_covariance() * var_factor;
@@ -721,7 +771,7 @@ pub fn calibrate(
             } else {
                 factor.point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
             };
-            Some((t, problem.point(&x, t), cov))
+            Some((t, problem.point(x, t), cov))
         })
         .collect();
     let mut points = BTreeMap::new();
@@ -734,7 +784,7 @@ pub fn calibrate(
     }
     let poses: Vec<Rigid> = (0..net.stations.len())
         .map(|s| {
-            let (rotation, translation, _) = problem.pose(&x, s);
+            let (rotation, translation, _) = problem.pose(x, s);
             Rigid {
                 rotation,
                 translation,
@@ -744,8 +794,18 @@ pub fn calibrate(
     let residuals = super::reading_residuals(net, &params, &poses, &points);
     let rms = |r: &DVector<f64>| (r.norm_squared() / m as f64).sqrt();
     let mean_abs = |r: &DVector<f64>| r.iter().map(|v| v.abs()).sum::<f64>() / m as f64;
-    let (rms_after, mean_abs_after) = (rms(&r), mean_abs(&r));
+    let (rms_after, mean_abs_after) = (rms(&stated.r), mean_abs(&stated.r));
     let (rank, gauge_scale_ppm) = (det.analysis.rank, gauge_scale_ppm(net, &params));
+    let factor_of = |g: usize| {
+        components.as_ref().ok().map(|c| {
+            let f = c.s2[g].sqrt();
+            SigmaFactor {
+                factor: f,
+                u: helmert_u(f, c.redundancy[g]),
+                redundancy: c.redundancy[g],
+            }
+        })
+    };
     Ok(Calibration {
         estimate: det.estimate(params, free, Some(&cov_z)),
         poses,
@@ -760,9 +820,11 @@ pub fn calibrate(
             n_residuals: m,
             n_unknowns: layout.n,
             rank,
-            iterations: fit.iterations,
-            stop: fit.reason,
-            std_from: "stated-noise",
+            iterations: stated.iterations,
+            stop: stated.stop,
+            std_from,
+            sigma_angle_factor: factor_of(ANGLE),
+            sigma_range_factor: factor_of(RANGE),
             rms_before: rms(&r0),
             rms_after,
             mean_abs_before: mean_abs(&r0),
@@ -774,10 +836,280 @@ pub fn calibrate(
         },
         residuals,
         linearisation: Some(Linearisation {
-            jacobian,
-            residuals: r,
+            jacobian: stated.jacobian,
+            residuals: stated.r,
         }),
     })
+}
+
+/// The χ² test's level below which the stated noise is taken as refuted
+/// and `std = "auto"` uses the variance components: at 1 %, one fit in a
+/// hundred whose noise is stated right is re-weighted by its (then close
+/// to one) components; below it, the stated σ stand as they are — a χ²/dof
+/// a little above 1 by chance no longer inflates every uncertainty.
+pub const STATED_NOISE_ALPHA: f64 = 0.01;
+
+/// A fit at one weighting, with its linearisation at the solution.
+struct Solution {
+    x: DVector<f64>,
+    iterations: u64,
+    stop: &'static str,
+    jacobian: BlockJacobian,
+    /// Residuals at `x`, in units of the weighting's σ.
+    r: DVector<f64>,
+    normal: Arc<Normal>,
+}
+
+/// Levenberg–Marquardt from `x0` (with its residuals `r0` when known) on
+/// the network as `setup` weighs it; the solver's last linearisation is
+/// kept when it is at the solution, built there otherwise.
+#[allow(clippy::too_many_arguments)]
+fn solve(
+    setup: &Setup,
+    net: &Network,
+    start: &ErrorParams,
+    basis: &DMatrix<f64>,
+    layout: &Layout,
+    x0: &DVector<f64>,
+    r0: Option<&DVector<f64>>,
+    settings: &Settings,
+) -> Result<Solution> {
+    let last = Mutex::new(None);
+    let problem = Bundle {
+        last: Some(&last),
+        known: r0.map(|r| (x0, r)),
+        ..setup.problem(net, start, basis, layout)
+    };
+    let fit = LevenbergMarquardt::new()
+        .with_initial_lambda(INITIAL_LAMBDA)
+        .and_then(|lm| lm.minimize(problem, x0.clone(), settings.max_iters))
+        .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?;
+    let x = fit.x;
+    let (jacobian, r, normal) = match last.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        Some(l) if l.x == x => (l.jacobian, l.residuals, l.normal),
+        _ => {
+            let (j, r) = setup
+                .problem(net, start, basis, layout)
+                .jacobian_at(&x, false);
+            let normal = Arc::new(Normal::assemble(&j, None, |_| true));
+            (j, r, normal)
+        }
+    };
+    Ok(Solution {
+        x,
+        iterations: fit.iterations,
+        stop: fit.reason,
+        jacobian,
+        r,
+        normal,
+    })
+}
+
+/// The observation groups whose σ the variance components estimate, in
+/// [`RowGroups`]' numbering.
+const ANGLE: usize = 0;
+const RANGE: usize = 1;
+const GAUGE: usize = 2;
+const REFERENCE: usize = 3;
+const GROUP_NAMES: [&str; 4] = ["angle", "range", "gauge", "reference"];
+
+/// Which group each residual row belongs to, block by block in the order
+/// [`Bundle::visit`] makes them: a reading's az and el rows are angles, its
+/// d row a range; then one row per gauge length both of whose reflectors
+/// are read; then three per reference coordinate used.
+struct RowGroups {
+    /// Per residual block: its first row and its number of rows.
+    blocks: Vec<(usize, usize)>,
+    /// Per residual row.
+    group: Vec<usize>,
+}
+
+impl RowGroups {
+    fn new(net: &Network, layout: &Layout, use_references: bool) -> RowGroups {
+        let mut out = RowGroups {
+            blocks: Vec::new(),
+            group: Vec::new(),
+        };
+        let mut push = |groups: &[usize]| {
+            out.blocks.push((out.group.len(), groups.len()));
+            out.group.extend_from_slice(groups);
+        };
+        for _ in &net.obs {
+            push(&[ANGLE, ANGLE, RANGE]);
+        }
+        for g in &net.gauge {
+            if layout.point[g.a].is_some() && layout.point[g.b].is_some() {
+                push(&[GAUGE]);
+            }
+        }
+        if use_references {
+            for (t, rf) in net.references.iter().enumerate() {
+                if rf.is_some() && layout.point[t].is_some() {
+                    push(&[REFERENCE; 3]);
+                }
+            }
+        }
+        out
+    }
+}
+
+/// The Helmert variance components of a bundle adjustment.
+struct Components {
+    /// Per group: the factor on its stated variance (1 where held).
+    s2: [f64; 4],
+    /// Per group: its redundancy number at the last round.
+    redundancy: [f64; 4],
+}
+
+/// Helmert's variance component estimation, in Förstner's iterated form
+/// (as [`crate::identify`] does for known points): at the stated-noise
+/// solution, the linear step re-solved with each group's σ scaled by its
+/// current component, each group's `vᵀPv` over its redundancy number
+/// `r_g = n_g − tr(N_g·N⁻¹)` the factor by which the component was off,
+/// until none moves by more than [`crate::identify::VC_TOL`]. The
+/// redundancy numbers come from the factorised normal matrix, reflector
+/// blocks through the Schur complement ([`hat_diagonal`]). The angle and
+/// range groups must have redundancy (at least
+/// [`crate::identify::VC_MIN_REDUNDANCY`]); the gauge and the references
+/// keep their stated σ when theirs is below [`HELD_BELOW_REDUNDANCY`] at
+/// the first round.
+fn variance_components(
+    setup: &Setup,
+    net: &Network,
+    start: &ErrorParams,
+    basis: &DMatrix<f64>,
+    layout: &Layout,
+    stated: &Solution,
+    groups: &RowGroups,
+) -> Result<Components> {
+    let mut s2 = [1.0; 4];
+    let mut estimated: Option<Vec<usize>> = None;
+    let mut redundancy = [0.0; 4];
+    for _ in 0..VC_MAX_ITERS {
+        let net_k = net.scaled(&s2);
+        let setup_k = setup.reweighted(&net_k);
+        let problem = setup_k.problem(&net_k, start, basis, layout);
+        let (j, r) = problem.jacobian_at(&stated.x, false);
+        let normal = Normal::assemble(&j, Some(&r), |_| true);
+        let factor = normal
+            .factor(0.0)
+            .ok_or_else(|| anyhow!("the re-weighted normal matrix is singular"))?;
+        // The linear step at the solution: v = r + J·δ, δ = −N⁻¹·Jᵀr.
+        let y = factor.solve(normal.gradient());
+        let mut v = r;
+        j.sub_mul_rows(y.as_slice(), 1, v.as_mut_slice());
+        let sinv = factor.dense_covariance();
+        let hat: Vec<[f64; 3]> = groups
+            .blocks
+            .par_iter()
+            .enumerate()
+            .with_min_len(256)
+            .map(|(b, &(_, rows))| hat_diagonal(&j, &factor, &sinv, b, rows))
+            .collect();
+        let mut q = [0.0; 4];
+        redundancy = [0.0; 4];
+        for (&(row, rows), h) in groups.blocks.iter().zip(&hat) {
+            for k in 0..rows {
+                let g = groups.group[row + k];
+                q[g] += v[row + k] * v[row + k];
+                redundancy[g] += 1.0 - h[k];
+            }
+        }
+        let which = estimated.get_or_insert_with(|| {
+            (0..4)
+                .filter(|&g| g <= RANGE || redundancy[g] >= HELD_BELOW_REDUNDANCY)
+                .collect()
+        });
+        let mut now: Vec<f64> = which.iter().map(|&g| s2[g]).collect();
+        let sums: Vec<(&str, f64, f64)> = which
+            .iter()
+            .map(|&g| (GROUP_NAMES[g], q[g], redundancy[g]))
+            .collect();
+        let converged = helmert_round(&mut now, &sums)?;
+        for (&g, v) in which.iter().zip(&now) {
+            s2[g] = *v;
+        }
+        // Exact readings: the residuals are round-off, which never settles.
+        let round_off = now.iter().all(|v| *v < VC_ROUND_OFF * VC_ROUND_OFF);
+        if converged || round_off {
+            break;
+        }
+    }
+    Ok(Components { s2, redundancy })
+}
+
+/// The redundancy below which the gauge's or the references' σ is held at
+/// its stated value rather than estimated: their component's uncertainty
+/// `u(σ)/σ = 1/√(2r)` is then above 22 % — a few gauge lengths, or
+/// references that do little more than fix the frame, cannot say how far
+/// their σ was off.
+const HELD_BELOW_REDUNDANCY: f64 = 10.0;
+
+/// The diagonal of block `b`'s share of the hat matrix `J_b·N⁻¹·J_bᵀ`
+/// (its first `rows` entries), from the dense part's covariance `S⁻¹`
+/// (`sinv`) and the block's reflector through its Schur blocks:
+/// `u = J_b,Aᵀ − W·J_b,xᵀ` on the reflector's dense columns,
+/// `h = uᵀ·S⁻¹·u + J_b,x·H_xx⁻¹·J_b,xᵀ` ([`sparse::leverage`] with `S⁻¹`
+/// formed once for every block).
+fn hat_diagonal(
+    j: &BlockJacobian,
+    f: &sparse::Factor,
+    sinv: &DMatrix<f64>,
+    b: usize,
+    rows: usize,
+) -> [f64; 3] {
+    let point = j.block_point(b);
+    let cols: Vec<usize> = match point {
+        Some(p) => f.point_coupling(p).0.to_vec(),
+        None => {
+            let mut c: Vec<usize> = j
+                .dense_parts(b)
+                .flat_map(|(col, w, _)| col..col + w)
+                .collect();
+            c.sort_unstable();
+            c.dedup();
+            c
+        }
+    };
+    // u (cols × rows), row-major.
+    let mut u = vec![0.0; cols.len() * rows];
+    for (col, w, values) in j.dense_parts(b) {
+        for c in 0..w {
+            let Ok(a) = cols.binary_search(&(col + c)) else {
+                continue;
+            };
+            for r in 0..rows {
+                u[a * rows + r] += values[r * w + c];
+            }
+        }
+    }
+    let mut h = [0.0; 3];
+    if let (Some(p), Some(part)) = (point, j.point_part(b)) {
+        let w = f.point_coupling(p).1;
+        let inv = f.point_inverse(p);
+        for r in 0..rows {
+            let jx = Vector3::new(part[r * 3], part[r * 3 + 1], part[r * 3 + 2]);
+            h[r] = jx.dot(&(inv * jx));
+            for a in 0..cols.len() {
+                u[a * rows + r] -= w[(a, 0)] * jx[0] + w[(a, 1)] * jx[1] + w[(a, 2)] * jx[2];
+            }
+        }
+    }
+    for (r, h) in h.iter_mut().enumerate().take(rows) {
+        for (a, &ca) in cols.iter().enumerate() {
+            let ua = u[a * rows + r];
+            if ua == 0.0 {
+                continue;
+            }
+            let s: f64 = cols
+                .iter()
+                .enumerate()
+                .map(|(bb, &cb)| sinv[(ca, cb)] * u[bb * rows + r])
+                .sum();
+            *h += ua * s;
+        }
+    }
+    h
 }
 
 /// A bundle adjustment solved once, then again on perturbed copies of its
@@ -1011,6 +1343,7 @@ mod tests {
             norm: Norm::L2,
             rank_tol: tol,
             max_iters: 100,
+            std: BundleStd::StatedNoise,
         };
         let cal = calibrate(&net, &start, &free, &settings).unwrap();
         let basis = a.row_basis.clone();
@@ -1029,9 +1362,10 @@ mod tests {
         // Standard uncertainties from the dense inverse of JᵀJ.
         let (jac, r) = problem.jacobian_at(&fit.x, false);
         let jd = jac.to_dense();
-        let dof = (r.len() - layout.n) as f64;
-        let v = (r.norm_squared() / dof).max(1.0);
-        let cov = (jd.transpose() * &jd).try_inverse().unwrap() * v;
+        // The stated noise, unscaled.
+        assert_eq!(cal.fit.std_from, "stated-noise");
+        assert_eq!(r.len(), cal.fit.n_residuals);
+        let cov = (jd.transpose() * &jd).try_inverse().unwrap();
         let cov_p = &basis * cov.view((0, 0), (basis.ncols(), basis.ncols())) * basis.transpose();
         for (k, s) in cal.estimate.std.iter().enumerate() {
             let want = cov_p[(k, k)].max(0.0).sqrt();
@@ -1061,6 +1395,7 @@ mod tests {
             norm: Norm::L2,
             rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
+            std: BundleStd::Auto,
         };
         let run = |threads: usize| {
             rayon::ThreadPoolBuilder::new()
@@ -1074,6 +1409,74 @@ mod tests {
         assert_eq!(one.estimate.std, three.estimate.std);
         assert_eq!(one.fit.chi2, three.fit.chi2);
         assert_eq!(one.point_std, three.point_std);
+    }
+
+    /// The redundancy numbers behind the variance components come from the
+    /// factorised normal matrix, each reflector through its Schur blocks:
+    /// they must be the dense hat matrix's, row by row, and sum to the
+    /// degrees of freedom.
+    #[test]
+    fn redundancy_numbers_from_the_schur_blocks_match_the_dense_hat_matrix() {
+        let net = corner_network();
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let setup = Setup::new(&net, &start, &[true; 18]).unwrap();
+        let det = analyse_setup(&net, &start, &setup, identifiability::DEFAULT_REL_TOL).unwrap();
+        let basis = det.basis().clone();
+        let layout = setup.layout(&net, basis.ncols());
+        let problem = setup.problem(&net, &start, &basis, &layout);
+        let (j, _) = problem.jacobian_at(&setup.initial(&layout), false);
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let sinv = f.dense_covariance();
+        let groups = RowGroups::new(&net, &layout, setup.use_references);
+        let jd = j.to_dense();
+        assert_eq!(groups.group.len(), jd.nrows());
+        let q = (jd.transpose() * &jd).try_inverse().unwrap();
+        let (mut total, mut reflector_blocks) = (0.0, 0);
+        for (b, &(row, rows)) in groups.blocks.iter().enumerate() {
+            reflector_blocks += usize::from(j.block_point(b).is_some());
+            let h = hat_diagonal(&j, &f, &sinv, b, rows);
+            for (k, &h) in h.iter().enumerate().take(rows) {
+                let want = jd
+                    .row(row + k)
+                    .dot(&(&q * jd.row(row + k).transpose()).transpose());
+                assert!((h - want).abs() < 1e-8, "row {}: {} vs {want}", row + k, h);
+                total += 1.0 - h;
+            }
+        }
+        assert!(reflector_blocks > 0);
+        let dof = (jd.nrows() - layout.n) as f64;
+        assert!((total - dof).abs() < 1e-6, "{total} vs {dof}");
+    }
+
+    /// Issue 31: with the angles' σ stated three times too small and the
+    /// ranges' right, the χ² test refutes the stated noise and the
+    /// default re-weights by the components, which find the 3 and the 1.
+    #[test]
+    fn variance_components_find_the_understated_angle_group() {
+        let net = corner_network().scaled(&[1.0 / 9.0, 1.0, 1.0, 1.0]);
+        let start = ErrorParams::zero(&ErrorModel::constant());
+        let settings = Settings {
+            objective: super::super::Objective::Bundle,
+            norm: Norm::L2,
+            rank_tol: identifiability::DEFAULT_REL_TOL,
+            max_iters: 100,
+            std: BundleStd::Auto,
+        };
+        let cal = calibrate(&net, &start, &[true; 18], &settings).unwrap();
+        assert_eq!(cal.fit.std_from, "variance-components");
+        assert!(cal.fit.chi2_p.unwrap() < STATED_NOISE_ALPHA);
+        let (a, r) = (
+            cal.fit.sigma_angle_factor.unwrap(),
+            cal.fit.sigma_range_factor.unwrap(),
+        );
+        assert!((a.factor - 3.0).abs() < 3.0 * a.u, "{a:?}");
+        assert!((r.factor - 1.0).abs() < 3.0 * r.u, "{r:?}");
+        assert!(a.u > 0.0 && a.u < 0.1 * a.factor, "{a:?}");
+        // The same network with its noise stated right keeps it.
+        let right = calibrate(&corner_network(), &start, &[true; 18], &settings).unwrap();
+        assert_eq!(right.fit.std_from, "stated-noise");
+        let a = right.fit.sigma_angle_factor.unwrap();
+        assert!((a.factor - 1.0).abs() < 3.0 * a.u, "{a:?}");
     }
 
     #[test]

@@ -454,6 +454,8 @@ pub fn calibrate(
                 Norm::L1 => "sandwich-l1",
                 Norm::L2 => "sandwich",
             },
+            sigma_angle_factor: None,
+            sigma_range_factor: None,
             rms_before: rms(&e0.r),
             rms_after: rms(&e1.r),
             mean_abs_before: mean_abs(&e0.r),

@@ -216,6 +216,25 @@ impl Network {
         net
     }
 
+    /// The network with every σ scaled by the square root of its group's
+    /// variance factor `s2`: `[angle, range, gauge, reference]`.
+    pub fn scaled(&self, s2: &[f64; 4]) -> Network {
+        let [a, r, g, x] = s2.map(f64::sqrt);
+        let mut net = self.clone();
+        for o in &mut net.obs {
+            o.sigma.x *= a;
+            o.sigma.y *= a;
+            o.sigma.z *= r;
+        }
+        for l in &mut net.gauge {
+            l.u_mm *= g;
+        }
+        for (_, u) in net.references.iter_mut().flatten() {
+            *u *= x;
+        }
+        net
+    }
+
     /// The network without the readings `drop` (indices, any order).
     pub fn without_readings(&self, drop: &[usize]) -> Network {
         let mut net = self.clone();
@@ -318,6 +337,39 @@ pub struct Settings {
     /// Relative singular-value threshold for what the data determine.
     pub rank_tol: f64,
     pub max_iters: u64,
+    /// Where the bundle adjustment's standard uncertainties come from
+    /// (ignored by Eq. 13–15, whose sandwich takes the stated noise).
+    pub std: BundleStd,
+}
+
+/// How the bundle adjustment's standard uncertainties are had (the
+/// `calibrate` stage's `std`; see [`bundle`]'s doc).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BundleStd {
+    /// The stated noise when the χ² test accepts it
+    /// ([`bundle::STATED_NOISE_ALPHA`]), else the variance components.
+    #[default]
+    Auto,
+    /// The stated noise, never scaled.
+    StatedNoise,
+    /// The angle and range groups (and the gauge and references, where
+    /// they have redundancy) re-weighted by their Helmert variance
+    /// components, always.
+    VarianceComponents,
+    /// The stated noise scaled by one global `max(χ²/dof, 1)`: the former
+    /// default, kept on request only — it mixes the groups.
+    ScaledStatedNoise,
+}
+
+/// One variance component of the bundle adjustment: the factor by which a
+/// group's σ was understated (estimated σ / stated σ, dimensionless), its
+/// Helmert standard uncertainty, and the group's redundancy number.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SigmaFactor {
+    pub factor: f64,
+    pub u: f64,
+    pub redundancy: f64,
 }
 
 impl Settings {
@@ -330,6 +382,7 @@ impl Settings {
             norm: Norm::L2,
             rank_tol: crate::identifiability::DEFAULT_REL_TOL,
             max_iters: 100,
+            std: BundleStd::Auto,
         }
     }
 }
@@ -383,12 +436,20 @@ pub struct FitSummary {
     /// Why the solver stopped: one of [`crate::solver::Fit::reason`]'s
     /// words, `nothing-to-estimate` or `irls-converged`.
     pub stop: &'static str,
-    /// Where the standard uncertainties come from: `stated-noise` (the
-    /// bundle's inverse normal matrix, weighted by the stated σ, scaled by
-    /// `χ²/dof` when that exceeds 1),
-    /// `sandwich` (Eq. 13–15 in L2) or `sandwich-l1` (in L1), both from the
-    /// stated noise of the readings, gauge and references.
+    /// Where the standard uncertainties come from: for the bundle,
+    /// `stated-noise` (its inverse normal matrix weighted by the stated σ,
+    /// unscaled), `variance-components` (weighted by the σ its variance
+    /// components estimate) or `scaled-stated-noise` (the stated σ scaled
+    /// by `max(χ²/dof, 1)`, on request, or when the χ² test refutes the
+    /// stated noise and the components cannot be estimated); for Eq. 13–15,
+    /// `sandwich` (L2) or `sandwich-l1` (L1), both from the stated noise of
+    /// the readings, gauge and references.
     pub std_from: &'static str,
+    /// Bundle: the Helmert variance components of the angle (az, el) and
+    /// range readings, as factors on the stated σ; `None` when they could
+    /// not be estimated (or for Eq. 13–15).
+    pub sigma_angle_factor: Option<SigmaFactor>,
+    pub sigma_range_factor: Option<SigmaFactor>,
     /// Root mean square of the objective's residuals before and after
     /// (µm for the distance objectives; units of σ for the bundle).
     pub rms_before: f64,

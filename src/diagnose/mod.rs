@@ -1372,7 +1372,17 @@ fn base_calibration(net: &Network, s: &Settings) -> Result<Calibration> {
         .iter()
         .map(|k| !s.fixed.contains(&k.param))
         .collect();
-    calibrate::calibrate(net, &start, &free, &CalSettings::bundle())
+    calibrate::calibrate(
+        net,
+        &start,
+        &free,
+        &CalSettings {
+            // The former scaled covariance: the magnitudes' uncertainties and
+            // verdicts stay those the blind and open-world checks scored.
+            std: crate::calibrate::BundleStd::ScaledStatedNoise,
+            ..CalSettings::bundle()
+        },
+    )
 }
 
 /// Per reading, what the candidates and the factors need: its geometry at

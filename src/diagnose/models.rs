@@ -58,7 +58,17 @@ pub struct ModelFit {
 fn adjust(net: &Network, tracker: TrackerModel) -> Result<(Calibration, Linearisation)> {
     let start = ErrorParams::zero(&ErrorModel::of(tracker));
     let free = vec![true; start.coefs().len()];
-    let cal = calibrate::calibrate(net, &start, &free, &CalSettings::bundle())?;
+    let cal = calibrate::calibrate(
+        net,
+        &start,
+        &free,
+        &CalSettings {
+            // The former scaled covariance: the magnitudes' uncertainties and
+            // verdicts stay those the blind and open-world checks scored.
+            std: crate::calibrate::BundleStd::ScaledStatedNoise,
+            ..CalSettings::bundle()
+        },
+    )?;
     let lin = cal
         .linearisation
         .clone()

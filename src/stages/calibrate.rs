@@ -12,16 +12,29 @@
 //! shapes = { dz3 = "poly:1" }         # the model to fit; constants by default
 //! reject_blunders = false             # bundle only: iterated data snooping (Baarda's w-test)
 //! blunder_alpha = 0.01                # its family-wise level
+//! std = "auto"                        # bundle only: "auto", "stated-noise",
+//!                                     # "variance-components", "scaled-stated-noise"
 //! ```
+//!
+//! The bundle's `std` (see [`calibrate::bundle`]): `auto` keeps the
+//! stated noise, unscaled, while the χ² test accepts it (p ≥ 0.01) and
+//! otherwise re-weights the angle and range groups by their Helmert
+//! variance components; the other values force one or the other, or the
+//! former global `max(χ²/dof, 1)` scaling.
 //!
 //! Outputs: `params`, `singular_values`, `combinations` (as `identify`:
 //! what the campaign determines once poses are free), `fit` (one row:
 //! `objective`, `norm`, `n_readings`, `n_residuals`, `n_unknowns`, `rank`,
-//! `iterations`, `stop`, `std_from` (`stated-noise`, `sandwich`,
-//! `sandwich-l1`: see [`calibrate::FitSummary::std_from`]), `rms_before`,
-//! `rms_after`, `mean_abs_before`, `mean_abs_after` — µm for Eq. 13–15,
-//! units of σ for the bundle —
-//! `chi2`, `dof`, `chi2_p`, `gauge_scale_ppm`, `noise_stated`), `stations`
+//! `iterations`, `stop`, `std_from` (`stated-noise`, `variance-components`,
+//! `scaled-stated-noise`, `sandwich`, `sandwich-l1`: see
+//! [`calibrate::FitSummary::std_from`]), `sigma_angle_factor`,
+//! `sigma_angle_factor_u`, `sigma_range_factor`, `sigma_range_factor_u`
+//! (bundle: the Helmert variance components as estimated σ / stated σ,
+//! dimensionless, with their standard uncertainty; null otherwise),
+//! `rms_before`, `rms_after`, `mean_abs_before`, `mean_abs_after` — µm for
+//! Eq. 13–15, units of the stated σ for the bundle, as `chi2`, `dof` and
+//! `chi2_p` (the test of the stated noise) —
+//! `gauge_scale_ppm`, `noise_stated`), `stations`
 //! (`station`, `x_mm`, `y_mm`, `z_mm`, `roll_urad`, `pitch_urad`, `yaw_deg`,
 //! `std_position_mm`, `std_rotation_urad`), `targets` (`target`, `x_mm`,
 //! `y_mm`, `z_mm`, `std_mm`) and `residuals` (per reading: `station`,
@@ -33,7 +46,7 @@
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::snooping::{self, Rejected};
-use crate::calibrate::{self, Calibration, Network, Norm, Objective, Settings};
+use crate::calibrate::{self, BundleStd, Calibration, Network, Norm, Objective, Settings};
 use crate::campaign::Campaign;
 use crate::error_model::{ParamId, Shape};
 use crate::table::TableBuilder;
@@ -76,6 +89,11 @@ pub struct CalibrateStage {
     /// The data snooping's family-wise significance level.
     #[serde(default = "default_blunder_alpha")]
     pub blunder_alpha: f64,
+    /// Bundle only: where `std` comes from: `auto` (the stated noise while the
+    /// χ² test accepts it, else variance components), `stated-noise`,
+    /// `variance-components` or `scaled-stated-noise`.
+    #[serde(default)]
+    pub std: BundleStd,
 }
 
 fn default_blunder_alpha() -> f64 {
@@ -99,6 +117,7 @@ impl CalibrateStage {
             norm: self.norm,
             rank_tol: self.rank_tol,
             max_iters: self.max_iters,
+            std: self.std,
         };
         if self.reject_blunders {
             snooping::calibrate_rejecting(&net, &start, &free, &settings, self.blunder_alpha)
@@ -136,6 +155,10 @@ impl StageKind for CalibrateStage {
                 "iterations",
                 "stop",
                 "std_from",
+                "sigma_angle_factor",
+                "sigma_angle_factor_u",
+                "sigma_range_factor",
+                "sigma_range_factor_u",
                 "rms_before",
                 "rms_after",
                 "mean_abs_before",
@@ -190,6 +213,12 @@ impl StageKind for CalibrateStage {
             out.push(Invalid::new(
                 "norm",
                 "the bundle adjustment is a least-squares fit of the readings: use norm = \"l2\"",
+            ));
+        }
+        if self.std != BundleStd::Auto && self.objective != Objective::Bundle {
+            out.push(Invalid::new(
+                "std",
+                "`std` chooses the bundle adjustment's covariance; Eq. 13-15 take the sandwich of the stated noise: use objective = \"bundle\" or drop `std`",
             ));
         }
         if self.reject_blunders && self.objective != Objective::Bundle {
@@ -303,6 +332,22 @@ fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
         .i64("iterations", vec![f.iterations as i64])
         .str("stop", &[f.stop])
         .str("std_from", &[f.std_from])
+        .opt_f64(
+            "sigma_angle_factor",
+            vec![f.sigma_angle_factor.map(|c| c.factor)],
+        )
+        .opt_f64(
+            "sigma_angle_factor_u",
+            vec![f.sigma_angle_factor.map(|c| c.u)],
+        )
+        .opt_f64(
+            "sigma_range_factor",
+            vec![f.sigma_range_factor.map(|c| c.factor)],
+        )
+        .opt_f64(
+            "sigma_range_factor_u",
+            vec![f.sigma_range_factor.map(|c| c.u)],
+        )
         .f64("rms_before", vec![f.rms_before])
         .f64("rms_after", vec![f.rms_after])
         .f64("mean_abs_before", vec![f.mean_abs_before])

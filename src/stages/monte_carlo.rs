@@ -35,10 +35,11 @@
 //! network (the bundle's linear covariance of x, y, magnified) and the
 //! stations.
 //!
-//! The linear uncertainties are `calibrate`'s: the stated noise, scaled
-//! up by `χ²/dof` when the residuals exceed it; the trials draw the stated
-//! noise alone, so a campaign whose χ²/dof is above 1 shows `u_ratio`
-//! below 1 by `1/√(χ²/dof)` for that reason alone.
+//! The linear uncertainties are `calibrate`'s default (`std = "auto"`):
+//! the stated noise while the χ² test accepts it, else the noise the
+//! variance components estimate; the trials draw the stated noise alone,
+//! so a campaign whose residuals refute the stated noise shows `u_ratio`
+//! away from 1 for that reason alone.
 
 use super::{Context, Invalid, Slot, StageInputs, StageKind, StageOutput, fitting};
 use crate::calibrate::bundle::Repeated;
