@@ -30,7 +30,8 @@
 //! [`calibrate::FitSummary::std_from`]), `sigma_angle_factor`,
 //! `sigma_angle_factor_u`, `sigma_range_factor`, `sigma_range_factor_u`
 //! (bundle: the Helmert variance components as estimated σ / stated σ,
-//! dimensionless, with their standard uncertainty; null otherwise),
+//! dimensionless, with their standard uncertainty, when they were
+//! estimated — `std_from = "variance-components"`; null otherwise),
 //! `rms_before`, `rms_after`, `mean_abs_before`, `mean_abs_after` — µm for
 //! Eq. 13–15, units of the stated σ for the bundle, as `chi2`, `dof` and
 //! `chi2_p` (the test of the stated noise) —
