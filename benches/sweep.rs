@@ -60,6 +60,7 @@ fn run_once(file: &Path, results: PathBuf) {
             progress: false,
             not_computed: None,
             experiment: None,
+            control: Default::default(),
         },
     )
     .unwrap();
@@ -139,6 +140,7 @@ fn cached_sweep(c: &mut Criterion) {
                     progress: false,
                     not_computed: None,
                     experiment: None,
+                    control: Default::default(),
                 },
             )
             .unwrap();

@@ -284,7 +284,8 @@ enum GraphFormat {
 }
 
 /// Runs the command line and returns the process exit code: 0 success,
-/// 1 a stage failed (or a check found a difference), 2 the input is wrong.
+/// 1 a stage failed (or a check found a difference), 2 the input is wrong,
+/// 130 a run stopped by Ctrl-C.
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
     match dispatch(cli) {
@@ -296,6 +297,9 @@ pub fn main() -> ExitCode {
                 // A mistake found in a user's file while working (a
                 // hypothesis not finite at some reading).
                 (at.to_string(), 2)
+            } else if let Some(stop) = e.downcast_ref::<pipeline::control::Interrupted>() {
+                // 128 + SIGINT, as a shell reports a process Ctrl-C ended.
+                (stop.to_string(), 130)
             } else {
                 (format!("{e:#}"), 1)
             };
@@ -515,6 +519,7 @@ fn task_command(
         progress: false,
         not_computed: None,
         experiment: None,
+        control: Default::default(),
     };
     let report = run::run_task(&pipeline, &opts, &indices, cpus, prefix)?;
     for (i, stage, why) in &report.failed {
@@ -553,6 +558,7 @@ fn snapshot_command(p: &PipelineArgs, check: bool, dir: &Path) -> Result<ExitCod
             progress: false,
             not_computed: None,
             experiment: e.clone(),
+            control: Default::default(),
         },
     )?;
     if !report.failed().is_empty() {
@@ -707,12 +713,23 @@ fn run_command(
             .build_global()
             .context("setting the number of threads")?;
     }
+    // The first Ctrl-C or SIGTERM stops the run (here: nothing starts
+    // after it, what is under way finishes and is cached, exit 130; on
+    // Slurm: the coordinator cancels its jobs); a second one ends the
+    // process as the signal would.
+    let interrupted = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_default(sig, interrupted.clone())
+            .and_then(|_| signal_hook::flag::register(sig, interrupted.clone()))
+            .context("watching for Ctrl-C")?;
+    }
     let opts = run::RunOptions {
         results_root: p.results.clone(),
         keep_going,
         progress: !quiet,
         not_computed: None,
         experiment: e.clone(),
+        control: Arc::new(pipeline::control::Control::with_flag(interrupted.clone())),
     };
     if !quiet {
         say_experiment(e.as_ref());
@@ -723,6 +740,7 @@ fn run_command(
                 "--detach submits to a cluster: use it with --executor slurm",
             ));
         }
+        say_when_stopping(interrupted);
         let report = publish::run_selected(&pipeline, &opts, &selection)?;
         let code = summarize(&report);
         headlines(p, &report)?;
@@ -732,15 +750,6 @@ fn run_command(
         return Err(InputError::arg(
             "--executor slurm runs the whole pipeline: name no stages and no --force",
         ));
-    }
-    // The first Ctrl-C or SIGTERM sets the flag the coordinator
-    // acts on (cancelling its jobs while it waits); a second one
-    // ends the process as the signal would.
-    let interrupted = Arc::new(AtomicBool::new(false));
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register_conditional_default(sig, interrupted.clone())
-            .and_then(|_| signal_hook::flag::register(sig, interrupted.clone()))
-            .context("watching for Ctrl-C")?;
     }
     // The tasks compute with every stage override, recorded ones
     // too (`--name` alone), and the command line's `executor.*`.
@@ -780,6 +789,20 @@ fn run_command(
     }
 }
 
+/// Says on stderr, the moment `flag` is raised, that the run is stopping:
+/// the stages under way may take a while to finish.
+fn say_when_stopping(flag: Arc<AtomicBool>) {
+    std::thread::spawn(move || {
+        while !flag.load(std::sync::atomic::Ordering::SeqCst) {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        eprintln!(
+            "stopping: nothing more starts; the stages and sweep points under way finish \
+             and are cached (Ctrl-C again ends at once)"
+        );
+    });
+}
+
 /// `ltcal status`: where a sweep's points and cluster jobs stand.
 fn status_command(p: &PipelineArgs) -> Result<ExitCode> {
     let (pipeline, e) = load(p)?;
@@ -805,6 +828,7 @@ fn status_command(p: &PipelineArgs) -> Result<ExitCode> {
         progress: false,
         not_computed: None,
         experiment: e,
+        control: Default::default(),
     };
     print_out(cluster::status(&pipeline, &opts, &cluster::slurm::Slurm)?)?;
     Ok(ExitCode::SUCCESS)

@@ -185,12 +185,17 @@ def run(
     ``["stages.identify.noise=0.1"]``) and makes the run an experiment,
     published to ``results/<pipeline>/runs/<name>/``; ``name`` names it.
     ``jobs``: worker threads (default: all cores). ``executor``: ``"local"``
-    (default) or ``"slurm"``. ``progress``: a tqdm bar of stages done
-    (stages, not sweep points: a sweep's stages count when it ends).
+    (default) or ``"slurm"``. ``progress``: a tqdm bar of the sweep's
+    points done, or of the stages done for a pipeline without a sweep
+    (cached counts as done).
     Raises :class:`InputError` for a wrong pipeline or setting and
-    :class:`StageError` when a stage failed (its ``run`` holds the rest);
-    Ctrl-C raises KeyboardInterrupt (stages under way finish in the
-    background; what lands in the cache is whole).
+    :class:`StageError` when a stage failed (its ``run`` holds the rest).
+    Ctrl-C stops the run: nothing starts after it, the stages and sweep
+    points under way finish and are cached (a rerun takes them and goes
+    on), nothing of the unfinished run is published, and KeyboardInterrupt
+    is raised once they have finished; a second Ctrl-C raises it at once,
+    leaving what is under way to finish in the background (what lands in
+    the cache is whole).
     """
     set_args = _set_args(set)
     if jobs is not None and not 1 <= jobs <= 1024:
@@ -204,7 +209,8 @@ def run(
             raise ImportError("progress=True needs tqdm: pip install tqdm") from e
         bar = tqdm(desc=os.path.basename(os.fspath(pipeline)), unit="stage")
 
-        def callback(done: int, total: int) -> None:
+        def callback(done: int, total: int, unit: str) -> None:
+            bar.unit = unit
             bar.total = total
             bar.n = done
             bar.refresh()

@@ -47,7 +47,10 @@ def run(
     results: PathLike = "results",
     keep_going: bool = False,
 ) -> Run:
-    """Run a pipeline as `ltcal run`; raises InputError or StageError."""
+    """Run a pipeline as `ltcal run`; raises InputError or StageError.
+    `progress`: a tqdm bar of the sweep's points (else of the stages).
+    Ctrl-C stops the run, keeping what finished in the cache, and raises
+    KeyboardInterrupt."""
 
 @dataclass
 class Campaign:

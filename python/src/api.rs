@@ -7,7 +7,7 @@
 
 use anyhow::Context as _;
 use ltcal::campaign::{self, Problem};
-use ltcal::pipeline::{self, cluster, publish, published, resolve::Override, run, status::Status};
+use ltcal::pipeline::{self, cluster, publish, published, resolve::Override, run};
 use ltcal::stages::{self, StageKind as _};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -189,17 +189,20 @@ impl Target {
     }
 }
 
-/// What [`run`] reports while it works: stages done (cached counts as
-/// done) of the stages in the pipeline. Returning `false` stops waiting.
-pub type Progress<'a> = dyn FnMut(usize, usize) -> bool + 'a;
+/// What [`run`] reports while it works: `done` of `total` units (a
+/// sweep's points, or else the pipeline's stages; cached counts as done)
+/// and the unit's name. Returning `false` (Ctrl-C) stops the run.
+pub type Progress<'a> = dyn FnMut(usize, usize, &'static str) -> bool + 'a;
 
 /// `ltcal run`: runs the pipeline on a worker thread (local: a pool of
 /// `jobs` threads; `slurm`: the pipeline's `[executor.slurm]`) while the
-/// caller's thread polls `poll` every 100 ms with the stages done so far.
-/// When `poll` returns false (Ctrl-C), a Slurm coordinator is told to
-/// cancel its jobs; a local run cannot be stopped midway, and the stages
-/// under way finish on their thread (each entry lands whole in the cache,
-/// never half). Returns the run report as JSON.
+/// caller's thread polls `poll` every 100 ms with what is done so far.
+/// When `poll` returns false (Ctrl-C), the run stops: locally nothing
+/// starts after it and the stages and sweep points under way finish and
+/// are cached (`pipeline::control`); a Slurm coordinator cancels its jobs.
+/// The call returns once the run has stopped — or at once on a second
+/// `false`, leaving what is under way to finish on its thread (each entry
+/// lands whole in the cache, never half). Returns the run report as JSON.
 pub fn run(
     t: &Target,
     jobs: Option<usize>,
@@ -208,14 +211,18 @@ pub fn run(
     poll: &mut Progress<'_>,
 ) -> Result<String> {
     let (pipeline, e) = t.load()?;
+    // Raised by the first `false` of `poll`: the run's stop, and the Slurm
+    // coordinator's.
+    let interrupted = Arc::new(AtomicBool::new(false));
     let opts = run::RunOptions {
         results_root: t.results.clone(),
         keep_going,
         progress: false,
         not_computed: None,
         experiment: e.clone(),
+        control: Arc::new(pipeline::control::Control::with_flag(interrupted.clone())),
     };
-    let interrupted = Arc::new(AtomicBool::new(false));
+    let control = opts.control.clone();
     let work: Box<dyn FnOnce() -> anyhow::Result<run::RunReport> + Send> = match executor {
         "local" => {
             let pipeline = pipeline.clone();
@@ -268,10 +275,19 @@ pub fn run(
     std::thread::spawn(move || {
         let _ = tx.send(caught(work));
     });
-    let store = run::store(&t.results, &pipeline, e.as_ref());
-    let total = pipeline.stages.len();
-    let mut last_plan = std::time::Instant::now();
-    let mut done = 0;
+    // A sweep's progress is its points (its stages run at each), a
+    // pipeline's its stages.
+    let (total, unit) = match &pipeline.sweep {
+        Some(sw) => (sw.len(), "point"),
+        None => (pipeline.stages.len(), "stage"),
+    };
+    let done = || {
+        let n = match pipeline.sweep {
+            Some(_) => control.points_done(),
+            None => control.stages_done(),
+        };
+        n.min(total)
+    };
     let report = loop {
         match rx.recv_timeout(std::time::Duration::from_millis(100)) {
             Ok(outcome) => break outcome?,
@@ -280,21 +296,13 @@ pub fn run(
             }
             Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
         }
-        // Stages done so far: those the plan now finds cached (a cheap
-        // look at the cache's keys, every half second).
-        if last_plan.elapsed().as_millis() >= 500 {
-            last_plan = std::time::Instant::now();
-            done = pipeline::plan::plan(&pipeline, &store)
-                .iter()
-                .filter(|i| i.status == Status::Cached)
-                .count();
-        }
-        if !poll(done, total) {
-            interrupted.store(true, Ordering::SeqCst);
+        // The first stop is the run's; the second stops the waiting for
+        // what is under way.
+        if !poll(done(), total, unit) && interrupted.swap(true, Ordering::SeqCst) {
             return Err(Error::Other("interrupted".into()));
         }
     };
-    poll(total, total);
+    poll(total, total, unit);
     serde_json::to_string(&report).map_err(|e| Error::Other(e.to_string()))
 }
 

@@ -135,8 +135,11 @@ fn target(args: &Bound<'_, PyTuple>) -> PyResult<api::Target> {
 }
 
 /// run(pipeline, set, name, results, jobs, executor, keep_going, progress)
-/// → the run report as JSON. `progress(done, total)` is called every 100 ms
-/// from this thread (with the GIL); Ctrl-C raises KeyboardInterrupt.
+/// → the run report as JSON. `progress(done, total, unit)` is called every
+/// 100 ms from this thread (with the GIL), `unit` "point" for a sweep and
+/// "stage" otherwise; Ctrl-C stops the run (what is under way finishes and
+/// is cached; a second Ctrl-C stops waiting for it) and raises
+/// KeyboardInterrupt.
 fn run(args: &Bound<'_, PyTuple>) -> Out {
     let py = args.py();
     let t = target(args)?;
@@ -146,10 +149,10 @@ fn run(args: &Bound<'_, PyTuple>) -> Out {
     let progress: Option<Py<PyAny>> = arg::<Option<Bound<PyAny>>>(args, 7)?.map(Bound::unbind);
     let mut stopped: Option<PyErr> = None;
     let out = detached(py, || {
-        let mut poll = |done: usize, total: usize| {
+        let mut poll = |done: usize, total: usize, unit: &'static str| {
             Python::attach(|py| {
                 let r = py.check_signals().and_then(|()| match &progress {
-                    Some(f) => f.call1(py, (done, total)).map(drop),
+                    Some(f) => f.call1(py, (done, total, unit)).map(drop),
                     None => Ok(()),
                 });
                 r.map_err(|e| stopped = Some(e)).is_ok()

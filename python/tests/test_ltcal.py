@@ -2,6 +2,7 @@
 verdicts and located errors; no panic crosses into Python."""
 
 import io
+import json
 import math
 import os
 import pathlib
@@ -59,6 +60,51 @@ def test_run_with_progress_shows_a_bar(repo, results, capsys):
     pytest.importorskip("tqdm")
     run = ltcal.run(PIPELINE, results=results, progress=True)
     assert len(run.stages) == 25
+    assert "25/25" in capsys.readouterr().err
+
+
+SWEEP = """
+[pipeline]
+name = "little-sweep"
+
+[stages.truth]
+kind = "inject"
+
+[stages.corner]
+kind = "simulate_campaign"
+inputs = { errors = "truth" }
+layout = { kind = "corner", stations = 4 }
+
+[stages.calibration]
+kind = "calibrate"
+inputs = { campaign = "corner" }
+objective = "bundle"
+
+[[sweep.axis]]
+path = "stages.corner.seed"
+range = { from = 1, to = 12, step = 1 }
+
+[sweep]
+gather = ["calibration.params"]
+"""
+
+
+def test_progress_of_a_sweep_counts_its_points(tmp_path, capsys):
+    # It counted stages: a sweep's bar stood at 0 until the whole sweep ended.
+    pytest.importorskip("tqdm")
+    pipeline = tmp_path / "little-sweep.toml"
+    pipeline.write_text(SWEEP)
+    seen = []
+    report = ltcal._ltcal.run(
+        str(pipeline), [], None, str(tmp_path / "results"), None, "local", False,
+        lambda done, total, unit: seen.append((done, total, unit)),
+    )
+    assert json.loads(report)["sweep"]["points"] == 12
+    assert seen[-1] == (12, 12, "point")
+    assert all(total == 12 and unit == "point" for _, total, unit in seen)
+    assert [d for d, _, _ in seen] == sorted(d for d, _, _ in seen)
+    ltcal.run(pipeline, results=tmp_path / "results", progress=True)
+    assert "12/12" in capsys.readouterr().err
 
 
 def test_a_wrong_override_raises_input_error(repo, results):
@@ -198,6 +244,15 @@ def test_ctrl_c_raises_keyboard_interrupt_while_rust_runs(tmp_path):
     out, _ = p.communicate(timeout=60)
     assert out.startswith("interrupted after"), out
     assert float(out.split()[-1]) < 10
+    # The points under way finished and were cached before the exception
+    # (they went on in a background thread, past it, and were lost when
+    # the interpreter ended); nothing of the unfinished run was published.
+    folder = tmp_path / "noise-sweep"
+    assert list((folder / ".ltcal" / "packs").glob("*.pack"))
+    assert not (folder / "run.json").exists()
+    assert not (folder / "sweep").exists()
+    status = cli("status", "pipelines/noise-sweep.toml", "--results", tmp_path)
+    assert " of 2000 sweep points done" in status.stdout
 
 
 def test_the_gil_is_released_while_rust_works(tmp_path):

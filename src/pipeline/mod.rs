@@ -11,7 +11,8 @@
 //! 3. [`plan`] — execution order, parallel levels and cache keys.
 //!
 //! [`run`] executes a plan against the [`cache`] (stage panics caught by
-//! [`panics`]) and writes the page [`report`]; [`explain`] says why a
+//! [`panics`], followed and stopped from another thread through
+//! [`control`]) and writes the page [`report`]; [`explain`] says why a
 //! stage would run, [`graph`] draws the stages, [`snapshot`] records and
 //! checks result tables, [`published`] reads a published table back and
 //! says whether it is current, [`gc`] removes what nothing reaches any
@@ -20,6 +21,7 @@
 
 pub mod cache;
 pub mod cluster;
+pub mod control;
 pub mod diagnose;
 pub mod error;
 pub mod experiment;

@@ -28,6 +28,7 @@
 //! rather than silently repaired.
 
 use super::cache::{self, Entry, KeyFields, Lookup, Manifest, Miss, Store};
+use super::control::Control;
 use super::experiment::{self, Experiment};
 use super::panics;
 use super::plan::{Graph, key_fields, reason};
@@ -59,6 +60,8 @@ pub struct RunOptions {
     pub not_computed: Option<Arc<BTreeMap<usize, (String, String)>>>,
     /// Publish to this experiment's folder, not the pipeline's results.
     pub experiment: Option<Experiment>,
+    /// The caller's view of the run under way, and its stop.
+    pub control: Arc<Control>,
 }
 
 pub use super::run_report::{RunReport, StageReport, SweepReport, Tables};
@@ -156,6 +159,8 @@ struct Runner<'a> {
     not_computed: Option<&'a BTreeMap<usize, (String, String)>>,
     /// The stages it may compute, and those it computes even if cached.
     selection: &'a Selection,
+    /// Asked before a stage or point starts ([`RunOptions::control`]).
+    control: &'a Control,
 }
 
 /// What executing a pipeline came to: the run's report and the tables the
@@ -210,6 +215,7 @@ pub fn execute_pipeline(
         parallel: true,
         not_computed: opts.not_computed.as_deref(),
         selection,
+        control: &opts.control,
     };
     let (stages, produced, sweep) = match &p.sweep {
         None => {
@@ -244,6 +250,7 @@ pub fn execute_pipeline(
             }
         }
     };
+    opts.control.check()?;
     let report = RunReport {
         pipeline: p.name.clone(),
         results: dir.clone(),
@@ -309,6 +316,16 @@ fn execute_stages(
         // before it in its level, so that two runs print alike.
         let lines = Mutex::new((0, vec![None; ready.len()]));
         let run_one = |(pos, &i): (usize, &usize)| {
+            // A stop keeps the pipeline's next stages from starting; a sweep
+            // point's stages all run once the point has started.
+            let top = runner.point.is_none();
+            if top && runner.control.refuses() {
+                return (
+                    i,
+                    skipped(&stages[i], "the run was interrupted".into()),
+                    None,
+                );
+            }
             let inputs = {
                 let done = produced.lock().expect("no panics hold this lock");
                 stages[i]
@@ -321,6 +338,9 @@ fn execute_stages(
                     .collect::<Vec<_>>()
             };
             let (report, out) = execute(runner, &stages[i], inputs);
+            if top {
+                runner.control.stage_done();
+            }
             if runner.progress {
                 let mut lines = lines.lock().expect("no panics hold this lock");
                 let (next, waiting) = &mut *lines;
@@ -524,20 +544,31 @@ fn run_point_set<'a>(
     let (mut unpacked, mut flushed) = (0, Instant::now());
     let parts: Vec<&[usize]> = indices.chunks(batch).collect();
     for (n, part) in parts.iter().enumerate() {
-        let outcomes: Vec<PointOutcome> = part
+        let outcomes: Vec<Option<PointOutcome>> = part
             .par_iter()
             .map(|&i| {
+                if runner.control.refuses() {
+                    return None;
+                }
                 let out = run_point(&point_runner, sw, i);
                 bar.inc(1);
-                out
+                runner.control.point_done();
+                Some(out)
             })
             .collect();
         unpacked += part.len();
-        if n + 1 == parts.len() || unpacked >= PACK_POINTS || flushed.elapsed() >= PACK_SECONDS {
+        // Stopped: the points finished are written now, not lost.
+        let stopped = runner.control.stopping();
+        if stopped
+            || n + 1 == parts.len()
+            || unpacked >= PACK_POINTS
+            || flushed.elapsed() >= PACK_SECONDS
+        {
             runner.store.flush("local")?;
             (unpacked, flushed) = (0, Instant::now());
         }
         for (&i, out) in part.iter().zip(outcomes) {
+            let Some(out) = out else { continue };
             let failed: Vec<&StageReport> = out
                 .reports
                 .iter()
@@ -591,6 +622,9 @@ fn run_point_set<'a>(
             counts.ran, counts.cached, counts.failed
         ));
     }
+    // Points kept from starting (after a stop, every later part's points
+    // are): nothing is gathered from a part of the sweep.
+    runner.control.check()?;
     let mut reports = failures;
     // One line per per-point stage: ran if any point ran it.
     for (mut r, ran, seconds, damaged) in per_stage {
@@ -730,6 +764,7 @@ pub fn run_task(
         parallel: false,
         not_computed: None,
         selection: &Selection::default(),
+        control: &opts.control,
     };
     let mut report = TaskReport::default();
     let mut flushed = Instant::now();
@@ -1134,6 +1169,7 @@ mod tests {
             progress: false,
             not_computed: None,
             experiment: None,
+            control: Default::default(),
         };
         execute_pipeline(&p, &opts, &Selection::default())
             .unwrap()

@@ -92,8 +92,8 @@ pub struct BlindCheckStage {
     /// Effect ids drawn from.
     #[serde(default = "default_effects")]
     pub effects: Vec<String>,
-    /// Case kinds drawn besides `none`: `single`, `two-face`, `no-time`, `two-
-    /// effects`, `blunder`, `blunders`, `blunder-and-effect`.
+    /// Case kinds drawn besides `none`: `single`, `two-face`, `no-time`,
+    /// `two-effects`, `blunder`, `blunders`, `blunder-and-effect`.
     #[serde(default = "default_kinds")]
     pub kinds: Vec<CaseKind>,
     /// The trackers' model, diagnosed as theirs.

@@ -43,8 +43,8 @@ pub struct Random {
 #[derive(Clone, Debug, Serialize, Deserialize, documented::DocumentedFields)]
 #[serde(deny_unknown_fields)]
 pub struct InjectStage {
-    /// The tracker model: `api-tracker3` (the paper's DH chain) or `mirror-
-    /// tracker` (its ten misalignments).
+    /// The tracker model: `api-tracker3` (the paper's DH chain) or
+    /// `mirror-tracker` (its ten misalignments).
     #[serde(default)]
     pub model: TrackerModel,
     /// `table2` (every parameter 10 µm / 10 µrad, Table 2) or `zero`.

@@ -239,6 +239,18 @@ mod tests {
         for k in super::super::KINDS {
             for s in settings(k).unwrap() {
                 assert!(!s.doc.is_empty(), "{k}.{} has no doc", s.name);
+                // The doc's lines are joined with a space: a word hyphenated
+                // across two `///` lines would print as `mirror- tracker`.
+                let split = s
+                    .doc
+                    .as_bytes()
+                    .windows(3)
+                    .any(|w| w[0].is_ascii_alphanumeric() && w[1] == b'-' && w[2] == b' ');
+                assert!(
+                    !split,
+                    "{k}.{}: a word split at a line end: {}",
+                    s.name, s.doc
+                );
             }
         }
         assert_eq!(unit("sigma_angle_urad"), "µrad");

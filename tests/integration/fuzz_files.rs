@@ -555,6 +555,7 @@ fn opts(results: &Path) -> run::RunOptions {
         progress: false,
         not_computed: None,
         experiment: None,
+        control: Default::default(),
     }
 }
 

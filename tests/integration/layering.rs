@@ -403,6 +403,7 @@ const PIPELINE_LAYERS: &[&[&str]] = &[
         "panics",
         "status",
         "cluster::settings",
+        "control",
     ],
     &["cache", "cluster::scheduler", "sweep"],
     &["raw", "cluster::slurm"],

@@ -207,6 +207,72 @@ fn a_sweep_killed_midway_finishes_only_the_remaining_points() {
     assert_eq!(gathered(&killed, "killed"), gathered(&clean, "killed"));
 }
 
+/// Before, Ctrl-C ended `ltcal run` at once: the points finished since the
+/// last pack (up to a second of work) were lost. Now the first Ctrl-C
+/// starts nothing more, lets what is under way finish, writes every
+/// finished point to the cache and publishes nothing of the unfinished run.
+#[test]
+fn ctrl_c_stops_a_sweep_keeping_every_finished_point_and_publishing_nothing_of_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = sweep_file(dir.path(), "stopped", 40, 10);
+    let results = dir.path().join("results");
+    let packs = results.join("stopped").join(".ltcal").join("packs");
+    let child = Command::new(env!("CARGO_BIN_EXE_ltcal"))
+        .args(["run", file.to_str().unwrap(), "--results"])
+        .arg(&results)
+        .arg("-q")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Stop once the first pack of points' entries exists: mid-sweep.
+    let t0 = Instant::now();
+    while std::fs::read_dir(&packs).map_or(0, |d| d.count()) == 0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "no pack in a minute"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let kill = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    let finished: usize = err
+        .split("after the stop; the ")
+        .nth(1)
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no count of finished points in: {err}"));
+    assert!((1..400).contains(&finished), "{err}");
+    // Nothing of the unfinished run is published.
+    let folder = results.join("stopped");
+    assert!(!folder.join("run.json").exists());
+    assert!(!folder.join("sweep").exists());
+    // Every point it said was finished is in the cache.
+    let status = ltcal(
+        dir.path(),
+        &[
+            "status",
+            file.to_str().unwrap(),
+            "--results",
+            results.to_str().unwrap(),
+        ],
+    );
+    let said = String::from_utf8_lossy(&status.stdout);
+    assert!(
+        said.contains(&format!("{finished} of 400 sweep points done")),
+        "{said}"
+    );
+    let resumed = run_pipeline(&file, &results, &[]);
+    let sw = resumed.sweep.unwrap();
+    assert_eq!((sw.cached, sw.ran), (finished, 400 - finished));
+}
+
 #[test]
 fn sweep_mistakes_point_into_the_file() {
     let dir = tempfile::tempdir().unwrap();

@@ -25,6 +25,7 @@ pub fn run_pipeline(file: &Path, results: &Path, sets: &[&str]) -> run::RunRepor
             progress: false,
             not_computed: None,
             experiment: None,
+            control: Default::default(),
         },
     )
     .unwrap();
