@@ -30,29 +30,31 @@ pub struct Control {
     points: AtomicUsize,
 }
 
-/// What a run stopped by [`Control::stop`] returns instead of its report.
+/// What a run stopped by [`Control::stop`] (or a Slurm coordinator stopped
+/// by Ctrl-C) returns instead of its report: the command line's exit 130.
 #[derive(Debug, thiserror::Error)]
-#[error(
-    "interrupted: nothing started after the stop; {} finished before it {} cached \
-     (a rerun takes {} and goes on); nothing of the unfinished run was published",
-    self.finished(), if self.stages + self.points == 1 { "is" } else { "are" },
-    if self.stages + self.points == 1 { "it" } else { "them" }
-)]
-pub struct Interrupted {
-    /// Stages of the pipeline done (a sweep point's are counted as its point).
-    pub stages: usize,
-    /// Sweep points done.
-    pub points: usize,
+pub enum Interrupted {
+    /// A run here: the stages of the pipeline (a sweep point's are counted
+    /// as its point) and the sweep points done before the stop.
+    #[error(
+        "interrupted: nothing started after the stop; {} finished before it {} cached \
+         (a rerun takes {} and goes on); nothing of the unfinished run was published",
+        finished(*stages, *points),
+        if stages + points == 1 { "is" } else { "are" },
+        if stages + points == 1 { "it" } else { "them" }
+    )]
+    Here { stages: usize, points: usize },
+    /// A Slurm coordinator, saying what it cancelled.
+    #[error("interrupted: {0}")]
+    Cluster(String),
 }
 
-impl Interrupted {
-    fn finished(&self) -> String {
-        let count = |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
-        match (self.stages, self.points) {
-            (s, 0) => format!("the {}", count(s, "stage")),
-            (0, p) => format!("the {}", count(p, "sweep point")),
-            (s, p) => format!("the {} and {}", count(p, "sweep point"), count(s, "stage")),
-        }
+fn finished(stages: usize, points: usize) -> String {
+    let count = |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
+    match (stages, points) {
+        (s, 0) => format!("the {}", count(s, "stage")),
+        (0, p) => format!("the {}", count(p, "sweep point")),
+        (s, p) => format!("the {} and {}", count(p, "sweep point"), count(s, "stage")),
     }
 }
 
@@ -89,7 +91,7 @@ impl Control {
     /// [`Interrupted`] when the stop kept something from starting.
     pub(super) fn check(&self) -> Result<(), Interrupted> {
         if self.cut.load(Ordering::SeqCst) {
-            return Err(Interrupted {
+            return Err(Interrupted::Here {
                 stages: self.stages_done(),
                 points: self.points_done(),
             });
@@ -130,7 +132,13 @@ mod tests {
         assert!(c.refuses());
         c.stage_done();
         let e = c.check().unwrap_err();
-        assert_eq!((e.stages, e.points), (1, 0));
+        assert!(matches!(
+            e,
+            Interrupted::Here {
+                stages: 1,
+                points: 0
+            }
+        ));
         assert!(
             e.to_string()
                 .contains("the 1 stage finished before it is cached"),

@@ -344,7 +344,7 @@ fn sigterm_to_the_coordinator_cancels_its_jobs() {
         .unwrap();
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(out.status.code(), Some(130), "{err}");
     assert!(
         err.contains(&format!("interrupted: cancelled Slurm job {job}")),
         "{err}"

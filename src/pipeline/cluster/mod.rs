@@ -53,6 +53,7 @@ pub use scheduler::{ArrayJob, Scheduler, TaskState};
 pub use settings::SlurmSettings;
 
 use super::cache::Store;
+use super::control::Interrupted;
 use super::plan;
 use super::publish;
 use super::resolve::{Pipeline, Sweep};
@@ -273,7 +274,7 @@ pub fn run(
         .filter(|i| !in_flight.contains(i))
         .collect();
     if cluster.interrupted.load(Ordering::SeqCst) {
-        bail!("interrupted before anything was submitted");
+        return Err(Interrupted::Cluster("before anything was submitted".into()).into());
     }
     let mut ours = active;
     if !missing.is_empty() {
@@ -312,7 +313,10 @@ pub fn run(
     }
     let states = wait(p, opts, cluster, scheduler, &ours)?;
     if cluster.interrupted.load(Ordering::SeqCst) {
-        bail!("interrupted after the jobs ended: a rerun gathers what they computed");
+        return Err(Interrupted::Cluster(
+            "after the jobs ended: a rerun gathers what they computed".into(),
+        )
+        .into());
     }
     // What the wave did not finish, and why.
     store.refresh_packs();
@@ -487,11 +491,12 @@ fn wait(
                 .map(|j| j.job.clone())
                 .collect();
             scheduler.cancel(&ids)?;
-            bail!(
-                "interrupted: cancelled {} job {} (a rerun submits the points still missing)",
+            return Err(Interrupted::Cluster(format!(
+                "cancelled {} job {} (a rerun submits the points still missing)",
                 scheduler.name(),
                 ids.join(", ")
-            );
+            ))
+            .into());
         }
         if last_poll.is_none_or(|t| t.elapsed() >= poll) {
             last_poll = Some(Instant::now());
