@@ -201,36 +201,54 @@ fn products(
         }
         s
     };
+    // Each column of the reading's block, gathered once per reading.
+    let mut vcols: Vec<[f64; 3]> = Vec::with_capacity(k);
     for (i, v) in c.blocks() {
         if !keep(i) {
             continue;
         }
-        for a in 0..k {
-            let ca = col3(v, k, a);
-            for b in 0..k {
-                ctc[(a, b)] += dot3(ca, col3(v, k, b));
+        vcols.clear();
+        vcols.extend((0..k).map(|b| col3(v, k, b)));
+        for (a, &ca) in vcols.iter().enumerate() {
+            // `CᵀC` is symmetric: each pair's product once, added to both
+            // entries (`x·y` is `y·x`, the same three-term sum).
+            for (b, &cb) in vcols.iter().enumerate().skip(a) {
+                let d = dot3(ca, cb);
+                ctc[(a, b)] += d;
+                if b != a {
+                    ctc[(b, a)] += d;
+                }
             }
             ctx[a] += ca[0] * x[3 * i] + ca[1] * x[3 * i + 1] + ca[2] * x[3 * i + 2];
         }
         for (col, w, part) in j.dense_parts(i) {
-            for a in 0..w {
-                let ja = col3(part, w, a);
-                for b in 0..k {
-                    u_a[(col + a, b)] += dot3(ja, col3(v, k, b));
+            // A column of `u_a` at a time: contiguous (column-major), each
+            // entry still one addition per part.
+            for (b, &cb) in vcols.iter().enumerate() {
+                let out = &mut u_a.as_mut_slice()[b * n_a + col..b * n_a + col + w];
+                for (a, o) in out.iter_mut().enumerate() {
+                    *o += dot3(col3(part, w, a), cb);
                 }
             }
         }
         if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
-            let add = DMatrix::from_fn(3, k, |a, b| dot3(col3(part, 3, a), col3(v, k, b)));
+            let jcols = [col3(part, 3, 0), col3(part, 3, 1), col3(part, 3, 2)];
             if slot_of.is_empty() {
                 slot_of = vec![u32::MAX; j.points()];
             }
             match slot_of[p] {
                 u32::MAX => {
                     slot_of[p] = u_x.len() as u32;
-                    u_x.push((p, add));
+                    u_x.push((p, DMatrix::from_fn(3, k, |a, b| dot3(jcols[a], vcols[b]))));
                 }
-                at => u_x[at as usize].1 += add,
+                at => {
+                    let m = &mut u_x[at as usize].1;
+                    for (b, &cb) in vcols.iter().enumerate() {
+                        for (a, &ja) in jcols.iter().enumerate() {
+                            m[(a, b)] += dot3(ja, cb);
+                        }
+                    }
+                }
             }
         }
     }
