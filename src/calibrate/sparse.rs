@@ -812,12 +812,18 @@ impl Factor {
     /// dense part and a few positions.
     pub fn reduce_sparse(&self, u_a: &DMatrix<f64>, u_x: &[(usize, DMatrix<f64>)]) -> DMatrix<f64> {
         let mut v = u_a.clone();
+        let n = v.nrows();
         for (i, ux) in u_x {
             let p = &self.points[*i];
-            let wu = &p.w * ux;
-            for (k, &c) in p.cols.iter().enumerate() {
-                for col in 0..v.ncols() {
-                    v[(c, col)] -= wu[(k, col)];
+            // `W·uₓ` written out as nalgebra's product of a 3-column
+            // matrix forms it (a sum from the first term, in column
+            // order), without a matrix allocated per position; a column
+            // of `v` at a time (contiguous).
+            for col in 0..v.ncols() {
+                let u = [ux[(0, col)], ux[(1, col)], ux[(2, col)]];
+                let out = &mut v.as_mut_slice()[col * n..(col + 1) * n];
+                for (k, &c) in p.cols.iter().enumerate() {
+                    out[c] -= p.w[(k, 0)] * u[0] + p.w[(k, 1)] * u[1] + p.w[(k, 2)] * u[2];
                 }
             }
         }
@@ -1112,5 +1118,36 @@ mod tests {
         let r = DVector::from_fn(j.nrows(), |i, _| (i as f64).sin());
         let jt_r = DVector::from_vec(j.tr_mul_rows(r.as_slice(), 1, |_| true));
         assert!((jt_r - jd.transpose() * r).norm() < 1e-12);
+    }
+
+    /// Issue 34: `reduce_sparse` written out (no matrix per position) is
+    /// nalgebra's `u_A − Σ W·uₓ` bit for bit.
+    #[test]
+    fn reduce_sparse_written_out_is_nalgebras_product_bit_for_bit() {
+        let (j, _) = random_arrow(6, 0.61, 1.5, true);
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let k = 4;
+        let u_a = DMatrix::from_fn(j.n_a(), k, |r, c| ((5 * r + 3 * c) as f64 * 0.29).cos());
+        let u_x: Vec<(usize, DMatrix<f64>)> = (0..j.points())
+            .rev()
+            .map(|p| {
+                (
+                    p,
+                    DMatrix::from_fn(3, k, |r, c| ((p + 7 * r + 11 * c) as f64).sin()),
+                )
+            })
+            .collect();
+        let mut want = u_a.clone();
+        for (i, ux) in &u_x {
+            let (cols, w) = f.point_coupling(*i);
+            let wu = w * ux;
+            for (r, &c) in cols.iter().enumerate() {
+                for col in 0..k {
+                    want[(c, col)] -= wu[(r, col)];
+                }
+            }
+        }
+        assert!(u_x.iter().any(|(p, _)| !f.point_coupling(*p).0.is_empty()));
+        assert_eq!(f.reduce_sparse(&u_a, &u_x), want);
     }
 }

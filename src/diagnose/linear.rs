@@ -41,6 +41,7 @@
 use crate::calibrate::snooping::{self, Absorbed, WTest};
 use crate::calibrate::sparse::{self, BlockJacobian, Factor, Normal, project_out};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use rayon::prelude::*;
 
 /// A candidate's signature: `k` columns over the model's rows, non-zero
 /// only on the readings it affects (never on gauge or reference rows).
@@ -200,36 +201,54 @@ fn products(
         }
         s
     };
+    // Each column of the reading's block, gathered once per reading.
+    let mut vcols: Vec<[f64; 3]> = Vec::with_capacity(k);
     for (i, v) in c.blocks() {
         if !keep(i) {
             continue;
         }
-        for a in 0..k {
-            let ca = col3(v, k, a);
-            for b in 0..k {
-                ctc[(a, b)] += dot3(ca, col3(v, k, b));
+        vcols.clear();
+        vcols.extend((0..k).map(|b| col3(v, k, b)));
+        for (a, &ca) in vcols.iter().enumerate() {
+            // `CᵀC` is symmetric: each pair's product once, added to both
+            // entries (`x·y` is `y·x`, the same three-term sum).
+            for (b, &cb) in vcols.iter().enumerate().skip(a) {
+                let d = dot3(ca, cb);
+                ctc[(a, b)] += d;
+                if b != a {
+                    ctc[(b, a)] += d;
+                }
             }
             ctx[a] += ca[0] * x[3 * i] + ca[1] * x[3 * i + 1] + ca[2] * x[3 * i + 2];
         }
         for (col, w, part) in j.dense_parts(i) {
-            for a in 0..w {
-                let ja = col3(part, w, a);
-                for b in 0..k {
-                    u_a[(col + a, b)] += dot3(ja, col3(v, k, b));
+            // A column of `u_a` at a time: contiguous (column-major), each
+            // entry still one addition per part.
+            for (b, &cb) in vcols.iter().enumerate() {
+                let out = &mut u_a.as_mut_slice()[b * n_a + col..b * n_a + col + w];
+                for (a, o) in out.iter_mut().enumerate() {
+                    *o += dot3(col3(part, w, a), cb);
                 }
             }
         }
         if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
-            let add = DMatrix::from_fn(3, k, |a, b| dot3(col3(part, 3, a), col3(v, k, b)));
+            let jcols = [col3(part, 3, 0), col3(part, 3, 1), col3(part, 3, 2)];
             if slot_of.is_empty() {
                 slot_of = vec![u32::MAX; j.points()];
             }
             match slot_of[p] {
                 u32::MAX => {
                     slot_of[p] = u_x.len() as u32;
-                    u_x.push((p, add));
+                    u_x.push((p, DMatrix::from_fn(3, k, |a, b| dot3(jcols[a], vcols[b]))));
                 }
-                at => u_x[at as usize].1 += add,
+                at => {
+                    let m = &mut u_x[at as usize].1;
+                    for (b, &cb) in vcols.iter().enumerate() {
+                        for (a, &ja) in jcols.iter().enumerate() {
+                            m[(a, b)] += dot3(ja, cb);
+                        }
+                    }
+                }
             }
         }
     }
@@ -420,7 +439,10 @@ impl LinearModel {
                 readings_of_point[p].push(i);
             }
         }
+        // The folds are independent (each its own sums, in its own order):
+        // in parallel, the same numbers.
         let folds = (0..n_folds)
+            .into_par_iter()
             .map(|f| {
                 let (test, factor, res) = fold_fit(&j, &r, fold_of, f)?;
                 let n_a = j.n_a();
@@ -489,13 +511,26 @@ impl LinearModel {
         n_folds: usize,
         to_mm: &[Matrix3<f64>],
     ) -> Result<f64, Singular> {
+        // Each fold's held-out terms in parallel, summed in fold order as
+        // one running sum: the same number.
+        let terms = (0..n_folds)
+            .into_par_iter()
+            .map(|f| {
+                let (test, _, res) = fold_fit(j, r, fold_of, f)?;
+                Ok(test
+                    .into_iter()
+                    .map(|i| {
+                        let a = to_mm[i]
+                            * 1e3
+                            * Vector3::new(res[3 * i], res[3 * i + 1], res[3 * i + 2]);
+                        a.norm_squared()
+                    })
+                    .collect::<Vec<f64>>())
+            })
+            .collect::<Result<Vec<_>, Singular>>()?;
         let mut sum = 0.0;
-        for f in 0..n_folds {
-            let (test, _, res) = fold_fit(j, r, fold_of, f)?;
-            for i in test {
-                let a = to_mm[i] * 1e3 * Vector3::new(res[3 * i], res[3 * i + 1], res[3 * i + 2]);
-                sum += a.norm_squared();
-            }
+        for t in terms.iter().flatten() {
+            sum += t;
         }
         Ok((sum / fold_of.len().max(1) as f64).sqrt())
     }
@@ -641,16 +676,16 @@ impl LinearModel {
             .collect()
     }
 
-    /// The held-out RMS (µm) that noise alone leaves in this geometry:
-    /// the mean over `draws` of the base model's cross-validated RMS for
-    /// noise `ε ~ N(0, I)` in units of σ, its base fit removed.
-    pub fn noise_floor_um(&self, draws: &[DVector<f64>]) -> f64 {
-        use rayon::prelude::*;
-        if draws.is_empty() {
-            return 0.0;
-        }
+    /// What the held-out RMS (µm) is for noise alone in this geometry, one
+    /// value per draw: the base model's cross-validated RMS for each of
+    /// `draws`, noise `ε ~ N(0, I)` in units of σ, its base fit removed
+    /// (the noise floor is their mean). Draws go through in batches of
+    /// [`DRAW_BATCH`] from the first: the same batches, the same numbers,
+    /// whether the draws come in one call or in several of multiples of it.
+    pub fn noise_floor_draws_um(&self, draws: &[DVector<f64>]) -> Vec<f64> {
         let m = self.j.nrows();
-        // Summed in draw order whatever the threads: the same number on any machine.
+        // Each batch its own values, in draw order whatever the threads:
+        // the same numbers on any machine.
         let each: Vec<Vec<f64>> = draws
             .par_chunks(DRAW_BATCH)
             .map(|batch| {
@@ -665,7 +700,7 @@ impl LinearModel {
                 self.cv_rms_um_of(&e_perp, k)
             })
             .collect();
-        each.iter().flatten().sum::<f64>() / draws.len() as f64
+        each.into_iter().flatten().collect()
     }
 }
 
@@ -935,5 +970,27 @@ mod tests {
         for c in 0..v.ncols() {
             assert_eq!(cols.column(c), f.solve_schur(&v.column(c).into_owned()));
         }
+    }
+
+    /// Issue 34: the noise floor's draws come in two calls (its first
+    /// draws, then the rest only when their error asks for them); each
+    /// draw's value is the one a single call over all the draws gives, bit
+    /// for bit, so a floor that takes every draw is the number it was.
+    #[test]
+    fn noise_floor_draws_in_two_calls_are_one_calls_bit_for_bit() {
+        let (j, jd) = network();
+        let n_read = j.nrows() / 3;
+        let r = projector(&jd) * DVector::from_fn(j.nrows(), |i, _| ((i * 7) % 5) as f64 - 2.0);
+        let fold_of: Vec<usize> = (0..n_read).map(|i| (i / 6 + i) % 3).collect();
+        let lm = LinearModel::new(j, r, &fold_of, 3, vec![Matrix3::identity(); n_read]).unwrap();
+        let draws: Vec<DVector<f64>> = (0..40)
+            .map(|d| DVector::from_fn(lm.rows(), |i, _| ((i * 31 + d * 17) as f64 * 0.7).sin()))
+            .collect();
+        let all = lm.noise_floor_draws_um(&draws);
+        let mut parts = lm.noise_floor_draws_um(&draws[..32]);
+        parts.extend(lm.noise_floor_draws_um(&draws[32..]));
+        assert_eq!(all.len(), 40);
+        assert_eq!(all, parts);
+        assert!(all.iter().all(|v| *v > 0.0), "{all:?}");
     }
 }

@@ -373,7 +373,21 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         enabled: &enabled,
     };
     let (base, base_tests) = ctx.base()?;
-    let floor = noise_floor(&base.lm, s);
+    // The noise floor and the other tracker models need only the base
+    // model: each its own work, side by side. Another model that cannot be
+    // fitted (its adjustment fails) is skipped with the reason, as an
+    // effect whose inputs are missing is.
+    let mut skipped_models = Vec::new();
+    let (floor, models) = rayon::join(
+        || noise_floor(&base.lm, s),
+        || {
+            if compare {
+                compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
+            } else {
+                Vec::new()
+            }
+        },
+    );
     let members: Vec<Member> = Vec::new();
 
     // Where: the base model's residuals, with each coordinate's w-test.
@@ -383,14 +397,6 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
     let base_cal = base.cal.clone();
-    // Another model that cannot be fitted (its adjustment fails) is skipped
-    // with the reason, as an effect whose inputs are missing is.
-    let mut skipped_models = Vec::new();
-    let models = if compare {
-        compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
-    } else {
-        Vec::new()
-    };
     let open = s.max_steps >= 1;
     // Which, step by step: the explanation set, along the most promising
     // first steps — unless another tracker model explains more than any
@@ -973,6 +979,9 @@ struct State {
     /// Every localisation basis fitted beside the members, when first
     /// asked for ([`State::bases`]).
     bases: std::sync::OnceLock<localise::Fitted>,
+    /// The w-tests against the members, when first asked for
+    /// ([`State::w_tests`]).
+    tests: std::sync::OnceLock<Vec<[WTest; 3]>>,
 }
 
 impl State {
@@ -988,6 +997,14 @@ impl State {
                 &self.net.targets,
             )
         })
+    }
+
+    /// Baarda's w-test of every reading coordinate against the members:
+    /// once per state — the base model's screen, a step's outliers and its
+    /// worst reading (three Schur solves per reading each) ask for the
+    /// same tests.
+    fn w_tests(&self) -> &[[WTest; 3]] {
+        self.tests.get_or_init(|| self.lm.w_tests(&self.members))
     }
 
     /// χ² the members' columns still explain (zero once the refit has
@@ -1213,6 +1230,7 @@ impl StepContext<'_> {
                 rejected: rejected.clone(),
                 lm,
                 bases: std::sync::OnceLock::new(),
+                tests: std::sync::OnceLock::new(),
             });
         }
     }
@@ -1229,7 +1247,7 @@ impl StepContext<'_> {
         let screen = (self.enabled)("blunder");
         match self.state(&mut Vec::new(), Vec::new()) {
             Ok(st) => {
-                let tests = st.lm.w_tests(&st.members);
+                let tests = st.w_tests().to_vec();
                 let n = snooping::testable(&tests);
                 if let Some(t) = snooping::worst(&tests).filter(|t| screen && t.w.abs() > GROSS_W) {
                     let p = (snooping::p_corrected(t.w, n) * 2.0).min(1.0);
@@ -1463,12 +1481,49 @@ pub(crate) fn folds(net: &Network, s: &Settings) -> (Vec<usize>, usize) {
 
 /// How far, the reference: the held-out RMS the stated noise alone leaves,
 /// by Monte Carlo draws through the same adjustment.
+///
+/// The first [`FLOOR_FIRST_DRAWS`] draws decide whether the rest are
+/// needed: when their mean's Monte Carlo standard error is already at most
+/// [`FLOOR_REL_SE`] of it — a big network, whose every draw averages tens
+/// of thousands of held-out residuals, varies by a few tenths of a percent
+/// from draw to draw — the floor is their mean; otherwise every one of the
+/// `mc_draws` draws is made, the first ones the same draws as before.
 fn noise_floor(lm: &LinearModel, s: &Settings) -> f64 {
     let mut mc = random::stream(s.seed, "diagnose-noise");
-    let draws: Vec<DVector<f64>> = (0..s.mc_draws)
-        .map(|_| DVector::from_fn(lm.rows(), |_, _| random::normal(&mut mc)))
-        .collect();
-    lm.noise_floor_um(&draws)
+    let mut draw = |n: usize| -> Vec<DVector<f64>> {
+        (0..n)
+            .map(|_| DVector::from_fn(lm.rows(), |_, _| random::normal(&mut mc)))
+            .collect()
+    };
+    let first = s.mc_draws.min(FLOOR_FIRST_DRAWS);
+    let mut each = lm.noise_floor_draws_um(&draw(first));
+    if !precise_enough(&each) {
+        each.extend(lm.noise_floor_draws_um(&draw(s.mc_draws - first)));
+    }
+    if each.is_empty() {
+        return 0.0;
+    }
+    each.iter().sum::<f64>() / each.len() as f64
+}
+
+/// Draws made before [`noise_floor`] judges its Monte Carlo error: two of
+/// the draws' batches, enough for a standard deviation to 13 %.
+const FLOOR_FIRST_DRAWS: usize = 32;
+
+/// The noise floor's Monte Carlo standard error, relative, below which
+/// [`noise_floor`] stops at its first draws: 0.1 % of the floor.
+const FLOOR_REL_SE: f64 = 1e-3;
+
+/// Whether the mean of `each` (one value per draw) is known to
+/// [`FLOOR_REL_SE`] (one standard error).
+fn precise_enough(each: &[f64]) -> bool {
+    let n = each.len() as f64;
+    if each.len() < 2 {
+        return false;
+    }
+    let mean = each.iter().sum::<f64>() / n;
+    let var = each.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (var / n).sqrt() <= FLOOR_REL_SE * mean
 }
 
 /// One step's tests: every candidate against the model with the members so
@@ -1862,9 +1917,9 @@ impl StepContext<'_> {
     /// members (scaled as [`w_scales`] does), at most [`MAX_OUTLIERS`],
     /// one column each.
     fn outliers(&self, st: &State) -> Signature {
-        let tests = st.lm.w_tests(&st.members);
-        let n = snooping::testable(&tests);
-        let scales = w_scales(&tests);
+        let tests = st.w_tests();
+        let n = snooping::testable(tests);
+        let scales = w_scales(tests);
         let mut flagged: Vec<WTest> = tests
             .iter()
             .flatten()
@@ -1896,9 +1951,17 @@ impl StepContext<'_> {
         rms_before: f64,
         floor: f64,
     ) -> (Option<BlunderRow>, usize) {
-        let tests = st.lm.w_tests(against);
-        let n = snooping::testable(&tests);
-        let scales = w_scales(&tests);
+        // `against` is the members' columns and a nuisance's: without one
+        // (no more columns than the members) the state's own tests.
+        let beside;
+        let tests = if against.ncols() == st.members.ncols() {
+            st.w_tests()
+        } else {
+            beside = st.lm.w_tests(against);
+            &beside
+        };
+        let n = snooping::testable(tests);
+        let scales = w_scales(tests);
         // The worst by its scaled w (the first of equals, as `snooping::worst`).
         let Some(t) =
             tests
@@ -2159,5 +2222,22 @@ mod tests {
         assert_eq!(station_order(&timed, &ids), [0, 1]);
         let partly = campaign(&[("S2", Some(500.0)), ("S1", None)]);
         assert_eq!(station_order(&partly, &ids), [1, 0]);
+    }
+
+    /// Issue 34: the noise floor stops at its first draws only when their
+    /// mean's standard error is within [`FLOOR_REL_SE`] of it; a single
+    /// draw or a NaN never stops it.
+    #[test]
+    fn noise_floor_stops_early_only_within_a_thousandth_standard_error() {
+        // 32 values 1 ± d: the mean's standard error is d/√31.
+        let at = |d: f64| -> Vec<f64> {
+            (0..32)
+                .map(|i| if i % 2 == 0 { 1.0 + d } else { 1.0 - d })
+                .collect()
+        };
+        assert!(precise_enough(&at(5e-3))); // 9.0e-4
+        assert!(!precise_enough(&at(6e-3))); // 1.08e-3
+        assert!(!precise_enough(&[1.0]));
+        assert!(!precise_enough(&[f64::NAN; 32]));
     }
 }
