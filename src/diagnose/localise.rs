@@ -505,7 +505,7 @@ pub(super) struct Rest<'a> {
     pub dof: usize,
     /// Held-out RMS of the augmented model and the noise floor (µm).
     pub cv_rms_um: f64,
-    pub floor_um: f64,
+    pub floor: super::Floor,
     pub alpha: f64,
 }
 
@@ -670,7 +670,7 @@ pub(super) fn localise(rest: &Rest, fitted: &Fitted, infos: &[ReadingInfo]) -> V
             let p_adjusted = (p * tried as f64).min(1.0);
             let joint = Signature::concat(rest.members, &b.columns);
             let cv = rest.lm.cv_rms_um(&joint);
-            let gap = rest.cv_rms_um - rest.floor_um;
+            let gap = rest.cv_rms_um - rest.floor.um;
             let var_factor = (left / dof_aug as f64).max(1.0);
             let beta = &fit.beta[k_m..];
             let u: Vec<f64> = (0..k)
@@ -689,7 +689,7 @@ pub(super) fn localise(rest: &Rest, fitted: &Fitted, infos: &[ReadingInfo]) -> V
                 p,
                 p_adjusted,
                 significant: !rounding && p_adjusted < rest.alpha,
-                gap_removed_pct: if gap > 0.0 {
+                gap_removed_pct: if rest.floor.has_gap(gap) {
                     100.0 * (rest.cv_rms_um - cv) / gap
                 } else {
                     0.0

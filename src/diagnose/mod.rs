@@ -173,6 +173,8 @@ pub struct Diagnosis {
     pub noise_stated: bool,
     /// The held-out RMS noise alone leaves (µm).
     pub noise_floor_um: f64,
+    /// Its Monte Carlo standard error (µm).
+    pub noise_floor_u_um: f64,
     /// The base model's calibration (before any member of the set).
     pub calibration: Calibration,
     /// Each reading's σ in az, el (rad) and d (mm), in reading order.
@@ -195,6 +197,14 @@ pub struct Diagnosis {
 }
 
 impl Diagnosis {
+    /// The noise floor with its Monte Carlo standard error.
+    pub fn floor(&self) -> Floor {
+        Floor {
+            um: self.noise_floor_um,
+            u_um: self.noise_floor_u_um,
+        }
+    }
+
     /// Rank 1.
     pub fn best(&self) -> &Row {
         &self.rows[0]
@@ -571,7 +581,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             chi2: final_state.lm.chi2() - final_state.members_chi2(),
             dof: final_state.dof(),
             cv_rms_um: final_state.cv_rms_um(),
-            floor_um: floor,
+            floor,
             alpha: s.alpha,
         },
         final_state.bases(),
@@ -605,7 +615,8 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         dof,
         chi2_p,
         noise_stated: net0.noise_stated,
-        noise_floor_um: floor,
+        noise_floor_um: floor.um,
+        noise_floor_u_um: floor.u_um,
         calibration: base_cal,
         sigma: net0.obs.iter().map(|o| o.sigma).collect(),
         tried: scored.tried,
@@ -699,14 +710,14 @@ fn compare_models(
 fn model_row(
     fits: &[models::ModelFit],
     base: crate::trackers::TrackerModel,
-    floor: f64,
+    floor: Floor,
     best_effect_bic: f64,
 ) -> Option<Row> {
     let b = fits.iter().find(|f| f.model == base)?;
     let alt = fits.iter().find(|f| f.model != base)?;
     let delta_bic = b.bic - alt.bic;
-    let gap_before = b.cv_rms_um - floor;
-    let gap_after = alt.cv_rms_um - floor;
+    let gap_before = b.cv_rms_um - floor.um;
+    let gap_after = alt.cv_rms_um - floor.um;
     Some(Row {
         rank: 0,
         step: None,
@@ -721,11 +732,7 @@ fn model_row(
         rms_after_um: alt.cv_rms_um,
         gap_before_um: gap_before,
         gap_after_um: gap_after,
-        gap_shrink_pct: if gap_before > 0.0 {
-            100.0 * (1.0 - gap_after / gap_before)
-        } else {
-            0.0
-        },
+        gap_shrink_pct: floor.shrink_pct(gap_before, gap_after),
         k: alt.rank,
         delta_chi2: b.chi2 - alt.chi2,
         p_corrected: alt.chi2_p,
@@ -1073,7 +1080,7 @@ impl StepContext<'_> {
     /// A member that cannot be fitted (its refit fails, a fold is singular
     /// with it) ends the path before it, the reason in `skipped`, and the
     /// row stays a significant one left out.
-    fn follow(&self, base: &State, first: Pick, floor: f64) -> Result<Path> {
+    fn follow(&self, base: &State, first: Pick, floor: Floor) -> Result<Path> {
         let mut members = Vec::new();
         let mut rows = Vec::new();
         let mut state = self.join(base, &mut members, &mut rows, first, floor)?;
@@ -1124,7 +1131,7 @@ impl StepContext<'_> {
         members: &mut Vec<Member>,
         rows: &mut Vec<MemberRow>,
         pick: Pick,
-        floor: f64,
+        floor: Floor,
     ) -> Result<State> {
         let mut row = pick.row;
         members.push(pick.member);
@@ -1488,7 +1495,7 @@ pub(crate) fn folds(net: &Network, s: &Settings) -> (Vec<usize>, usize) {
 /// of thousands of held-out residuals, varies by a few tenths of a percent
 /// from draw to draw — the floor is their mean; otherwise every one of the
 /// `mc_draws` draws is made, the first ones the same draws as before.
-fn noise_floor(lm: &LinearModel, s: &Settings) -> f64 {
+fn noise_floor(lm: &LinearModel, s: &Settings) -> Floor {
     let mut mc = random::stream(s.seed, "diagnose-noise");
     let mut draw = |n: usize| -> Vec<DVector<f64>> {
         (0..n)
@@ -1500,10 +1507,54 @@ fn noise_floor(lm: &LinearModel, s: &Settings) -> f64 {
     if !precise_enough(&each) {
         each.extend(lm.noise_floor_draws_um(&draw(s.mc_draws - first)));
     }
-    if each.is_empty() {
-        return 0.0;
+    Floor::of(&each)
+}
+
+/// The noise floor (µm): the held-out RMS noise alone leaves, the mean of
+/// its Monte Carlo draws, with that mean's standard error.
+#[derive(Clone, Copy, Debug)]
+pub struct Floor {
+    pub um: f64,
+    pub u_um: f64,
+}
+
+impl Floor {
+    /// The mean of `each` (one value per draw) and its standard error (NaN
+    /// with fewer than two draws).
+    fn of(each: &[f64]) -> Floor {
+        let n = each.len() as f64;
+        if each.len() < 2 {
+            return Floor {
+                um: each.first().copied().unwrap_or(0.0),
+                u_um: f64::NAN,
+            };
+        }
+        let um = each.iter().sum::<f64>() / n;
+        let var = each.iter().map(|x| (x - um).powi(2)).sum::<f64>() / (n - 1.0);
+        Floor {
+            um,
+            u_um: (var / n).sqrt(),
+        }
     }
-    each.iter().sum::<f64>() / each.len() as f64
+
+    /// The share of the gap over the floor, `before` → `after` (µm), that
+    /// is removed, %. Zero where there is no gap beyond the floor's own
+    /// Monte Carlo error: a share of a gap that may be none is no number to
+    /// read (a gap of 4e-4 µm over a floor known to 9e-3 µm gave
+    /// −4.9e6 %).
+    pub fn shrink_pct(&self, before: f64, after: f64) -> f64 {
+        if self.has_gap(before) {
+            100.0 * (1.0 - after / before)
+        } else {
+            0.0
+        }
+    }
+
+    /// Whether `gap` (µm) stands beyond the floor's Monte Carlo error
+    /// (with fewer than two draws, beyond zero).
+    pub fn has_gap(&self, gap: f64) -> bool {
+        gap > 0.0 && (self.u_um.is_nan() || gap > self.u_um)
+    }
 }
 
 /// Draws made before [`noise_floor`] judges its Monte Carlo error: two of
@@ -1517,13 +1568,8 @@ const FLOOR_REL_SE: f64 = 1e-3;
 /// Whether the mean of `each` (one value per draw) is known to
 /// [`FLOOR_REL_SE`] (one standard error).
 fn precise_enough(each: &[f64]) -> bool {
-    let n = each.len() as f64;
-    if each.len() < 2 {
-        return false;
-    }
-    let mean = each.iter().sum::<f64>() / n;
-    let var = each.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (var / n).sqrt() <= FLOOR_REL_SE * mean
+    let floor = Floor::of(each);
+    floor.u_um <= FLOOR_REL_SE * floor.um
 }
 
 /// One step's tests: every candidate against the model with the members so
@@ -1684,15 +1730,11 @@ fn w_scales(tests: &[[WTest; 3]]) -> [f64; 3] {
 }
 
 /// The gap before and after, and how much of it a row's addition removes.
-fn set_gap(row: &mut Row, floor: f64) {
-    let (gb, ga) = (row.rms_before_um - floor, row.rms_after_um - floor);
+fn set_gap(row: &mut Row, floor: Floor) {
+    let (gb, ga) = (row.rms_before_um - floor.um, row.rms_after_um - floor.um);
     row.gap_before_um = gb;
     row.gap_after_um = ga;
-    row.gap_shrink_pct = if gb > 0.0 {
-        100.0 * (1.0 - ga / gb)
-    } else {
-        0.0
-    };
+    row.gap_shrink_pct = floor.shrink_pct(gb, ga);
 }
 
 impl StepContext<'_> {
@@ -1711,7 +1753,7 @@ impl StepContext<'_> {
     /// effect the catalogue lacks is then not blamed on the catalogue
     /// effect, or the blunders, that mimic part of it, while a catalogue
     /// effect present beside it keeps its own Δχ².
-    fn score(&self, st: &State, members: &[Member], step: usize, floor: f64) -> Scored {
+    fn score(&self, st: &State, members: &[Member], step: usize, floor: Floor) -> Scored {
         let mut plain = self.score_against(st, members, step, floor, None);
         let Some(structure) = localise::structure(
             st.bases(),
@@ -1767,7 +1809,7 @@ impl StepContext<'_> {
         st: &State,
         members: &[Member],
         step: usize,
-        floor: f64,
+        floor: Floor,
         nuisance: Option<&Signature>,
     ) -> Scored {
         let lm = &st.lm;
@@ -1949,7 +1991,7 @@ impl StepContext<'_> {
         against: &Signature,
         spend: f64,
         rms_before: f64,
-        floor: f64,
+        floor: Floor,
     ) -> (Option<BlunderRow>, usize) {
         // `against` is the members' columns and a nuisance's: without one
         // (no more columns than the members) the state's own tests.
@@ -2094,7 +2136,7 @@ fn none_row(
     chi2_p: f64,
     alpha: f64,
     rms_before: f64,
-    floor: f64,
+    floor: Floor,
     (factor_tests, unexplained): (&[FactorTest], &[localise::Localised]),
 ) -> Row {
     // A structure spread thinly over many readings can pass the global χ²
@@ -2144,8 +2186,8 @@ fn none_row(
         significant: noise_ok,
         rms_before_um: rms_before,
         rms_after_um: rms_before,
-        gap_before_um: rms_before - floor,
-        gap_after_um: rms_before - floor,
+        gap_before_um: rms_before - floor.um,
+        gap_after_um: rms_before - floor.um,
         gap_shrink_pct: 0.0,
         k: 0,
         delta_chi2: 0.0,
@@ -2227,6 +2269,24 @@ mod tests {
     /// Issue 34: the noise floor stops at its first draws only when their
     /// mean's standard error is within [`FLOOR_REL_SE`] of it; a single
     /// draw or a NaN never stops it.
+    #[test]
+    fn a_share_of_the_gap_is_counted_only_beyond_the_floors_error() {
+        let f = Floor {
+            um: 10.0,
+            u_um: 0.05,
+        };
+        assert_eq!(f.shrink_pct(0.04, -0.01), 0.0);
+        assert_eq!(f.shrink_pct(-0.2, 0.0), 0.0);
+        assert_eq!(f.shrink_pct(1.0, 0.25), 75.0);
+        let one_draw = Floor {
+            um: 10.0,
+            u_um: f64::NAN,
+        };
+        assert!(one_draw.has_gap(1e-6) && !one_draw.has_gap(0.0));
+        let of = Floor::of(&[1.0, 3.0]);
+        assert_eq!((of.um, of.u_um), (2.0, 1.0));
+    }
+
     #[test]
     fn noise_floor_stops_early_only_within_a_thousandth_standard_error() {
         // 32 values 1 ± d: the mean's standard error is d/√31.

@@ -213,6 +213,7 @@ pub fn summary_table(d: &Diagnosis) -> Result<DataFrame> {
         .f64("chi2_p", vec![d.chi2_p])
         .bool("noise_stated", vec![d.noise_stated])
         .f64("noise_floor_um", vec![d.noise_floor_um])
+        .f64("noise_floor_u_um", vec![d.noise_floor_u_um])
         .i64("tried", vec![d.tried as i64])
         .i64("blunder_tests", vec![d.blunder_tests as i64])
         .str("explanation", &[explanation(d)])
@@ -249,11 +250,7 @@ pub fn set_numbers(d: &Diagnosis) -> (f64, f64, f64) {
         (Some(a), Some(b)) => {
             let gb = a.rms_before_um - d.noise_floor_um;
             let ga = b.rms_after_um - d.noise_floor_um;
-            let shrink = if gb > 0.0 {
-                100.0 * (1.0 - ga / gb)
-            } else {
-                0.0
-            };
+            let shrink = d.floor().shrink_pct(gb, ga);
             (a.rms_before_um, b.rms_after_um, shrink)
         }
         _ => {
@@ -535,10 +532,16 @@ pub fn sections(d: &Diagnosis) -> Sections {
     );
     let _ = writeln!(
         s,
-        "Held-out residual (5-fold cross-validation): {:.2} µm RMS; noise alone would leave {:.2} µm in this geometry (Monte Carlo), so the gap is {:.2} µm.\n",
+        "Held-out residual (5-fold cross-validation): {:.2} µm RMS; noise alone would leave {:.2} ± {:.3} µm in this geometry (Monte Carlo, ± its standard error), so the gap is {:.2} µm{}.\n",
         held_out,
         d.noise_floor_um,
-        held_out - d.noise_floor_um
+        d.noise_floor_u_um,
+        held_out - d.noise_floor_um,
+        if d.floor().has_gap(held_out - d.noise_floor_um) {
+            ""
+        } else {
+            ": none beyond the floor's own Monte Carlo error, so no share of it is counted as removed"
+        }
     );
     let base = std::mem::take(&mut s);
     let _ = writeln!(s, "## Where\n");
