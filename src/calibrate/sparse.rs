@@ -281,34 +281,6 @@ impl BlockJacobian {
         }
     }
 
-    /// Splits off the first `k` columns (which no part may straddle): the
-    /// Jacobian of the other columns, renumbered from 0, and the first `k`
-    /// columns as a dense `m × k` matrix (m·k values: the error-parameter
-    /// coordinates, a handful of columns).
-    pub fn split_leading(&self, k: usize) -> (BlockJacobian, DMatrix<f64>) {
-        let room = [self.blocks.len(), self.parts.len(), self.values.len()];
-        let mut rest = BlockJacobian::with_capacity(self.n_a - k, self.n - k, room);
-        let mut lead = DMatrix::zeros(self.m, k);
-        let mut parts: Vec<(usize, &[f64])> = Vec::new();
-        for blk in &self.blocks {
-            parts.clear();
-            for (col, w, v) in self.parts_of(blk) {
-                if col + w <= k {
-                    for r in 0..blk.rows {
-                        for c in 0..w {
-                            lead[(blk.row + r, col + c)] += v[r * w + c];
-                        }
-                    }
-                } else {
-                    debug_assert!(col >= k, "a part straddles the split");
-                    parts.push((col - k, v));
-                }
-            }
-            rest.push(blk.rows, &parts);
-        }
-        (rest, lead)
-    }
-
     /// The whole matrix, densely: for tests against a dense reference only.
     #[cfg(test)]
     pub fn to_dense(&self) -> DMatrix<f64> {
