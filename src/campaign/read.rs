@@ -406,7 +406,6 @@ struct Cell {
 /// Every cell's unquoted text of one file, end to end: one buffer instead
 /// of a `String` per cell (a quarter of a million allocations for a
 /// 24 000-reading campaign, issue 34).
-#[derive(Debug, Default)]
 struct Texts(String);
 
 impl Texts {
