@@ -91,6 +91,23 @@ impl BlockJacobian {
         }
     }
 
+    /// This Jacobian emptied and made [`Self::with_capacity`]`(n_a, n,
+    /// room)` again, keeping its storage (grown where `room` asks more):
+    /// a bundle's is rebuilt at every linearisation, and refilling memory
+    /// already faulted in spares the kernel's zeroing of fresh pages.
+    pub fn recycle(mut self, n_a: usize, n: usize, room: [usize; 3]) -> BlockJacobian {
+        debug_assert_eq!((n - n_a) % 3, 0);
+        let [blocks, parts, values] = room;
+        (self.n_a, self.n, self.m) = (n_a, n, 0);
+        self.blocks.clear();
+        self.parts.clear();
+        self.values.clear();
+        self.blocks.reserve(blocks);
+        self.parts.reserve(parts);
+        self.values.reserve(values);
+        self
+    }
+
     /// Appends a residual block of `rows` rows with its parts
     /// `(first column, rows × width values, row-major)`. An eliminated
     /// position's part must cover its three columns exactly.
@@ -279,34 +296,6 @@ impl BlockJacobian {
                 out.extend(p.col..p.col + p.width);
             }
         }
-    }
-
-    /// Splits off the first `k` columns (which no part may straddle): the
-    /// Jacobian of the other columns, renumbered from 0, and the first `k`
-    /// columns as a dense `m × k` matrix (m·k values: the error-parameter
-    /// coordinates, a handful of columns).
-    pub fn split_leading(&self, k: usize) -> (BlockJacobian, DMatrix<f64>) {
-        let room = [self.blocks.len(), self.parts.len(), self.values.len()];
-        let mut rest = BlockJacobian::with_capacity(self.n_a - k, self.n - k, room);
-        let mut lead = DMatrix::zeros(self.m, k);
-        let mut parts: Vec<(usize, &[f64])> = Vec::new();
-        for blk in &self.blocks {
-            parts.clear();
-            for (col, w, v) in self.parts_of(blk) {
-                if col + w <= k {
-                    for r in 0..blk.rows {
-                        for c in 0..w {
-                            lead[(blk.row + r, col + c)] += v[r * w + c];
-                        }
-                    }
-                } else {
-                    debug_assert!(col >= k, "a part straddles the split");
-                    parts.push((col - k, v));
-                }
-            }
-            rest.push(blk.rows, &parts);
-        }
-        (rest, lead)
     }
 
     /// The whole matrix, densely: for tests against a dense reference only.
@@ -1084,6 +1073,43 @@ mod tests {
         assert!(f.solve_rows(&[], 0).is_empty());
         let none = DMatrix::zeros(j.nrows(), 0);
         assert_eq!(project_out_columns(&j, &f, &none).shape(), (j.nrows(), 0));
+    }
+
+    #[test]
+    fn a_recycled_jacobian_is_the_one_built_afresh() {
+        // Issue 34: the bundle refills its previous linearisation's
+        // Jacobian; nothing of the old one may show, whatever its shape.
+        let fill = |j: &mut BlockJacobian| {
+            for i in 0..6 {
+                let a: Vec<f64> = (0..6).map(|k| (i * 6 + k) as f64 - 7.5).collect();
+                let x: Vec<f64> = (0..9)
+                    .map(|k| if k % 4 == 0 { 3.0 } else { 0.1 * k as f64 })
+                    .collect();
+                j.push(3, &[(0, &a), (2 + 3 * (i % 2), &x)]);
+            }
+        };
+        let mut fresh = BlockJacobian::new(2, 8);
+        fill(&mut fresh);
+        let (old, _) = random_arrow(4, 0.3, 2.0, false);
+        assert!(old.ncols() > 8 && old.nrows() > 18);
+        let mut recycled = old.recycle(2, 8, [6, 12, 90]);
+        fill(&mut recycled);
+        assert_eq!(
+            (
+                recycled.nrows(),
+                recycled.ncols(),
+                recycled.n_a(),
+                recycled.points()
+            ),
+            (18, 8, 2, 2)
+        );
+        assert_eq!(recycled.to_dense(), fresh.to_dense());
+        let (a, b) = (
+            Normal::assemble(&recycled, None, |_| true),
+            Normal::assemble(&fresh, None, |_| true),
+        );
+        let d = DVector::from_fn(8, |i, _| i as f64 - 2.5);
+        assert_eq!(a.quadratic(&d), b.quadratic(&d));
     }
 
     #[test]
