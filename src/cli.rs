@@ -204,7 +204,8 @@ enum Command {
         /// Cross-validation folds.
         #[arg(long, default_value_t = 5)]
         folds: usize,
-        /// Monte Carlo draws of the noise floor.
+        /// Monte Carlo draws of the noise floor at most (the first 32 when
+        /// their mean is already known to 0.1 %).
         #[arg(long, default_value_t = 100)]
         mc_draws: usize,
         /// Seed of the folds and the Monte Carlo draws.

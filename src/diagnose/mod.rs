@@ -92,7 +92,7 @@ pub struct Settings {
     pub fixed: Vec<ParamId>,
     /// Cross-validation folds.
     pub folds: usize,
-    /// Monte Carlo draws of the noise floor.
+    /// Monte Carlo draws of the noise floor at most ([`noise_floor`]).
     pub mc_draws: usize,
     /// Family-wise significance level.
     pub alpha: f64,

@@ -10,7 +10,7 @@
 //! shapes = {}                        # the base model's shapes (its constants by default)
 //! fixed = []
 //! folds = 5                          # cross-validation
-//! mc_draws = 100                     # Monte Carlo draws of the noise floor
+//! mc_draws = 100                     # Monte Carlo draws of the noise floor (at most)
 //! alpha = 0.01                       # family-wise significance
 //! effects = []                       # effect ids to try (empty: all of effects.md)
 //! seed = 0
@@ -23,7 +23,8 @@
 //! `eta2`, `f`, `p`, `significant`, `worst_group`, `worst_mean_sigma`),
 //! `residuals` (per reading, with the factor values and each coordinate's
 //! w-test and redundancy), `summary` (one row: `campaign`, `chi2`, `dof`,
-//! `chi2_p`, `noise_stated`, `noise_floor_um`, `tried`, `blunder_tests`,
+//! `chi2_p`, `noise_stated`, `noise_floor_um`, `noise_floor_u_um` (its Monte Carlo
+//! standard error), `tried`, `blunder_tests`,
 //! `explanation`, `set_rms_before_um`, `set_rms_after_um`,
 //! `set_gap_shrink_pct`, `verdict`), `skipped` (`effect`, `reason`); files
 //! `diagnosis.csv`, `report.md`, `report.html` (the same words and the
@@ -83,7 +84,8 @@ pub struct DiagnoseStage {
     /// Cross-validation folds for the held-out residual of each candidate.
     #[serde(default = "default_folds")]
     pub folds: usize,
-    /// Monte Carlo draws of the noise floor.
+    /// Monte Carlo draws of the noise floor at most: only the first 32 when
+    /// their mean is already known to 0.1 % (a big network).
     #[serde(default = "default_draws")]
     pub mc_draws: usize,
     /// Family-wise significance level of the effect and blunder tests.
@@ -331,6 +333,7 @@ impl StageKind for DiagnoseStage {
                 "chi2_p",
                 "noise_stated",
                 "noise_floor_um",
+                "noise_floor_u_um",
                 "tried",
                 "blunder_tests",
                 "explanation",
