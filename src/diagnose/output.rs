@@ -286,7 +286,7 @@ pub fn verdict(d: &Diagnosis) -> String {
     // is then presented as the whole cause.
     let left = d.rest().filter(|r| !r.significant && b.effect != "none");
     if let Some(rest) = left {
-        let (_, _, shrink) = set_numbers(d);
+        let (before, _, shrink) = set_numbers(d);
         let what = match (
             b.effect == super::MODEL && b.step.is_some(),
             d.explanation().count(),
@@ -304,9 +304,13 @@ pub fn verdict(d: &Diagnosis) -> String {
         };
         let rest = rest.place.trim_start_matches("unexplained structure: ");
         return format!(
-            "partly explained: {what} removes {shrink:.1} % of the gap over the noise floor; \
+            "partly explained: {what} {}; \
              the residual left is not consistent with the stated noise ({rest}) — an effect \
-             outside the catalogue, or a hypothesis of your own (--hypotheses), may explain the rest"
+             outside the catalogue, or a hypothesis of your own (--hypotheses), may explain the rest",
+            match gap_removed(d, before - d.noise_floor_um, shrink) {
+                Some(pct) => format!("removes {pct}"),
+                None => format!("is fitted, {NO_GAP}"),
+            }
         );
     }
     if b.effect == super::MODEL && b.step.is_some() {
@@ -336,10 +340,11 @@ pub fn verdict(d: &Diagnosis) -> String {
             )
         }
     } else if d.explanation().count() > 1 {
-        let (_, _, shrink) = set_numbers(d);
+        let (before, _, shrink) = set_numbers(d);
         format!(
-            "{} together: {shrink:.1} % of the gap over the noise floor removed",
-            explanation(d)
+            "{} together: {}",
+            explanation(d),
+            removed(d, before - d.noise_floor_um, shrink)
         )
     } else {
         format!(
@@ -358,16 +363,33 @@ pub fn verdict(d: &Diagnosis) -> String {
             // held-out gap over the noise floor.
             match (b.step.is_some(), b.rms_before_um.is_finite()) {
                 (_, false) => "the held-out residual before it not measurable".to_string(),
-                (true, true) => format!(
-                    "{:.1} % of the gap over the noise floor removed",
-                    set_numbers(d).2
-                ),
-                (false, true) => format!(
-                    "{:.1} % of the gap over the noise floor removed",
-                    b.gap_shrink_pct
-                ),
+                (true, true) => {
+                    let (before, _, shrink) = set_numbers(d);
+                    removed(d, before - d.noise_floor_um, shrink)
+                }
+                (false, true) => removed(d, b.gap_before_um, b.gap_shrink_pct),
             }
         )
+    }
+}
+
+/// What a verdict says when the held-out gap over the noise floor is within
+/// the floor's own Monte Carlo error: no share of it is read as removed.
+const NO_GAP: &str = "no held-out gap over the noise floor beyond its Monte Carlo error";
+
+/// `shrink` % "of the gap over the noise floor" when the gap (`gap_um`)
+/// stands beyond the floor's Monte Carlo error, else none.
+fn gap_removed(d: &Diagnosis, gap_um: f64, shrink: f64) -> Option<String> {
+    d.floor()
+        .has_gap(gap_um)
+        .then(|| format!("{shrink:.1} % of the gap over the noise floor"))
+}
+
+/// "… % of the gap over the noise floor removed", or [`NO_GAP`].
+fn removed(d: &Diagnosis, gap_um: f64, shrink: f64) -> String {
+    match gap_removed(d, gap_um, shrink) {
+        Some(pct) => format!("{pct} removed"),
+        None => NO_GAP.to_string(),
     }
 }
 
