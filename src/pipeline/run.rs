@@ -318,29 +318,29 @@ fn execute_stages(
         let run_one = |(pos, &i): (usize, &usize)| {
             // A stop keeps the pipeline's next stages from starting; a sweep
             // point's stages all run once the point has started.
+            // (Its line is still printed in order: those after it wait.)
             let top = runner.point.is_none();
-            if top && runner.control.refuses() {
-                return (
-                    i,
-                    skipped(&stages[i], "the run was interrupted".into()),
-                    None,
-                );
-            }
-            let inputs = {
-                let done = produced.lock().expect("no panics hold this lock");
-                stages[i]
-                    .wired_tables()
-                    .into_iter()
-                    .map(|(slot, r)| {
-                        let prod = done[&r.stage].clone();
-                        (slot, r, prod)
-                    })
-                    .collect::<Vec<_>>()
+            let (report, out) = if top && runner.control.refuses() {
+                let why = "the run was interrupted".to_string();
+                (skipped(&stages[i], why), None)
+            } else {
+                let inputs = {
+                    let done = produced.lock().expect("no panics hold this lock");
+                    stages[i]
+                        .wired_tables()
+                        .into_iter()
+                        .map(|(slot, r)| {
+                            let prod = done[&r.stage].clone();
+                            (slot, r, prod)
+                        })
+                        .collect::<Vec<_>>()
+                };
+                let done = execute(runner, &stages[i], inputs);
+                if top {
+                    runner.control.stage_done();
+                }
+                done
             };
-            let (report, out) = execute(runner, &stages[i], inputs);
-            if top {
-                runner.control.stage_done();
-            }
             if runner.progress {
                 let mut lines = lines.lock().expect("no panics hold this lock");
                 let (next, waiting) = &mut *lines;
