@@ -422,12 +422,7 @@ impl<'a> Bundle<'a> {
         // Room for every block: a reading's three rows on the coordinates,
         // its station and its reflector; a gauge length's row on two
         // reflectors; a reference's three rows on one.
-        let (n_obs, n_gauge) = (self.net.obs.len(), self.net.gauge.len());
-        let n_refs = if self.use_references {
-            self.net.references.iter().flatten().count()
-        } else {
-            0
-        };
+        let (n_obs, n_gauge, n_refs) = self.row_groups();
         let room = [
             n_obs + n_gauge + n_refs,
             3 * n_obs + 2 * n_gauge + n_refs,
@@ -446,6 +441,17 @@ impl<'a> Bundle<'a> {
         (j, DVector::from_vec(r))
     }
 
+    /// How many readings, gauge lengths and reference points give rows:
+    /// what a Jacobian's blocks are reserved for.
+    fn row_groups(&self) -> (usize, usize, usize) {
+        let n_refs = if self.use_references {
+            self.net.references.iter().flatten().count()
+        } else {
+            0
+        };
+        (self.net.obs.len(), self.net.gauge.len(), n_refs)
+    }
+
     /// The consistent network's Jacobian at `x` (see [`Self::reading_block`])
     /// as the identifiability analysis takes it: the poses' and positions'
     /// blocks, renumbered from 0, and the error-parameter coordinates'
@@ -455,12 +461,7 @@ impl<'a> Bundle<'a> {
     /// splitting a copy off it (9 MB at 24 000 readings, issue 34).
     fn design_jacobian(&self, x: &DVector<f64>) -> (BlockJacobian, Vec<f64>) {
         let k = self.layout.n_z;
-        let (n_obs, n_gauge) = (self.net.obs.len(), self.net.gauge.len());
-        let n_refs = if self.use_references {
-            self.net.references.iter().flatten().count()
-        } else {
-            0
-        };
+        let (n_obs, n_gauge, n_refs) = self.row_groups();
         let room = [
             n_obs + n_gauge + n_refs,
             2 * n_obs + 2 * n_gauge + n_refs,

@@ -171,10 +171,9 @@ pub struct Diagnosis {
     pub dof: usize,
     pub chi2_p: f64,
     pub noise_stated: bool,
-    /// The held-out RMS noise alone leaves (µm).
-    pub noise_floor_um: f64,
-    /// Its Monte Carlo standard error (µm).
-    pub noise_floor_u_um: f64,
+    /// The held-out RMS noise alone leaves, with its Monte Carlo standard
+    /// error.
+    pub floor: Floor,
     /// The base model's calibration (before any member of the set).
     pub calibration: Calibration,
     /// Each reading's σ in az, el (rad) and d (mm), in reading order.
@@ -197,14 +196,6 @@ pub struct Diagnosis {
 }
 
 impl Diagnosis {
-    /// The noise floor with its Monte Carlo standard error.
-    pub fn floor(&self) -> Floor {
-        Floor {
-            um: self.noise_floor_um,
-            u_um: self.noise_floor_u_um,
-        }
-    }
-
     /// Rank 1.
     pub fn best(&self) -> &Row {
         &self.rows[0]
@@ -357,7 +348,7 @@ fn with_screened(mut d: Diagnosis, screened: Vec<Row>) -> Diagnosis {
     for (i, mut row) in screened.into_iter().enumerate() {
         row.step = Some(i + 1);
         row.rms_after_um = d.base_cv_rms_um;
-        row.gap_after_um = d.base_cv_rms_um - d.noise_floor_um;
+        row.gap_after_um = d.base_cv_rms_um - d.floor.um;
         d.rows.push(row);
     }
     rank(&mut d.rows);
@@ -615,8 +606,7 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         dof,
         chi2_p,
         noise_stated: net0.noise_stated,
-        noise_floor_um: floor.um,
-        noise_floor_u_um: floor.u_um,
+        floor,
         calibration: base_cal,
         sigma: net0.obs.iter().map(|o| o.sigma).collect(),
         tried: scored.tried,

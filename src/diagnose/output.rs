@@ -212,8 +212,8 @@ pub fn summary_table(d: &Diagnosis) -> Result<DataFrame> {
         .i64("dof", vec![d.dof as i64])
         .f64("chi2_p", vec![d.chi2_p])
         .bool("noise_stated", vec![d.noise_stated])
-        .f64("noise_floor_um", vec![d.noise_floor_um])
-        .f64("noise_floor_u_um", vec![d.noise_floor_u_um])
+        .f64("noise_floor_um", vec![d.floor.um])
+        .f64("noise_floor_u_um", vec![d.floor.u_um])
         .i64("tried", vec![d.tried as i64])
         .i64("blunder_tests", vec![d.blunder_tests as i64])
         .str("explanation", &[explanation(d)])
@@ -248,9 +248,9 @@ pub fn set_numbers(d: &Diagnosis) -> (f64, f64, f64) {
     let first = set.iter().find(|r| r.rms_before_um.is_finite()).copied();
     match (first, set.last()) {
         (Some(a), Some(b)) => {
-            let gb = a.rms_before_um - d.noise_floor_um;
-            let ga = b.rms_after_um - d.noise_floor_um;
-            let shrink = d.floor().shrink_pct(gb, ga);
+            let gb = a.rms_before_um - d.floor.um;
+            let ga = b.rms_after_um - d.floor.um;
+            let shrink = d.floor.shrink_pct(gb, ga);
             (a.rms_before_um, b.rms_after_um, shrink)
         }
         _ => {
@@ -307,7 +307,7 @@ pub fn verdict(d: &Diagnosis) -> String {
             "partly explained: {what} {}; \
              the residual left is not consistent with the stated noise ({rest}) — an effect \
              outside the catalogue, or a hypothesis of your own (--hypotheses), may explain the rest",
-            match gap_removed(d, before - d.noise_floor_um, shrink) {
+            match gap_removed(d, before - d.floor.um, shrink) {
                 Some(pct) => format!("removes {pct}"),
                 None => format!("is fitted, {NO_GAP}"),
             }
@@ -344,7 +344,7 @@ pub fn verdict(d: &Diagnosis) -> String {
         format!(
             "{} together: {}",
             explanation(d),
-            removed(d, before - d.noise_floor_um, shrink)
+            removed(d, before - d.floor.um, shrink)
         )
     } else {
         format!(
@@ -365,7 +365,7 @@ pub fn verdict(d: &Diagnosis) -> String {
                 (_, false) => "the held-out residual before it not measurable".to_string(),
                 (true, true) => {
                     let (before, _, shrink) = set_numbers(d);
-                    removed(d, before - d.noise_floor_um, shrink)
+                    removed(d, before - d.floor.um, shrink)
                 }
                 (false, true) => removed(d, b.gap_before_um, b.gap_shrink_pct),
             }
@@ -380,7 +380,7 @@ const NO_GAP: &str = "no held-out gap over the noise floor beyond its Monte Carl
 /// `shrink` % "of the gap over the noise floor" when the gap (`gap_um`)
 /// stands beyond the floor's Monte Carlo error, else none.
 fn gap_removed(d: &Diagnosis, gap_um: f64, shrink: f64) -> Option<String> {
-    d.floor()
+    d.floor
         .has_gap(gap_um)
         .then(|| format!("{shrink:.1} % of the gap over the noise floor"))
 }
@@ -556,10 +556,10 @@ pub fn sections(d: &Diagnosis) -> Sections {
         s,
         "Held-out residual (5-fold cross-validation): {:.2} µm RMS; noise alone would leave {:.2} ± {:.3} µm in this geometry (Monte Carlo, ± its standard error), so the gap is {:.2} µm{}.\n",
         held_out,
-        d.noise_floor_um,
-        d.noise_floor_u_um,
-        held_out - d.noise_floor_um,
-        if d.floor().has_gap(held_out - d.noise_floor_um) {
+        d.floor.um,
+        d.floor.u_um,
+        held_out - d.floor.um,
+        if d.floor.has_gap(held_out - d.floor.um) {
             ""
         } else {
             ": none beyond the floor's own Monte Carlo error, so no share of it is counted as removed"
@@ -751,8 +751,8 @@ pub fn sections(d: &Diagnosis) -> Sections {
             s,
             "{} together bring the held-out residual from {before:.2} µm to {after:.2} µm: they shrink the gap over the noise floor from {:.2} µm to {:.2} µm ({shrink:.1} %).",
             names.join(" and "),
-            before - d.noise_floor_um,
-            after - d.noise_floor_um,
+            before - d.floor.um,
+            after - d.floor.um,
         );
     } else if b.effect == "none" {
         let _ = writeln!(

@@ -19,6 +19,11 @@ fn examples() -> Vec<PathBuf> {
     v
 }
 
+/// The example campaign folder `name`.
+fn example(name: &str) -> PathBuf {
+    examples().into_iter().find(|p| p.ends_with(name)).unwrap()
+}
+
 /// The truth's comparable magnitude, in the diagnosis's unit.
 fn true_magnitude(truth: &serde_json::Value) -> Option<f64> {
     let p = &truth["params"];
@@ -132,7 +137,7 @@ fn compound_example_campaigns_are_explained_by_exactly_their_effects_and_blunder
         "example-11-three-blunders",
         "example-12-blunder-and-drift",
     ] {
-        let dir = examples().into_iter().find(|p| p.ends_with(name)).unwrap();
+        let dir = example(name);
         let truth: serde_json::Value =
             serde_json::from_slice(&std::fs::read(dir.join("truth.json")).unwrap()).unwrap();
         let mut want: Vec<(String, String)> = match truth.get("items") {
@@ -186,13 +191,10 @@ fn compound_example_campaigns_are_explained_by_exactly_their_effects_and_blunder
 /// −220 … +133 %, and on a big network with a gap of 4e-4 µm −4.9e6 %.
 #[test]
 fn a_gap_within_the_floors_monte_carlo_error_has_no_share_removed() {
-    let dir = examples()
-        .into_iter()
-        .find(|p| p.ends_with("example-08-harmonic-and-target-shift"))
-        .unwrap();
+    let dir = example("example-08-harmonic-and-target-shift");
     let c = ltcal::campaign::read(&dir).unwrap();
     let d = diagnose::diagnose(&c, &Settings::default()).unwrap();
-    let floor = d.floor();
+    let floor = d.floor;
     // 100 draws of a floor of 11.24 µm, each varying by ~5 %.
     assert!(
         (11.0..11.5).contains(&floor.um) && (0.03..0.1).contains(&floor.u_um),
@@ -222,10 +224,7 @@ fn a_gap_within_the_floors_monte_carlo_error_has_no_share_removed() {
 
 #[test]
 fn effects_that_need_time_or_temperature_are_skipped_with_a_reason_when_absent() {
-    let dir = examples()
-        .into_iter()
-        .find(|p| p.ends_with("example-00-none"))
-        .unwrap();
+    let dir = example("example-00-none");
     let mut c = ltcal::campaign::read(&dir).unwrap();
     for r in &mut c.readings {
         r.time_s = None;
@@ -369,7 +368,7 @@ fn two_folds_that_leave_a_pose_undetermined_still_diagnose() {
         ("example-00-none", "none"),
         ("example-05-station-drift", "station-drift"),
     ] {
-        let dir = examples().into_iter().find(|p| p.ends_with(name)).unwrap();
+        let dir = example(name);
         let c = ltcal::campaign::read(&dir).unwrap();
         let s = Settings {
             folds: 2,
@@ -387,10 +386,7 @@ fn two_folds_that_leave_a_pose_undetermined_still_diagnose() {
 #[test]
 fn calibrate_rejects_exactly_the_blunders_of_example_11() {
     use ltcal::stages::calibrate::CalibrateStage;
-    let dir = examples()
-        .into_iter()
-        .find(|p| p.ends_with("example-11-three-blunders"))
-        .unwrap();
+    let dir = example("example-11-three-blunders");
     let c = ltcal::campaign::read(&dir).unwrap();
     let stage: CalibrateStage =
         toml::from_str("objective = \"bundle\"\nreject_blunders = true").unwrap();
