@@ -256,10 +256,48 @@ fn products(
 }
 
 impl Products {
+    /// The products over the readings of `self` less those of `held` (a
+    /// subset of them), with `ctx` summed afresh from `x` over the readings
+    /// `keep` admits (the rest): `CᵀC`, `u_A` and each position's `uₓ` are
+    /// sums over readings, so the rest's are the difference.
+    fn less(
+        &self,
+        held: &Products,
+        c: &Signature,
+        x: &DVector<f64>,
+        keep: impl Fn(usize) -> bool,
+    ) -> Products {
+        let mut u_x = self.u_x.clone();
+        // Each position's entry found by index (a search per position was
+        // quadratic in the positions a broad candidate touches).
+        let mut slot_of = vec![usize::MAX; u_x.iter().map(|(p, _)| p + 1).max().unwrap_or(0)];
+        for (at, (p, _)) in u_x.iter().enumerate() {
+            slot_of[*p] = at;
+        }
+        for (p, h) in &held.u_x {
+            u_x[slot_of[*p]].1 -= h;
+        }
+        let mut ctx = DVector::zeros(c.k);
+        for (i, v) in c.blocks() {
+            if keep(i) {
+                for (a, o) in ctx.iter_mut().enumerate() {
+                    *o +=
+                        v[a] * x[3 * i] + v[c.k + a] * x[3 * i + 1] + v[2 * c.k + a] * x[3 * i + 2];
+                }
+            }
+        }
+        Products {
+            u_a: &self.u_a - &held.u_a,
+            u_x,
+            ctc: &self.ctc - &held.ctc,
+            ctx,
+        }
+    }
+
     /// `CᵀP⊥C = CᵀC − uᵀN⁻¹u` and `v = u_A − Σ W·uₓ` (for later solves).
     fn projected_gram(&self, f: &Factor) -> (DMatrix<f64>, DMatrix<f64>) {
         let v = f.reduce_sparse(&self.u_a, &self.u_x);
-        let mut q = v.tr_mul(&f.solve_schur_columns(&v));
+        let mut q = f.schur_quadratic_form(&v);
         for (p, ux) in &self.u_x {
             q += ux.tr_mul(&(f.point_inverse(*p) * ux));
         }
@@ -596,9 +634,19 @@ impl LinearModel {
     /// the model, for the model's own residuals.
     pub fn cv_rms_um(&self, c: &Signature) -> f64 {
         let mut sum = 0.0;
+        // The products over every reading once; a fold's training share is
+        // them less its held-out readings' (a fifth of the readings per
+        // fold instead of four fifths). `ctx` depends on the fold's
+        // residuals: it is summed over the training readings themselves.
+        let all = products(&self.j, c, &self.r, |_| true);
         for (fi, f) in self.folds.iter().enumerate() {
             let train = |i: usize| self.fold_of[i] != fi;
-            let pr = products(&self.j, c, &f.res, train);
+            let pr = all.less(
+                &products(&self.j, c, &f.res, |i| !train(i)),
+                c,
+                &f.res,
+                train,
+            );
             let (gram, v) = pr.projected_gram(&f.factor);
             let (bc, _) = lstsq(&gram, &pr.ctx, c.column_scale(train));
             // The base fit moves by −δ, δ = N_f⁻¹·u·β_c.
@@ -653,14 +701,28 @@ impl LinearModel {
 
     /// Root mean square of the held-out residuals in µm of the base model
     /// for each of the `k` residual vectors `r` holds (row-major: a
-    /// residual's `k` values side by side), refitting each fold.
+    /// residual's `k` values side by side; each with `J`'s span removed),
+    /// refitting each fold.
     fn cv_rms_um_of(&self, r: &[f64], k: usize) -> Vec<f64> {
         let mut sums = vec![0.0; k];
         let n_read = self.fold_of.len();
         let mut pred = vec![0.0; 3 * k];
         for (fi, f) in self.folds.iter().enumerate() {
             let train = |b: usize| b >= n_read || self.fold_of[b] != fi;
-            let y = sparse::solve_ls_rows(&self.j, &f.factor, r, k, train);
+            // The fold's fit to `r` by the corrected semi-normal equations
+            // ([`sparse::solve_ls_rows`]), its first solve from the
+            // held-out rows alone: `r` is orthogonal to `J`'s columns, so
+            // `J_trainᵀ·r = −J_testᵀ·r` (a fifth of the rows instead of
+            // four fifths); the correction from the unsquared residual on
+            // the training rows removes that identity's round-off.
+            let mut y = f
+                .factor
+                .solve_rows(&self.j.tr_mul_rows(r, k, |b| !train(b)), k);
+            y.iter_mut().for_each(|v| *v = -*v);
+            let mut res = r.to_vec();
+            self.j.sub_mul_rows(&y, k, &mut res);
+            let dy = f.factor.solve_rows(&self.j.tr_mul_rows(&res, k, train), k);
+            y.iter_mut().zip(dy).for_each(|(a, b)| *a += b);
             for &i in &f.test {
                 // The held-out residual: r − J·y on reading i's rows.
                 pred.copy_from_slice(&r[3 * i * k..(3 * i + 3) * k]);
@@ -941,7 +1003,7 @@ mod tests {
     /// `products` allocate matrices per reading and search its positions
     /// per reading — quadratic in the reflectors. Written out, every
     /// product is bit for bit nalgebra's, the positions in the same order;
-    /// the Schur solve of several columns is each column's own solve.
+    /// their quadratic form in `S⁻¹` is the two solves' to rounding.
     #[test]
     fn broad_candidate_products_are_nalgebras_bit_for_bit_without_a_search_per_reading() {
         let (j, _) = network();
@@ -966,9 +1028,15 @@ mod tests {
         assert_eq!(got.ctx, want.ctx);
         let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
         let v = f.reduce_sparse(&got.u_a, &got.u_x);
-        let cols = f.solve_schur_columns(&v);
-        for c in 0..v.ncols() {
-            assert_eq!(cols.column(c), f.solve_schur(&v.column(c).into_owned()));
+        // `Vᵀ·S⁻¹·V` by one triangular solve per column: symmetric to the
+        // bit, and the two solves' `Vᵀ·(S⁻¹·V)` to rounding.
+        let q = f.schur_quadratic_form(&v);
+        assert_eq!(q, q.transpose());
+        for a in 0..v.ncols() {
+            for b in 0..v.ncols() {
+                let two = v.column(a).dot(&f.solve_schur(&v.column(b).into_owned()));
+                assert!((q[(a, b)] - two).abs() <= 1e-12 * q[(a, a)].abs().max(q[(b, b)].abs()));
+            }
         }
     }
 
