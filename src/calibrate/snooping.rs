@@ -20,9 +20,10 @@
 //! time, because one blunder raises its neighbours' residuals too.
 //!
 //! `R` comes from the factored normal matrix one reading at a time
-//! ([`sparse::leverage`]): three Schur solves per reading, never the
-//! `m × m` matrix. When effects are modelled beside the base parameters
-//! (the diagnosis' explanation set), their columns `C` are absorbed too:
+//! ([`sparse::leverages`]): a few columns of the whitened Schur factor per
+//! reading, never the `m × m` matrix. When effects are modelled beside the
+//! base parameters (the diagnosis' explanation set), their columns `C` are
+//! absorbed too:
 //! `R = I − H − (P⊥C)·(CᵀP⊥C)⁻¹·(P⊥C)ᵀ` on the reading's rows.
 
 use super::sparse::{self, BlockJacobian, Factor, Normal};
@@ -79,10 +80,12 @@ pub fn w_tests(
     readings: usize,
     absorbed: Option<&Absorbed>,
 ) -> Vec<[WTest; 3]> {
+    let hat = sparse::leverages(j, f, readings);
     (0..readings)
         .into_par_iter()
         .map(|i| {
-            let mut r = DMatrix::identity(3, 3) - sparse::leverage(j, f, i);
+            let mut r =
+                DMatrix::identity(3, 3) - DMatrix::from_column_slice(3, 3, hat[i].as_slice());
             if let Some(a) = absorbed {
                 let pc =
                     DMatrix::from_row_slice(3, a.k, &a.projected[3 * i * a.k..3 * (i + 1) * a.k]);

@@ -32,7 +32,7 @@
 //! at the round-off level of `J`, as a QR factorisation would give, not at
 //! that of `JᵀJ`.
 
-use nalgebra::{DMatrix, DVector, Dyn, Matrix3, Vector3, linalg::Cholesky};
+use nalgebra::{DMatrix, DVector, Dyn, Matrix3, MatrixXx3, Vector3, linalg::Cholesky};
 use rayon::prelude::*;
 
 /// One Jacobian block of a residual block: `rows × width` values,
@@ -847,30 +847,60 @@ impl Factor {
     }
 }
 
-/// `J_b·N⁻¹·J_bᵀ`: block `b`'s diagonal block of the hat matrix (rows ×
-/// rows), the share of its own residuals the fit absorbs. One minus it is
-/// the block's redundancy (Baarda's `Q_vv` in units of the a-priori
-/// variance). Costs `rows` Schur solves: the network's size does not enter.
-pub fn leverage(j: &BlockJacobian, f: &Factor, b: usize) -> DMatrix<f64> {
-    let rows = j.blocks[b].rows;
-    let mut u_a = DMatrix::zeros(j.n_a, rows);
-    for (col, w, part) in j.dense_parts(b) {
-        for r in 0..rows {
-            for c in 0..w {
-                u_a[(col + c, r)] += part[r * w + c];
+/// `J_i·N⁻¹·J_iᵀ` of each of the first `readings` blocks (three rows
+/// each): the diagonal blocks of the hat matrix, the share of a reading's
+/// own residuals the fit absorbs. One minus it is the reading's redundancy
+/// (Baarda's `Q_vv` in units of the a-priori variance).
+///
+/// With the reflector eliminated, `J_i·N⁻¹·J_iᵀ = vᵢᵀ·S⁻¹·vᵢ +
+/// X_i·H_XX⁻¹·X_iᵀ`, `vᵢ = A_iᵀ − W_p·X_iᵀ` (`A_i`, `X_i` the reading's
+/// dense and position parts, `W_p = H_AX·H_XX⁻¹` of its reflector). With
+/// `S⁻¹ = Mᵀ·M`, `M = L⁻¹·D` formed once, `M·vᵢ = M·A_iᵀ − (M·W_p)·X_iᵀ`:
+/// `M·W_p` once per reflector, `M·A_iᵀ` from the few columns of `M` the
+/// reading's station and error parameters touch — about `16·3·n_A`
+/// products per reading instead of three triangular solves (`3·n_A²/2`).
+/// The network's size does not enter.
+pub fn leverages(j: &BlockJacobian, f: &Factor, readings: usize) -> Vec<Matrix3<f64>> {
+    let n_a = j.n_a;
+    let mut m = DMatrix::from_diagonal(&f.d);
+    f.chol
+        .l_dirty()
+        .solve_lower_triangular_unchecked_mut(&mut m);
+    let m_w: Vec<MatrixXx3<f64>> = f
+        .points
+        .par_iter()
+        .map(|p| {
+            let mut z = MatrixXx3::zeros(n_a);
+            for (k, &c) in p.cols.iter().enumerate() {
+                for a in 0..3 {
+                    z.column_mut(a).axpy(p.w[(k, a)], &m.column(c), 1.0);
+                }
             }
-        }
-    }
-    let u_x: Vec<(usize, DMatrix<f64>)> = match (j.block_point(b), j.point_part(b)) {
-        (Some(p), Some(part)) => vec![(p, DMatrix::from_row_slice(rows, 3, part).transpose())],
-        _ => Vec::new(),
-    };
-    let v = f.reduce_sparse(&u_a, &u_x);
-    let mut h = f.schur_quadratic_form(&v);
-    for (p, ux) in &u_x {
-        h += ux.tr_mul(&(f.point_inverse(*p) * ux));
-    }
-    h
+            z
+        })
+        .collect();
+    (0..readings)
+        .into_par_iter()
+        .map(|i| {
+            let mut y = MatrixXx3::zeros(n_a);
+            for (col, w, part) in j.dense_parts(i) {
+                for r in 0..3 {
+                    for c in 0..w {
+                        y.column_mut(r)
+                            .axpy(part[r * w + c], &m.column(col + c), 1.0);
+                    }
+                }
+            }
+            match (j.block_point(i), j.point_part(i)) {
+                (Some(p), Some(part)) => {
+                    let x = Matrix3::from_row_slice(part);
+                    y -= &m_w[p] * x.transpose();
+                    y.tr_mul(&y) + x * f.points[p].inv * x.transpose()
+                }
+                _ => y.tr_mul(&y),
+            }
+        })
+        .collect()
 }
 
 /// `x − J·N⁻¹·Jᵀ·x`: what of `x` no combination of `J`'s columns
@@ -1059,9 +1089,9 @@ mod tests {
         let (j, jd) = problem();
         let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
         let hat = &jd * (jd.transpose() * &jd).try_inverse().unwrap() * jd.transpose();
-        for b in [0, 5, 11] {
-            let h = leverage(&j, &f, b);
-            assert!((h - hat.view((3 * b, 3 * b), (3, 3))).norm() < 1e-10);
+        let all = leverages(&j, &f, 12);
+        for (b, h) in all.iter().enumerate() {
+            assert!((h - hat.fixed_view::<3, 3>(3 * b, 3 * b)).norm() < 1e-10);
         }
     }
 
