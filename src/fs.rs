@@ -161,26 +161,58 @@ pub fn temp_owner_gone(name: &str) -> bool {
 /// link; a link (or a FIFO, …) at `path` itself is replaced by the rename,
 /// never written through.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    create_dirs(dir)?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.{}.tmp", temp_name()));
-    let write = || -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    };
-    write().map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        anyhow!("writing {}: {e}", path.display())
-    })
+    Staged::write(path, bytes)?.rename()
 }
 
-/// At most this many files are written at once by [`write_all_atomic`].
+/// [`write_atomic`] in two halves, so that many files' syncs can overlap
+/// before any of them lands: the bytes written to the temporary name and
+/// synced ([`Staged::write`]), then renamed into place ([`Staged::rename`]).
+/// Dropped without the rename, it removes its temporary.
+struct Staged {
+    tmp: PathBuf,
+    path: PathBuf,
+    renamed: bool,
+}
+
+impl Staged {
+    fn write(path: &Path, bytes: &[u8]) -> Result<Staged> {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        create_dirs(dir)?;
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy())
+            .unwrap_or_default();
+        let staged = Staged {
+            tmp: dir.join(format!(".{name}.{}.tmp", temp_name())),
+            path: path.to_path_buf(),
+            renamed: false,
+        };
+        let write = || -> std::io::Result<()> {
+            let mut f = std::fs::File::create(&staged.tmp)?;
+            f.write_all(bytes)?;
+            f.sync_all()
+        };
+        write().map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
+        Ok(staged)
+    }
+
+    fn rename(mut self) -> Result<()> {
+        std::fs::rename(&self.tmp, &self.path)
+            .map_err(|e| anyhow!("writing {}: {e}", self.path.display()))?;
+        self.renamed = true;
+        Ok(())
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if !self.renamed {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// At most this many files are written at once by [`write_groups_atomic`].
 const PUBLISH_THREADS: usize = 16;
 
 /// Writes every `(path, bytes)` with [`write_atomic`], each on a thread of
@@ -188,19 +220,46 @@ const PUBLISH_THREADS: usize = 16;
 /// another they were most of a small calibration's process on a busy disk
 /// (a stage's published tables; issue 34).
 /// The first failure is returned, after every started write has ended.
-pub fn write_all_atomic(writes: &[(PathBuf, &Vec<u8>)]) -> Result<()> {
-    for chunk in writes.chunks(PUBLISH_THREADS) {
+pub fn write_all_atomic<B: AsRef<[u8]> + Sync>(writes: &[(PathBuf, B)]) -> Result<()> {
+    write_groups_atomic(&[writes])
+}
+
+/// Writes `groups` of files atomically, a group landing only once every
+/// file of the groups before it has: every file of every group is written
+/// and synced under its temporary name at once (a thread each, so that the
+/// syncs overlap: a stage's tables and then its record, or a run's record
+/// and then its page, synced one after another were a fifth of a small
+/// calibration's process on a busy disk; issue 34), then the groups are
+/// renamed into place in order. Within a group each file lands or fails on
+/// its own, as with [`write_all_atomic`]; after a group with a failure the
+/// later groups' temporaries are removed and nothing of them lands — what a
+/// later group's file names (a record naming the tables it follows) is
+/// never missing. The first failure is returned.
+pub fn write_groups_atomic<B: AsRef<[u8]> + Sync>(groups: &[&[(PathBuf, B)]]) -> Result<()> {
+    let all: Vec<&(PathBuf, B)> = groups.iter().flat_map(|g| g.iter()).collect();
+    let mut staged: Vec<Result<Staged>> = Vec::with_capacity(all.len());
+    for chunk in all.chunks(PUBLISH_THREADS) {
         std::thread::scope(|s| {
-            let written: Vec<_> = chunk
+            let writing: Vec<_> = chunk
                 .iter()
-                .map(|(path, bytes)| s.spawn(|| write_atomic(path, bytes)))
+                .map(|(path, bytes)| s.spawn(move || Staged::write(path, bytes.as_ref())))
                 .collect();
-            let results: Vec<Result<()>> = written
-                .into_iter()
-                .map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
-                .collect();
-            results.into_iter().collect::<Result<()>>()
-        })?;
+            staged.extend(
+                writing
+                    .into_iter()
+                    .map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p))),
+            );
+        });
+    }
+    let mut staged = staged.into_iter();
+    for group in groups {
+        let landed: Vec<Result<()>> = staged
+            .by_ref()
+            .take(group.len())
+            .map(|s| s.and_then(Staged::rename))
+            .collect();
+        // The later groups' temporaries are dropped (removed) with `staged`.
+        landed.into_iter().collect::<Result<()>>()?;
     }
     Ok(())
 }
@@ -722,5 +781,45 @@ mod tests {
             std::fs::read(dir.path().join("s/ok.parquet")).unwrap(),
             bytes[0]
         );
+    }
+
+    /// Issue 34: groups written at once land in order — a later group (a
+    /// stage's record, a run's page) only once every file before it has;
+    /// after a failing group nothing later lands and no temporary is left.
+    #[test]
+    fn write_groups_atomic_lands_a_group_only_after_the_ones_before_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let at = |n: &str| dir.path().join(n);
+        let tables = [
+            (at("s/a.parquet"), b"a".to_vec()),
+            (at("s/b.parquet"), b"b".to_vec()),
+        ];
+        let record = [(at("last.json"), b"r1".to_vec())];
+        write_groups_atomic(&[&tables[..], &record[..]]).unwrap();
+        assert_eq!(std::fs::read(at("s/b.parquet")).unwrap(), b"b");
+        assert_eq!(std::fs::read(at("last.json")).unwrap(), b"r1");
+        // A table that cannot be written: the other table lands, the record
+        // after them does not, and neither group leaves a temporary.
+        std::fs::write(at("f"), b"x").unwrap();
+        let tables = [
+            (at("s/a.parquet"), b"a2".to_vec()),
+            (at("f/t.parquet"), b"t".to_vec()),
+        ];
+        let record = [(at("last.json"), b"r2".to_vec())];
+        let e = write_groups_atomic(&[&tables[..], &record[..]]).unwrap_err();
+        let e = e.to_string();
+        assert!(e.contains("f/t.parquet") || e.contains("creating"), "{e}");
+        assert_eq!(std::fs::read(at("s/a.parquet")).unwrap(), b"a2");
+        assert_eq!(std::fs::read(at("last.json")).unwrap(), b"r1");
+        let names = |d: &str| {
+            let mut v: Vec<String> = std::fs::read_dir(at(d))
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            v.sort();
+            v
+        };
+        assert_eq!(names("."), ["f", "last.json", "s"]);
+        assert_eq!(names("s"), ["a.parquet", "b.parquet"]);
     }
 }

@@ -402,7 +402,7 @@ pub struct Store {
     /// being read again.
     fresh: Mutex<BTreeMap<String, String>>,
     /// The experiment (`results/<pipeline>/runs/<name>/`) whose last run
-    /// [`Store::last`] and [`Store::set_last`] are about; `None`: the
+    /// [`Store::last`] and [`Store::last_record`] are about; `None`: the
     /// pipeline's main results. The entries are shared by every run.
     experiment: Option<String>,
 }
@@ -835,6 +835,18 @@ impl Store {
     /// through a link ([`crate::fs::confine`]): a link where the cache's
     /// folders should be is reported, and nothing behind it touched.
     pub fn heal(&self, all: bool) -> Vec<Healed> {
+        let (done, record) = self.heal_recorded(all);
+        if let Some((path, bytes)) = record {
+            let _ = write_atomic(&path, &bytes);
+        }
+        done
+    }
+
+    /// [`Store::heal`], returning `.ltcal/verified.json` (path and bytes)
+    /// for the caller to write instead of writing it: a run writes it
+    /// beside its own record, the two syncs overlapping (issue 34). Its
+    /// write may fail: the next run only reads more.
+    pub fn heal_recorded(&self, all: bool) -> (Vec<Healed>, Option<(PathBuf, Vec<u8>)>) {
         let mut done = Vec::new();
         if let Some(link) = crate::fs::link_on_the_way(&self.packs_dir())
             .or_else(|| crate::fs::link_on_the_way(&self.entries()))
@@ -846,7 +858,7 @@ impl Store {
                     .map_or_else(String::new, |e| format!("{e:#}")),
                 action: "left alone: nothing is read or removed through it".into(),
             });
-            return done;
+            return (done, None);
         }
         let known = if all {
             BTreeMap::new()
@@ -919,12 +931,12 @@ impl Store {
         }
         // What another process recorded meanwhile is lost: it is only
         // read again.
-        if let Ok(bytes) = serde_json::to_vec_pretty(&good) {
-            let _ = write_atomic(&self.root.join("verified.json"), &bytes);
-        }
+        let record = serde_json::to_vec_pretty(&good)
+            .ok()
+            .map(|bytes| (self.root.join("verified.json"), bytes));
         // Packs were removed and written: read their indexes afresh.
         *self.packs.write().unwrap_or_else(|e| e.into_inner()) = None;
-        done
+        (done, record)
     }
 
     /// What `.ltcal/verified.json` records as good: name → identity.
@@ -1405,13 +1417,15 @@ impl Store {
         read_last(&self.last_path(stage))
     }
 
-    /// Records `k` as what the last run of these results published for
-    /// `stage`; writes nothing when that is already the record.
-    pub fn set_last(&self, stage: &str, k: &KeyFields) -> Result<()> {
+    /// The file (path and bytes) that records `k` as what the last run of
+    /// these results published for `stage`, for the caller to write
+    /// atomically once the stage's files are published; `None` when that is
+    /// already the record.
+    pub fn last_record(&self, stage: &str, k: &KeyFields) -> Result<Option<(PathBuf, Vec<u8>)>> {
         if self.last_here(stage).as_ref() == Some(k) {
-            return Ok(());
+            return Ok(None);
         }
-        write_atomic(&self.last_path(stage), &serde_json::to_vec_pretty(k)?)
+        Ok(Some((self.last_path(stage), serde_json::to_vec_pretty(k)?)))
     }
 }
 

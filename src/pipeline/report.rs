@@ -28,13 +28,12 @@ use super::names::PSEUDO_STAGE;
 use super::resolve::Pipeline;
 use super::run_report::{RunReport, StageReport, Tables};
 use super::status::Status;
-use crate::fs::write_atomic;
 use crate::table;
 use anyhow::Result;
 use polars::prelude::{AnyValue, DataFrame};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Tables up to this many rows are shown whole; larger ones are previewed.
@@ -126,18 +125,29 @@ window.addEventListener('hashchange', openTarget);
 window.addEventListener('load', openTarget);
 ";
 
-/// Writes `index.html` (and `graph.svg`) into the pipeline's results folder.
-pub fn write(dir: &Path, p: &Pipeline, report: &RunReport, tables: &Tables) -> Result<()> {
+/// The page's files for the pipeline's results folder `dir`, in the order
+/// they are to land: `graph.svg`, then `index.html` (which shows it).
+pub fn files(
+    dir: &Path,
+    p: &Pipeline,
+    report: &RunReport,
+    tables: &Tables,
+) -> Result<[(PathBuf, Vec<u8>); 2]> {
     let statuses: graph::Statuses = report
         .stages
         .iter()
         .map(|s| (s.stage.clone(), s.status))
         .collect();
-    write_atomic(&dir.join("graph.svg"), graph::svg(p, &statuses)?.as_bytes())?;
-    write_atomic(
-        &dir.join(super::names::PAGE),
-        page(p, report, tables).as_bytes(),
-    )
+    Ok([
+        (
+            dir.join("graph.svg"),
+            graph::svg(p, &statuses)?.into_bytes(),
+        ),
+        (
+            dir.join(super::names::PAGE),
+            page(p, report, tables).into_bytes(),
+        ),
+    ])
 }
 
 /// The page's HTML.

@@ -11,7 +11,7 @@
 //! A published file that differs from the stage's cached result is
 //! replaced. It is reported as edited or damaged only when it is not what
 //! the last run of these results published either (its record,
-//! [`Store::set_last`], kept for every stage published, cached or not):
+//! [`Store::last_record`], kept for every stage published, cached or not):
 //! going back to an earlier result is no damage.
 //!
 //! A stage that fails — by error or by panic ([`super::panics`]) — is
@@ -168,6 +168,10 @@ struct Runner<'a> {
 pub struct Executed {
     pub report: RunReport,
     pub tables: Tables,
+    /// The cache's record of what it found good (`.ltcal/verified.json`,
+    /// [`Store::heal_recorded`]), for the publisher to write beside the
+    /// run's record.
+    pub verified: Option<(PathBuf, Vec<u8>)>,
 }
 
 /// Executes the pipeline (and, with a `[sweep]`, every point of it),
@@ -251,21 +255,25 @@ pub fn execute_pipeline(
         }
     };
     opts.control.check()?;
+    let finished = timestamp(SystemTime::now());
+    // Read before healing takes the unreadable packs out.
+    let unreadable_packs = store
+        .unreadable_packs()
+        .into_iter()
+        .map(|(path, why)| format!("{}: {why}", path.display()))
+        .collect();
+    let (healed, verified) = store.heal_recorded(false);
     let report = RunReport {
         pipeline: p.name.clone(),
         results: dir.clone(),
         experiment: exp,
         started: timestamp(started),
-        finished: timestamp(SystemTime::now()),
+        finished,
         cleaned,
         stages,
         sweep,
-        unreadable_packs: store
-            .unreadable_packs()
-            .into_iter()
-            .map(|(path, why)| format!("{}: {why}", path.display()))
-            .collect(),
-        healed: store.heal(false),
+        unreadable_packs,
+        healed,
     };
     let tables: Tables = produced
         .into_iter()
@@ -278,7 +286,11 @@ pub fn execute_pipeline(
             (stage, t)
         })
         .collect();
-    Ok(Executed { report, tables })
+    Ok(Executed {
+        report,
+        tables,
+        verified,
+    })
 }
 
 /// A report per stage and what the stages produced, by stage name.
@@ -971,13 +983,7 @@ fn serve_cached(
         .flatten()
         .and_then(|k| store.manifest(&k.hash()))
         .and_then(Result::ok);
-    let published = publish(runner, &s.name, entry).and_then(|replaced| {
-        if runner.publish {
-            store.set_last(&s.name, kf)?;
-        }
-        Ok(replaced)
-    });
-    match published {
+    match publish(runner, &s.name, entry, runner.publish.then_some(kf)) {
         Ok(replaced) => {
             for (path, name, hash) in replaced {
                 let switched_back = before
@@ -1067,10 +1073,7 @@ fn store_output(
     match runner.point {
         None => {
             runner.store.put(&entry)?;
-            // Published first: a record never names what the folder does
-            // not hold.
-            publish(runner, &s.name, &entry)?;
-            runner.store.set_last(&s.name, kf)?;
+            publish(runner, &s.name, &entry, Some(kf))?;
         }
         Some(i) => runner.store.put_packed(entry.clone(), i),
     }
@@ -1121,32 +1124,47 @@ fn published_hash<'a>(m: &'a Manifest, name: &str) -> Option<&'a String> {
 }
 
 /// Copies an entry's tables and files to `<results>/<stage>/`, atomically,
-/// writing only what differs; returns the existing files it replaced:
-/// path, file name and the content hash of the replaced copy.
-fn publish(runner: &Runner, stage: &str, entry: &Entry) -> Result<Vec<(PathBuf, String, String)>> {
+/// writing only what differs (when the runner publishes), then records
+/// `record` as what the folder holds ([`Store::last_record`]); returns the
+/// existing files it replaced: path, file name and the content hash of the
+/// replaced copy. The record is synced with the files but renamed only after
+/// they all landed: it never names what the folder does not hold.
+fn publish(
+    runner: &Runner,
+    stage: &str,
+    entry: &Entry,
+    record: Option<&KeyFields>,
+) -> Result<Vec<(PathBuf, String, String)>> {
     let mut replaced = Vec::new();
-    if !runner.publish {
-        return Ok(replaced);
-    }
-    let out = runner.dir.join(stage);
-    let items = entry
-        .tables
-        .iter()
-        .map(|(n, b)| (format!("{n}.parquet"), b))
-        .chain(entry.files.iter().map(|(n, b)| (n.clone(), b)));
     let mut writes = Vec::new();
-    for (name, bytes) in items {
-        let path = out.join(&name);
-        match crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES) {
-            Ok(old) if old == *bytes => continue,
-            Ok(old) => {
-                writes.push((path.clone(), bytes));
-                replaced.push((path, name, cache::hash_bytes(&old)));
+    if runner.publish {
+        let out = runner.dir.join(stage);
+        let items = entry
+            .tables
+            .iter()
+            .map(|(n, b)| (format!("{n}.parquet"), b))
+            .chain(entry.files.iter().map(|(n, b)| (n.clone(), b)));
+        for (name, bytes) in items {
+            let path = out.join(&name);
+            match crate::fs::read_regular_file(&path, cache::MAX_TABLE_BYTES) {
+                Ok(old) if old == *bytes => continue,
+                Ok(old) => {
+                    writes.push((path.clone(), bytes));
+                    replaced.push((path, name, cache::hash_bytes(&old)));
+                }
+                Err(_) => writes.push((path, bytes)),
             }
-            Err(_) => writes.push((path, bytes)),
         }
     }
-    crate::fs::write_all_atomic(&writes)?;
+    let record = match record {
+        Some(kf) => runner.store.last_record(stage, kf)?,
+        None => None,
+    };
+    let record: Vec<_> = record
+        .iter()
+        .map(|(path, bytes)| (path.clone(), bytes))
+        .collect();
+    crate::fs::write_groups_atomic(&[&writes[..], &record[..]])?;
     Ok(replaced)
 }
 
