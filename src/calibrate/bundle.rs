@@ -42,7 +42,7 @@
 //! stated noise: they are its test.
 
 use super::register::{Rigid, align};
-use super::sparse::{self, BlockJacobian, Normal};
+use super::sparse::{self, BlockJacobian, BlockShape, Normal};
 use super::{
     BundleStd, Calibration, FitSummary, Network, Norm, Settings, SigmaFactor, gauge_scale_ppm,
 };
@@ -312,65 +312,17 @@ impl<'a> Bundle<'a> {
         }
     }
 
-    /// Visits every residual block in order — each reading's three rows,
-    /// then each gauge length, then each reference coordinate — as
-    /// `(rows, residuals, parts)` with the parts `(first column, rows ×
-    /// width values, row-major)` when `jac`, none otherwise (`design`: see
-    /// [`Self::reading_block`]). The readings are evaluated in parallel,
-    /// each on its own, and visited in order: the same numbers whatever
-    /// the number of threads.
-    fn visit(
+    /// Visits the residual blocks after the readings' — each gauge length,
+    /// then each reference coordinate — in order, as `(rows, residuals,
+    /// parts)` with the parts `(first column, rows × width values,
+    /// row-major)` when `jac`, none otherwise. The rows come readings
+    /// first (three each, [`Self::fill_readings`]), then these.
+    fn visit_others(
         &self,
         x: &DVector<f64>,
         jac: bool,
-        design: bool,
         mut f: impl FnMut(usize, &[f64], &[(usize, &[f64])]),
     ) {
-        let params = self.params(x);
-        let eval = params.evaluator();
-        let stations = self.stations(x);
-        // Every reading's error-parameter rows in one buffer, filled in
-        // place: no allocation per reading.
-        let n_obs = self.net.obs.len();
-        let nz3 = if jac { 3 * self.layout.n_z } else { 0 };
-        let mut jz_all = vec![0.0; n_obs * nz3];
-        let jz_rows: Vec<&mut [f64]> = if nz3 > 0 {
-            jz_all.chunks_exact_mut(nz3).collect()
-        } else {
-            (0..n_obs).map(|_| &mut [][..]).collect()
-        };
-        let blocks: Vec<ReadingBlock> = jz_rows
-            .into_par_iter()
-            .enumerate()
-            .with_min_len(256)
-            .map_init(Vec::new, |cols, (i, jz)| {
-                let s = &stations[self.net.obs[i].station];
-                let out = jac.then_some(Scratch { jz, cols });
-                self.reading_block(x, s, &eval, i, design, out)
-            })
-            .collect();
-        for (i, (o, b)) in self.net.obs.iter().zip(&blocks).enumerate() {
-            if !jac {
-                f(3, b.r.as_slice(), &[]);
-                continue;
-            }
-            let (po, _) = self.layout.point[o.target].expect("seen");
-            // At most three parts, on the stack: no allocation per reading.
-            let mut parts: [(usize, &[f64]); 3] = [(0, &[]); 3];
-            let mut n_parts = 0;
-            let mut part = |p| {
-                parts[n_parts] = p;
-                n_parts += 1;
-            };
-            if nz3 > 0 {
-                part((0, &jz_all[i * nz3..(i + 1) * nz3]));
-            }
-            if let Some((so, values)) = &b.station {
-                part((*so, values));
-            }
-            part((po, &b.point));
-            f(3, b.r.as_slice(), &parts[..n_parts]);
-        }
         for g in &self.net.gauge {
             let (Some((oa, _)), Some((ob, _))) = (self.layout.point[g.a], self.layout.point[g.b])
             else {
@@ -404,7 +356,7 @@ impl<'a> Bundle<'a> {
     }
 
     /// The Jacobian, as its blocks, and the residuals of the network at `x`
-    /// (`design`: of the consistent network, see [`Self::visit`]).
+    /// (`design`: of the consistent network, see [`Self::reading_block`]).
     fn jacobian_at(&self, x: &DVector<f64>, design: bool) -> (BlockJacobian, DVector<f64>) {
         self.jacobian_in(x, design, None)
     }
@@ -433,8 +385,30 @@ impl<'a> Bundle<'a> {
             Some(j) => j.recycle(n_a, n, room),
             None => BlockJacobian::with_capacity(n_a, n, room),
         };
-        let mut r = Vec::new();
-        self.visit(x, true, design, |rows, res, parts| {
+        // The readings' blocks stored reflector by reflector, for the Schur
+        // assembly ([`BlockJacobian::push_grouped`]).
+        let nz = self.layout.n_z;
+        let shapes = self.net.obs.iter().map(|o| {
+            let (po, _) = self.layout.point[o.target].expect("seen");
+            let station = self.layout.station[o.station];
+            BlockShape {
+                rows: 3,
+                parts: [
+                    (0, nz),
+                    (station.unwrap_or(0), if station.is_some() { 6 } else { 0 }),
+                    (po, 3),
+                ],
+                group: po,
+            }
+        });
+        let mut r = vec![0.0; 3 * n_obs];
+        let (jz, rest): (Vec<_>, Vec<_>) = j
+            .push_grouped(shapes, n)
+            .into_iter()
+            .map(|v| v.split_at_mut(3 * nz))
+            .unzip();
+        self.fill_readings(x, design, jz, rest, &mut r);
+        self.visit_others(x, true, |rows, res, parts| {
             j.push(rows, parts);
             r.extend_from_slice(res);
         });
@@ -470,31 +444,92 @@ impl<'a> Bundle<'a> {
         let mut nuisance =
             BlockJacobian::with_capacity(self.layout.n_a - k, self.layout.n - k, room);
         let mut lead = Vec::with_capacity((3 * n_obs + n_gauge + 3 * n_refs) * k);
-        self.visit(x, true, true, |rows, _, parts| {
-            // At most three parts (as `visit` gives them): on the stack.
-            let mut rest: [(usize, &[f64]); 3] = [(0, &[]); 3];
-            let (mut n_rest, mut z) = (0, None);
-            for &(col, v) in parts {
-                if col < k {
-                    debug_assert!(col == 0 && v.len() == rows * k, "the coordinates' part");
-                    z = Some(v);
-                } else {
-                    rest[n_rest] = (col - k, v);
-                    n_rest += 1;
-                }
+        lead.resize(3 * n_obs * k, 0.0);
+        // The readings' blocks stored in reading order: the analysis's
+        // projection reads them block by block.
+        let shapes = self.net.obs.iter().map(|o| {
+            let (po, _) = self.layout.point[o.target].expect("seen");
+            let station = self.layout.station[o.station];
+            BlockShape {
+                rows: 3,
+                parts: [
+                    (
+                        station.map_or(0, |so| so - k),
+                        if station.is_some() { 6 } else { 0 },
+                    ),
+                    (po - k, 3),
+                    (0, 0),
+                ],
+                group: 0,
             }
-            match z {
-                Some(v) => lead.extend_from_slice(v),
-                None => lead.resize(lead.len() + rows * k, 0.0),
+        });
+        let rest = nuisance.push_grouped(shapes, 1);
+        let jz = rows_of(&mut lead, 3 * k, n_obs);
+        self.fill_readings(x, true, jz, rest, &mut vec![0.0; 3 * n_obs]);
+        self.visit_others(x, true, |rows, _, parts| {
+            // Gauge lengths and references touch no coordinate.
+            debug_assert!(parts.iter().all(|&(col, _)| col >= k));
+            let mut rest: [(usize, &[f64]); 2] = [(0, &[]); 2];
+            for (out, &(col, v)) in rest.iter_mut().zip(parts) {
+                *out = (col - k, v);
             }
-            nuisance.push(rows, &rest[..n_rest]);
+            lead.resize(lead.len() + rows * k, 0.0);
+            nuisance.push(rows, &rest[..parts.len()]);
         });
         (nuisance, lead)
     }
 
+    /// Every reading's residuals and Jacobian blocks at `x` (`design`: see
+    /// [`Self::reading_block`]), written where they are kept: reading `i`'s
+    /// rows on the error-parameter coordinates into `jz[i]` (3 × n_z,
+    /// zeroed), its station's part (when free) then its reflector's into
+    /// `rest[i]`, its residuals into `r[3i..3i + 3]`. The readings are
+    /// evaluated in parallel, each on its own: the same numbers whatever
+    /// the number of threads, and no reading's blocks collected and copied
+    /// into the Jacobian (issue 34).
+    fn fill_readings(
+        &self,
+        x: &DVector<f64>,
+        design: bool,
+        jz: Vec<&mut [f64]>,
+        rest: Vec<&mut [f64]>,
+        r: &mut [f64],
+    ) {
+        let params = self.params(x);
+        let eval = params.evaluator();
+        let stations = self.stations(x);
+        jz.into_par_iter()
+            .zip(rest)
+            .zip(r.par_chunks_exact_mut(3))
+            .enumerate()
+            .with_min_len(256)
+            .for_each_init(Vec::new, |cols, (i, ((jz, mut rest), res))| {
+                let s = &stations[self.net.obs[i].station];
+                let b = self.reading_block(x, s, &eval, i, design, Some(Scratch { jz, cols }));
+                if let Some((_, part)) = &b.station {
+                    let (head, tail) = rest.split_at_mut(part.len());
+                    head.copy_from_slice(part);
+                    rest = tail;
+                }
+                rest.copy_from_slice(&b.point);
+                res.copy_from_slice(b.r.as_slice());
+            });
+    }
+
     fn residuals(&self, x: &DVector<f64>) -> DVector<f64> {
-        let mut out = Vec::new();
-        self.visit(x, false, false, |_, r, _| out.extend_from_slice(r));
+        let params = self.params(x);
+        let eval = params.evaluator();
+        let stations = self.stations(x);
+        let mut out = vec![0.0; 3 * self.net.obs.len()];
+        out.par_chunks_exact_mut(3)
+            .enumerate()
+            .with_min_len(256)
+            .for_each(|(i, res)| {
+                let s = &stations[self.net.obs[i].station];
+                let b = self.reading_block(x, s, &eval, i, false, None);
+                res.copy_from_slice(b.r.as_slice());
+            });
+        self.visit_others(x, false, |_, r, _| out.extend_from_slice(r));
         DVector::from_vec(out)
     }
 }
@@ -529,6 +564,15 @@ struct ReadingBlock {
     r: Vector3<f64>,
     station: Option<(usize, [f64; 18])>,
     point: [f64; 9],
+}
+
+/// The first `n · len` values of `buf` as `n` consecutive slices of `len`
+/// (empty ones when `len` is 0).
+fn rows_of(buf: &mut [f64], len: usize, n: usize) -> Vec<&mut [f64]> {
+    if len == 0 {
+        return (0..n).map(|_| &mut [][..]).collect();
+    }
+    buf[..n * len].chunks_exact_mut(len).collect()
 }
 
 /// A 3 × 3 matrix's entries, row by row.
@@ -989,9 +1033,10 @@ const REFERENCE: usize = 3;
 const GROUP_NAMES: [&str; 4] = ["angle", "range", "gauge", "reference"];
 
 /// Which group each residual row belongs to, block by block in the order
-/// [`Bundle::visit`] makes them: a reading's az and el rows are angles, its
-/// d row a range; then one row per gauge length both of whose reflectors
-/// are read; then three per reference coordinate used.
+/// [`Bundle::fill_readings`] and [`Bundle::visit_others`] make them: a
+/// reading's az and el rows are angles, its d row a range; then one row
+/// per gauge length both of whose reflectors are read; then three per
+/// reference coordinate used.
 struct RowGroups {
     /// Per residual block: its first row and its number of rows.
     blocks: Vec<(usize, usize)>,
