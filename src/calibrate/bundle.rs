@@ -879,6 +879,7 @@ pub fn calibrate(
         })
         .collect();
     // Each position's covariance is its own: in parallel.
+    let cov_rows = cov_a.transpose();
     let estimated: Vec<(usize, Vector3<f64>, Matrix3<f64>)> = layout
         .point
         .par_iter()
@@ -888,7 +889,7 @@ pub fn calibrate(
             let cov = if dense {
                 Matrix3::from_fn(|i, j| cov_a[(o + i, o + j)])
             } else {
-                factor.point_covariance((o - layout.n_a) / 3, &cov_a, var_factor)
+                factor.point_covariance((o - layout.n_a) / 3, &cov_rows, var_factor)
             };
             Some((t, problem.point(x, t), cov))
         })
