@@ -483,7 +483,7 @@ impl<'a> Accumulator<'a> {
     /// ([`add_products`]) — the same sums, in a loop the compiler
     /// vectorises (issue 34: the assembly was a sixth of a 24 000-reading
     /// run's instructions, most of it loop overhead).
-    fn add(&mut self, b: usize, mut pb: Option<&mut PointBlock>) {
+    fn add(&mut self, b: usize, pb: Option<&mut PointBlock>) {
         let (j, n_a) = (self.j, self.j.n_a);
         let blk = &j.blocks[b];
         let rows = blk.rows;
@@ -497,7 +497,7 @@ impl<'a> Accumulator<'a> {
                 self.dense.push((col, w, v));
             }
         }
-        let mut point = pb.as_deref_mut().zip(x_part);
+        let mut point = pb.zip(x_part);
         if let Some((_, x)) = point {
             self.x_cols.clear();
             for c in 0..3 {
@@ -968,10 +968,10 @@ impl Factor {
             }
         }
         let mut add = Matrix3::<f64>::zeros();
-        for b in 0..n {
-            for k in 0..3 {
+        for (b, cw_b) in (0..n).map(|b| (b, [cw[0][b], cw[1][b], cw[2][b]])) {
+            for (k, cw_bk) in cw_b.iter().enumerate() {
                 for l in 0..3 {
-                    add[(k, l)] += cw[k][b] * p.w[(b, l)];
+                    add[(k, l)] += cw_bk * p.w[(b, l)];
                 }
             }
         }
