@@ -913,6 +913,11 @@ impl Factor {
         let n = v.nrows();
         for (i, ux) in u_x {
             let p = &self.points[*i];
+            // `W`'s three columns as slices (column-major), walked beside
+            // the position's columns: no index checked per product.
+            let m = p.cols.len();
+            let (w0, rest) = p.w.as_slice().split_at(m);
+            let (w1, w2) = rest.split_at(m);
             // `W·uₓ` written out as nalgebra's product of a 3-column
             // matrix forms it (a sum from the first term, in column
             // order), without a matrix allocated per position; a column
@@ -926,8 +931,8 @@ impl Factor {
                     continue;
                 }
                 let out = &mut v.as_mut_slice()[col * n..(col + 1) * n];
-                for (k, &c) in p.cols.iter().enumerate() {
-                    out[c] -= p.w[(k, 0)] * u[0] + p.w[(k, 1)] * u[1] + p.w[(k, 2)] * u[2];
+                for (((&c, a), b), d) in p.cols.iter().zip(w0).zip(w1).zip(w2) {
+                    out[c] -= a * u[0] + b * u[1] + d * u[2];
                 }
             }
         }
