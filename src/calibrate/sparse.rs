@@ -334,6 +334,19 @@ impl BlockJacobian {
     /// `out −= J·Y` for the `k` columns of `Y` (n × k) and `out` (m × k),
     /// both row-major.
     pub fn sub_mul_rows(&self, y: &[f64], k: usize, out: &mut [f64]) {
+        self.sub_mul_rows_where(y, k, out, |_| true);
+    }
+
+    /// [`BlockJacobian::sub_mul_rows`] on the blocks `keep` admits; the
+    /// other blocks' rows of `out` are left as they are (for a sum that
+    /// reads only the kept rows next).
+    pub fn sub_mul_rows_where(
+        &self,
+        y: &[f64],
+        k: usize,
+        out: &mut [f64],
+        keep: impl Fn(usize) -> bool + Sync,
+    ) {
         // Each block writes its own rows: in parallel, the same numbers.
         let mut rows: Vec<&mut [f64]> = Vec::with_capacity(self.blocks.len());
         let mut rest = out;
@@ -345,6 +358,7 @@ impl BlockJacobian {
         rows.into_par_iter()
             .enumerate()
             .with_min_len(256)
+            .filter(|(b, _)| keep(*b))
             .for_each(|(b, o)| self.block_sub_mul_rows(b, y, k, o));
     }
 
@@ -986,15 +1000,26 @@ impl Factor {
         let n = v.nrows();
         for (i, ux) in u_x {
             let p = &self.points[*i];
+            // `W`'s three columns as slices (column-major), walked beside
+            // the position's columns: no index checked per product.
+            let m = p.cols.len();
+            let (w0, rest) = p.w.as_slice().split_at(m);
+            let (w1, w2) = rest.split_at(m);
             // `W·uₓ` written out as nalgebra's product of a 3-column
             // matrix forms it (a sum from the first term, in column
             // order), without a matrix allocated per position; a column
-            // of `v` at a time (contiguous).
+            // of `v` at a time (contiguous). A zero column of `uₓ` (a
+            // column none of the position's readings touch) takes `±0`
+            // off entries that are never `−0` (sums from `+0`): skipped,
+            // the same numbers.
             for col in 0..v.ncols() {
                 let u = [ux[(0, col)], ux[(1, col)], ux[(2, col)]];
+                if u == [0.0; 3] {
+                    continue;
+                }
                 let out = &mut v.as_mut_slice()[col * n..(col + 1) * n];
-                for (k, &c) in p.cols.iter().enumerate() {
-                    out[c] -= p.w[(k, 0)] * u[0] + p.w[(k, 1)] * u[1] + p.w[(k, 2)] * u[2];
+                for (((&c, a), b), d) in p.cols.iter().zip(w0).zip(w1).zip(w2) {
+                    out[c] -= a * u[0] + b * u[1] + d * u[2];
                 }
             }
         }
@@ -1008,14 +1033,22 @@ impl Factor {
     /// to the last bit. What every candidate's and every reading's
     /// projection (`CᵀP⊥C`, the hat matrix's blocks) is made of.
     pub fn schur_quadratic_form(&self, v: &DMatrix<f64>) -> DMatrix<f64> {
-        let mut w = v.clone();
-        for mut c in w.column_iter_mut() {
+        let w = self.whitened(v.clone());
+        w.tr_mul(&w)
+    }
+
+    /// `L⁻¹·D·V` (`S = D⁻¹·L·Lᵀ·D⁻¹`, so `S⁻¹ = (L⁻¹·D)ᵀ·(L⁻¹·D)`): the
+    /// one triangular solve both a quadratic form of `S⁻¹`
+    /// ([`Factor::schur_quadratic_form`]) and the whitened factor itself
+    /// (`V = I`, [`leverages`]) are made of.
+    fn whitened(&self, mut v: DMatrix<f64>) -> DMatrix<f64> {
+        for mut c in v.column_iter_mut() {
             c.component_mul_assign(&self.d);
         }
         self.chol
             .l_dirty()
-            .solve_lower_triangular_unchecked_mut(&mut w);
-        w.tr_mul(&w)
+            .solve_lower_triangular_unchecked_mut(&mut v);
+        v
     }
 
     /// `H_XX⁻¹` of eliminated position `i`.
@@ -1044,10 +1077,7 @@ impl Factor {
 /// The network's size does not enter.
 pub fn leverages(j: &BlockJacobian, f: &Factor, readings: usize) -> Vec<Matrix3<f64>> {
     let n_a = j.n_a;
-    let mut m = DMatrix::from_diagonal(&f.d);
-    f.chol
-        .l_dirty()
-        .solve_lower_triangular_unchecked_mut(&mut m);
+    let m = f.whitened(DMatrix::identity(n_a, n_a));
     let m_w: Vec<MatrixXx3<f64>> = f
         .points
         .par_iter()
@@ -1346,6 +1376,46 @@ mod tests {
         }
     }
 
+    /// Issue 34: the whitened factor `L⁻¹·D` the leverages use is the
+    /// one the quadratic forms of `S⁻¹` are made of (`V = I`), bit for
+    /// bit the solve it was: `S⁻¹ = (L⁻¹·D)ᵀ·(L⁻¹·D)` to rounding.
+    #[test]
+    fn whitened_identity_is_the_whitened_factor_and_squares_to_the_inverse() {
+        let (j, _) = problem();
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let n_a = j.n_a();
+        let mut m = DMatrix::from_diagonal(&f.d);
+        f.chol
+            .l_dirty()
+            .solve_lower_triangular_unchecked_mut(&mut m);
+        assert_eq!(f.whitened(DMatrix::identity(n_a, n_a)), m);
+        let q = f.schur_quadratic_form(&DMatrix::identity(n_a, n_a));
+        assert!((q - f.dense_covariance()).norm() < 1e-10);
+    }
+
+    /// Issue 34: `J·Y` taken off the kept blocks' rows only — those
+    /// rows as the whole product leaves them, the others untouched.
+    #[test]
+    fn subtracting_on_kept_blocks_leaves_the_others_and_matches_on_the_kept() {
+        let (j, _) = problem();
+        let k = 2;
+        let y: Vec<f64> = (0..j.ncols() * k).map(|i| (i as f64 * 0.3).sin()).collect();
+        let x: Vec<f64> = (0..j.nrows() * k).map(|i| (i as f64 * 0.9).cos()).collect();
+        let mut all = x.clone();
+        j.sub_mul_rows(&y, k, &mut all);
+        let mut some = x.clone();
+        j.sub_mul_rows_where(&y, k, &mut some, |b| b % 3 != 0);
+        for b in 0..j.blocks.len() {
+            let rows = j.blocks[b].row * k..(j.blocks[b].row + j.blocks[b].rows) * k;
+            let want = if b % 3 != 0 {
+                &all[rows.clone()]
+            } else {
+                &x[rows.clone()]
+            };
+            assert_eq!(&some[rows], want, "block {b}");
+        }
+    }
+
     /// Regression: splitting the Schur reduction into row ranges of `k`
     /// values each made a chunk size of zero, and rayon panics on it, when
     /// every error parameter is fixed (no column to project).
@@ -1482,7 +1552,14 @@ mod tests {
             .map(|p| {
                 (
                     p,
-                    DMatrix::from_fn(3, k, |r, c| ((p + 7 * r + 11 * c) as f64).sin()),
+                    // Every other position's column 1 zero: skipped.
+                    DMatrix::from_fn(3, k, |r, c| {
+                        if c == 1 && p % 2 == 0 {
+                            0.0
+                        } else {
+                            ((p + 7 * r + 11 * c) as f64).sin()
+                        }
+                    }),
                 )
             })
             .collect();

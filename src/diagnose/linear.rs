@@ -42,6 +42,7 @@ use crate::calibrate::snooping::{self, Absorbed, WTest};
 use crate::calibrate::sparse::{self, BlockJacobian, Factor, Normal, project_out};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
+use std::borrow::Cow;
 
 /// A candidate's signature: `k` columns over the model's rows, non-zero
 /// only on the readings it affects (never on gauge or reference rows).
@@ -108,6 +109,18 @@ impl Signature {
         out
     }
 
+    /// [`Signature::concat`] borrowing `b` when `a` has no columns (the
+    /// first step's members): the same columns without a copy of every
+    /// value — a localisation basis over every reading is megabytes, and
+    /// each of its fits copied it.
+    pub fn joined<'b>(a: &Signature, b: &'b Signature) -> Cow<'b, Signature> {
+        if a.k == 0 {
+            Cow::Borrowed(b)
+        } else {
+            Cow::Owned(Signature::concat(a, b))
+        }
+    }
+
     /// `C_i·β` for every affected reading `i` (units of σ).
     pub fn times(&self, beta: &[f64]) -> Vec<(usize, Vector3<f64>)> {
         self.blocks()
@@ -140,8 +153,12 @@ impl Signature {
         let mut n2 = vec![0.0; self.k];
         for (i, v) in self.blocks() {
             if keep(i) {
-                for (e, x) in v.iter().enumerate() {
-                    n2[e % self.k] += x * x;
+                // Row by row: each column's terms in the order the block
+                // holds them, without a division per value.
+                for row in v.chunks(self.k) {
+                    for (n, x) in n2.iter_mut().zip(row) {
+                        *n += x * x;
+                    }
                 }
             }
         }
@@ -165,7 +182,8 @@ impl Signature {
 
 /// `JᵀC`, `CᵀC` and `Cᵀx` over the affected readings `keep` admits: the
 /// dense part of `JᵀC` (n_a × k), its eliminated positions' parts, and the
-/// two small products.
+/// two small products (`Cᵀx` zero without an `x`: the folds' shares,
+/// [`Products::less`], sum their own).
 struct Products {
     u_a: DMatrix<f64>,
     u_x: Vec<(usize, DMatrix<f64>)>,
@@ -176,7 +194,7 @@ struct Products {
 fn products(
     j: &BlockJacobian,
     c: &Signature,
-    x: &DVector<f64>,
+    x: Option<&DVector<f64>>,
     keep: impl Fn(usize) -> bool,
 ) -> Products {
     let k = c.k;
@@ -201,30 +219,43 @@ fn products(
         }
         s
     };
-    // Each column of the reading's block, gathered once per reading.
+    // Each column of the reading's block, gathered once per reading, and
+    // the columns not zero on it. A zero column adds `+0` to every sum
+    // (each a three-term sum from `+0`), which leaves an accumulator that
+    // started at `+0` as it was: it is skipped, the same numbers. A
+    // localisation basis touches a reading in a few of its columns (a
+    // smooth function's two knots of eight, an offset's one station of
+    // twenty): its products cost those columns, not all of them.
     let mut vcols: Vec<[f64; 3]> = Vec::with_capacity(k);
+    let mut nz: Vec<usize> = Vec::with_capacity(k);
     for (i, v) in c.blocks() {
         if !keep(i) {
             continue;
         }
         vcols.clear();
         vcols.extend((0..k).map(|b| col3(v, k, b)));
-        for (a, &ca) in vcols.iter().enumerate() {
+        nz.clear();
+        nz.extend((0..k).filter(|&b| vcols[b] != [0.0; 3]));
+        for (at, &a) in nz.iter().enumerate() {
+            let ca = vcols[a];
             // `CᵀC` is symmetric: each pair's product once, added to both
             // entries (`x·y` is `y·x`, the same three-term sum).
-            for (b, &cb) in vcols.iter().enumerate().skip(a) {
-                let d = dot3(ca, cb);
+            for &b in &nz[at..] {
+                let d = dot3(ca, vcols[b]);
                 ctc[(a, b)] += d;
                 if b != a {
                     ctc[(b, a)] += d;
                 }
             }
-            ctx[a] += ca[0] * x[3 * i] + ca[1] * x[3 * i + 1] + ca[2] * x[3 * i + 2];
+            if let Some(x) = x {
+                ctx[a] += ca[0] * x[3 * i] + ca[1] * x[3 * i + 1] + ca[2] * x[3 * i + 2];
+            }
         }
         for (col, w, part) in j.dense_parts(i) {
             // A column of `u_a` at a time: contiguous (column-major), each
             // entry still one addition per part.
-            for (b, &cb) in vcols.iter().enumerate() {
+            for &b in &nz {
+                let cb = vcols[b];
                 let out = &mut u_a.as_mut_slice()[b * n_a + col..b * n_a + col + w];
                 for (a, o) in out.iter_mut().enumerate() {
                     *o += dot3(col3(part, w, a), cb);
@@ -236,18 +267,21 @@ fn products(
             if slot_of.is_empty() {
                 slot_of = vec![u32::MAX; j.points()];
             }
-            match slot_of[p] {
+            let at = match slot_of[p] {
                 u32::MAX => {
                     slot_of[p] = u_x.len() as u32;
-                    u_x.push((p, DMatrix::from_fn(3, k, |a, b| dot3(jcols[a], vcols[b]))));
+                    u_x.push((p, DMatrix::zeros(3, k)));
+                    u_x.len() - 1
                 }
-                at => {
-                    let m = &mut u_x[at as usize].1;
-                    for (b, &cb) in vcols.iter().enumerate() {
-                        for (a, &ja) in jcols.iter().enumerate() {
-                            m[(a, b)] += dot3(ja, cb);
-                        }
-                    }
+                at => at as usize,
+            };
+            // A new position's entries are their first terms added to
+            // `+0`: the same numbers as formed directly.
+            let m = &mut u_x[at].1;
+            for &b in &nz {
+                let cb = vcols[b];
+                for (a, &ja) in jcols.iter().enumerate() {
+                    m[(a, b)] += dot3(ja, cb);
                 }
             }
         }
@@ -298,9 +332,7 @@ impl Products {
     fn projected_gram(&self, f: &Factor) -> (DMatrix<f64>, DMatrix<f64>) {
         let v = f.reduce_sparse(&self.u_a, &self.u_x);
         let mut q = f.schur_quadratic_form(&v);
-        for (p, ux) in &self.u_x {
-            q += ux.tr_mul(&(f.point_inverse(*p) * ux));
-        }
+        add_point_forms(&mut q, f, &self.u_x);
         (&self.ctc - q, v)
     }
 }
@@ -308,7 +340,7 @@ impl Products {
 /// The fit of `c` to `r_perp` (the residuals, `J`'s span removed) on the
 /// factor `full` of all data.
 fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signature) -> Fit {
-    let pr = products(j, c, r_perp, |_| true);
+    let pr = products(j, c, Some(r_perp), |_| true);
     let (gram, _) = pr.projected_gram(full);
     let (beta, cov) = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
     let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
@@ -633,70 +665,86 @@ impl LinearModel {
     /// Root mean square of the held-out residuals in µm with `c` added to
     /// the model, for the model's own residuals.
     pub fn cv_rms_um(&self, c: &Signature) -> f64 {
-        let mut sum = 0.0;
         // The products over every reading once; a fold's training share is
         // them less its held-out readings' (a fifth of the readings per
         // fold instead of four fifths). `ctx` depends on the fold's
-        // residuals: it is summed over the training readings themselves.
-        let all = products(&self.j, c, &self.r, |_| true);
-        for (fi, f) in self.folds.iter().enumerate() {
-            let train = |i: usize| self.fold_of[i] != fi;
-            let pr = all.less(
-                &products(&self.j, c, &f.res, |i| !train(i)),
-                c,
-                &f.res,
-                train,
-            );
-            let (gram, v) = pr.projected_gram(&f.factor);
-            let (bc, _) = lstsq(&gram, &pr.ctx, c.column_scale(train));
-            // The base fit moves by −δ, δ = N_f⁻¹·u·β_c.
-            let d_a = f.factor.solve_schur(&(&v * &bc));
-            let mut part = f.base_sum + 2.0 * d_a.dot(&f.h_k) + d_a.dot(&(&f.g_k * &d_a));
-            // Held-out readings where more than K_i·δ_A changes: those the
-            // candidate touches, and those of reflectors whose fit it moves.
-            let mut extra: Vec<usize> = c.readings.iter().copied().filter(|&i| !train(i)).collect();
-            // Per position the candidate touches, `H_XX⁻¹·u_x·β_c`: the
-            // same product for each of its readings, formed once (and
-            // found by index, not by a search per reading).
-            let mut shift_of: Vec<Option<Vector3<f64>>> = Vec::new();
-            if !pr.u_x.is_empty() {
-                shift_of = vec![None; self.j.points()];
-            }
-            for (p, ux) in &pr.u_x {
-                let w = ux * &bc;
-                let w = Vector3::new(w[0], w[1], w[2]);
-                shift_of[*p] = Some(f.factor.point_inverse(*p) * w);
-                extra.extend(self.readings_of_point[*p].iter().filter(|&&i| !train(i)));
-            }
-            extra.sort_unstable();
-            extra.dedup();
-            let c_rows: Vec<(usize, &[f64])> = c.blocks().collect();
-            // `W_pᵀ·δ_A` per position, shared by its readings' `K_i·δ_A`.
-            let mut wd_of: Vec<Option<Vector3<f64>>> = Vec::new();
-            if !extra.is_empty() {
-                wd_of = vec![None; self.j.points()];
-            }
-            for i in extra {
-                let a = Vector3::new(f.res[3 * i], f.res[3 * i + 1], f.res[3 * i + 2]);
-                let kd = k_times(&self.j, &f.factor, i, &d_a, &mut wd_of);
-                let mut s = Vector3::zeros();
-                if let (Some(p), Some(jx)) = (self.j.block_point(i), self.j.point_part(i))
-                    && let Some(Some(shift)) = shift_of.get(p)
-                {
-                    s += crate::calibrate::sparse::part3_mul(jx, shift);
-                }
-                if let Ok(at) = c_rows.binary_search_by_key(&i, |(r, _)| *r) {
-                    let ci = DMatrix::from_row_slice(3, c.k, c_rows[at].1);
-                    let cb = ci * &bc;
-                    s -= Vector3::new(cb[0], cb[1], cb[2]);
-                }
-                let l = self.to_um[i];
-                let base = l * (a + kd);
-                part += (base + l * s).norm_squared() - base.norm_squared();
-            }
+        // residuals: it is summed over the training readings themselves
+        // (neither the whole products' nor the held-out ones' is read).
+        let all = products(&self.j, c, None, |_| true);
+        let c_rows: Vec<(usize, &[f64])> = c.blocks().collect();
+        // Each fold's part is its own (its sums in its own order): the
+        // folds in parallel — a broad candidate was one thread's work
+        // while the other waited — and the parts summed in fold order,
+        // the same number.
+        let parts: Vec<f64> = (0..self.folds.len())
+            .into_par_iter()
+            .map(|fi| self.cv_part(c, &all, &c_rows, fi))
+            .collect();
+        let mut sum = 0.0;
+        for part in parts {
             sum += part;
         }
         (sum.max(0.0) / self.fold_of.len().max(1) as f64).sqrt()
+    }
+
+    /// Fold `fi`'s sum of squared held-out residuals (µm²) with `c` added
+    /// ([`LinearModel::cv_rms_um`]); `all`: `c`'s products over every
+    /// reading, `c_rows`: its blocks.
+    fn cv_part(&self, c: &Signature, all: &Products, c_rows: &[(usize, &[f64])], fi: usize) -> f64 {
+        let f = &self.folds[fi];
+        let train = |i: usize| self.fold_of[i] != fi;
+        let pr = all.less(&products(&self.j, c, None, |i| !train(i)), c, &f.res, train);
+        let (gram, v) = pr.projected_gram(&f.factor);
+        let (bc, _) = lstsq(&gram, &pr.ctx, c.column_scale(train));
+        // The base fit moves by −δ, δ = N_f⁻¹·u·β_c.
+        let d_a = f.factor.solve_schur(&(&v * &bc));
+        let mut part = f.base_sum + 2.0 * d_a.dot(&f.h_k) + d_a.dot(&(&f.g_k * &d_a));
+        // Held-out readings where more than K_i·δ_A changes: those the
+        // candidate touches, and those of reflectors whose fit it moves.
+        let mut extra: Vec<usize> = c.readings.iter().copied().filter(|&i| !train(i)).collect();
+        // Per position the candidate touches, `H_XX⁻¹·u_x·β_c`: the same
+        // product for each of its readings, formed once (and found by
+        // index, not by a search per reading).
+        let mut shift_of: Vec<Option<Vector3<f64>>> = Vec::new();
+        if !pr.u_x.is_empty() {
+            shift_of = vec![None; self.j.points()];
+        }
+        for (p, ux) in &pr.u_x {
+            let w = times_3(|a, col| ux[(a, col)], &bc);
+            shift_of[*p] = Some(f.factor.point_inverse(*p) * w);
+            extra.extend(self.readings_of_point[*p].iter().filter(|&&i| !train(i)));
+        }
+        ascending_once(&mut extra, self.fold_of.len());
+        // `W_pᵀ·δ_A` per position, shared by its readings' `K_i·δ_A`.
+        let mut wd_of: Vec<Option<Vector3<f64>>> = Vec::new();
+        if !extra.is_empty() {
+            wd_of = vec![None; self.j.points()];
+        }
+        // `c`'s blocks walked beside the ascending readings (a search per
+        // reading before).
+        let mut next_row = 0;
+        for i in extra {
+            let a = Vector3::new(f.res[3 * i], f.res[3 * i + 1], f.res[3 * i + 2]);
+            let kd = k_times(&self.j, &f.factor, i, &d_a, &mut wd_of);
+            let mut s = Vector3::zeros();
+            if let (Some(p), Some(jx)) = (self.j.block_point(i), self.j.point_part(i))
+                && let Some(Some(shift)) = shift_of.get(p)
+            {
+                s += crate::calibrate::sparse::part3_mul(jx, shift);
+            }
+            while next_row < c_rows.len() && c_rows[next_row].0 < i {
+                next_row += 1;
+            }
+            if let Some(&(r, ci)) = c_rows.get(next_row)
+                && r == i
+            {
+                s -= times_3(|a, col| ci[a * c.k + col], &bc);
+            }
+            let l = self.to_um[i];
+            let base = l * (a + kd);
+            part += (base + l * s).norm_squared() - base.norm_squared();
+        }
+        part
     }
 
     /// Root mean square of the held-out residuals in µm of the base model
@@ -719,8 +767,11 @@ impl LinearModel {
                 .factor
                 .solve_rows(&self.j.tr_mul_rows(r, k, |b| !train(b)), k);
             y.iter_mut().for_each(|v| *v = -*v);
+            // The unsquared residual on the training rows, all the
+            // correction reads (the held-out rows are formed below from
+            // the corrected fit).
             let mut res = r.to_vec();
-            self.j.sub_mul_rows(&y, k, &mut res);
+            self.j.sub_mul_rows_where(&y, k, &mut res, train);
             let dy = f.factor.solve_rows(&self.j.tr_mul_rows(&res, k, train), k);
             y.iter_mut().zip(dy).for_each(|(a, b)| *a += b);
             for &i in &f.test {
@@ -843,6 +894,60 @@ fn k_times(
         v -= crate::calibrate::sparse::part3_mul(jx, &wd);
     }
     v
+}
+
+/// `q += Σₓ uₓᵀ·H_XX⁻¹·uₓ` over the positions of `u_x`, each term the
+/// numbers nalgebra's `ux.tr_mul(&(H_XX⁻¹ * ux))` gives — `H_XX⁻¹·uₓ` a
+/// column at a time from the first column's term, each entry of the form
+/// a three-term dot product — written out without the two matrices it
+/// allocated per position.
+fn add_point_forms(q: &mut DMatrix<f64>, f: &Factor, u_x: &[(usize, DMatrix<f64>)]) {
+    let k = q.ncols();
+    let mut t = vec![[0.0; 3]; k];
+    for (p, ux) in u_x {
+        let inv = f.point_inverse(*p);
+        for (b, tb) in t.iter_mut().enumerate() {
+            let u = [ux[(0, b)], ux[(1, b)], ux[(2, b)]];
+            *tb = [0, 1, 2].map(|a| inv[(a, 0)] * u[0] + inv[(a, 1)] * u[1] + inv[(a, 2)] * u[2]);
+        }
+        for (j, tj) in t.iter().enumerate() {
+            for i in 0..k {
+                q[(i, j)] += ux[(0, i)] * tj[0] + ux[(1, i)] * tj[1] + ux[(2, i)] * tj[2];
+            }
+        }
+    }
+}
+
+/// `M·β` for a 3 × k matrix `M` (`m(a, col)` its entries), summed as
+/// nalgebra's product of a `DMatrix` and a vector sums it — from the
+/// first column's term, the others added in column order — without the
+/// two matrices allocated per reading.
+fn times_3(m: impl Fn(usize, usize) -> f64, beta: &DVector<f64>) -> Vector3<f64> {
+    Vector3::from_fn(|a, _| {
+        let mut s = m(a, 0) * beta[0];
+        for (col, b) in beta.iter().enumerate().skip(1) {
+            s += m(a, col) * b;
+        }
+        s
+    })
+}
+
+/// `list` (readings below `n`) sorted ascending without repeats: by a
+/// mark per reading when it holds more than an eighth of them (a broad
+/// candidate's, which a sort took `n·log n` for), else by a sort; the same
+/// list either way.
+fn ascending_once(list: &mut Vec<usize>, n: usize) {
+    if list.len() > n / 8 {
+        let mut mark = vec![false; n];
+        for &i in list.iter() {
+            mark[i] = true;
+        }
+        list.clear();
+        list.extend((0..n).filter(|&i| mark[i]));
+    } else {
+        list.sort_unstable();
+        list.dedup();
+    }
 }
 
 /// `‖(I − J·J⁺)·x‖²`: the part of `x` no combination of `j`'s columns
@@ -1017,15 +1122,27 @@ mod tests {
             }
         }
         let x = DVector::from_fn(j.nrows(), |r, _| (r as f64 * 0.37).cos());
-        let got = products(&j, &broad, &x, |_| true);
-        let want = products_by_nalgebra(&j, &broad, &x);
-        assert!(want.u_x.len() > 1 && got.u_x.len() == want.u_x.len());
-        for ((p, a), (q, b)) in got.u_x.iter().zip(&want.u_x) {
-            assert_eq!((p, a), (q, b));
+        // And a basis touching each reading in two of its six columns, on
+        // one coordinate (a smooth function's hats): the zero columns
+        // skipped, the same numbers.
+        let mut hats = Signature::new(6);
+        for i in 0..n_read {
+            let at = i % 5;
+            hats.add(i, i % 3, at, 0.25 + (i as f64 * 0.3).sin());
+            hats.add(i, i % 3, at + 1, -0.5 - (i as f64 * 0.7).cos());
         }
-        assert_eq!(got.u_a, want.u_a);
-        assert_eq!(got.ctc, want.ctc);
-        assert_eq!(got.ctx, want.ctx);
+        for c in [&broad, &hats] {
+            let got = products(&j, c, Some(&x), |_| true);
+            let want = products_by_nalgebra(&j, c, &x);
+            assert!(want.u_x.len() > 1 && got.u_x.len() == want.u_x.len());
+            for ((p, a), (q, b)) in got.u_x.iter().zip(&want.u_x) {
+                assert_eq!((p, a), (q, b));
+            }
+            assert_eq!(got.u_a, want.u_a);
+            assert_eq!(got.ctc, want.ctc);
+            assert_eq!(got.ctx, want.ctx);
+        }
+        let got = products(&j, &broad, Some(&x), |_| true);
         let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
         let v = f.reduce_sparse(&got.u_a, &got.u_x);
         // `Vᵀ·S⁻¹·V` by one triangular solve per column: symmetric to the
@@ -1038,6 +1155,88 @@ mod tests {
                 assert!((q[(a, b)] - two).abs() <= 1e-12 * q[(a, a)].abs().max(q[(b, b)].abs()));
             }
         }
+    }
+
+    /// Issue 34: a held-out reading's `C_i·β` and a position's `uₓ·β`
+    /// were nalgebra products of a matrix allocated per reading; written
+    /// out, they are those products bit for bit.
+    #[test]
+    fn a_blocks_product_written_out_is_nalgebras_bit_for_bit() {
+        for k in 1..7 {
+            let m = DMatrix::from_fn(3, k, |a, c| ((5 * a + 3 * c) as f64 * 0.71).sin() * 1e3);
+            let beta = DVector::from_fn(k, |c, _| ((c as f64) * 1.3 + 0.2).cos() / 7.0);
+            let want = &m * &beta;
+            let got = times_3(|a, c| m[(a, c)], &beta);
+            assert_eq!(got.as_slice(), want.as_slice(), "k = {k}");
+        }
+    }
+
+    /// Issue 34: `Σₓ uₓᵀ·H_XX⁻¹·uₓ` allocated two matrices per position;
+    /// written out it is nalgebra's sum bit for bit.
+    #[test]
+    fn point_forms_written_out_are_nalgebras_bit_for_bit() {
+        let (j, _) = network();
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        for k in 1..5 {
+            let u_x: Vec<(usize, DMatrix<f64>)> = (0..j.points())
+                .rev()
+                .map(|p| {
+                    let m =
+                        DMatrix::from_fn(3, k, |a, c| ((p * 9 + 4 * a + c) as f64 * 0.83).sin());
+                    (p, m * 1e2)
+                })
+                .collect();
+            let start = DMatrix::from_fn(k, k, |a, c| (a * k + c) as f64 * 0.1);
+            let mut want = start.clone();
+            for (p, ux) in &u_x {
+                want += ux.tr_mul(&(f.point_inverse(*p) * ux));
+            }
+            let mut got = start;
+            add_point_forms(&mut got, &f, &u_x);
+            assert_eq!(got, want, "k = {k}");
+        }
+    }
+
+    /// Issue 34: the held-out readings a broad candidate moves were sorted
+    /// (`n·log n` per fold and candidate); by a mark per reading they come
+    /// out the same, ascending and once each.
+    #[test]
+    fn held_out_readings_in_order_once_by_marks_or_by_a_sort() {
+        for (len, n) in [(5, 100), (80, 100), (300, 100)] {
+            let list: Vec<usize> = (0..len).map(|i| (i * 37 + 11) % n).collect();
+            let mut want = list.clone();
+            want.sort_unstable();
+            want.dedup();
+            let mut got = list;
+            ascending_once(&mut got, n);
+            assert_eq!(got, want);
+        }
+    }
+
+    /// Issue 34: a candidate's folds are scored in parallel; the held-out
+    /// RMS is the same number on one thread as on several.
+    #[test]
+    fn held_out_rms_with_a_candidate_is_the_same_on_any_number_of_threads() {
+        let (j, jd) = network();
+        let n_read = j.nrows() / 3;
+        let r = projector(&jd) * DVector::from_fn(j.nrows(), |i, _| ((i * 7) % 5) as f64 - 2.0);
+        let fold_of: Vec<usize> = (0..n_read).map(|i| (i / 6 + i) % 3).collect();
+        let lm = LinearModel::new(j, r, &fold_of, 3, vec![Matrix3::identity(); n_read]).unwrap();
+        let mut c = Signature::new(2);
+        for i in (0..n_read).filter(|i| i % 3 != 1) {
+            c.add(i, 1, 0, 1.0 + (i as f64).cos());
+            c.add(i, 2, 1, (i as f64 * 0.4).sin());
+        }
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| lm.cv_rms_um(&c))
+        };
+        let one = on(1);
+        assert!(one > 0.0);
+        assert_eq!(one.to_bits(), on(3).to_bits());
     }
 
     /// Issue 34: the noise floor's draws come in two calls (its first

@@ -223,15 +223,25 @@ fn bases(infos: &[ReadingInfo], stations: &[String], targets: &[String]) -> Vec<
     let d = of(&|r| Some(r.d));
     let el = of(&|r| Some(r.el.to_degrees()));
     let time = of(&|r| r.time_s);
-    for comp in 0..3 {
-        out.extend(smooth(infos, &d, comp, "range", ("d (mm)", "d")));
-        out.extend(smooth(infos, &el, comp, "el", ("el (°)", "el*180/PI")));
-        out.extend(smooth(infos, &time, comp, "time", ("time_s (s)", "time_s")));
-    }
+    // Each basis is built on its own (a pass over every reading): the
+    // families with many in parallel, collected in their order — the same
+    // bases, in the same order, as one after another (which was a thread's
+    // work while the other waited, before the ~450 fits).
+    let smooths: Vec<Option<Basis>> = (0..9)
+        .into_par_iter()
+        .map(|n| match n % 3 {
+            0 => smooth(infos, &d, n / 3, "range", ("d (mm)", "d")),
+            1 => smooth(infos, &el, n / 3, "el", ("el (°)", "el*180/PI")),
+            _ => smooth(infos, &time, n / 3, "time", ("time_s (s)", "time_s")),
+        })
+        .collect();
+    out.extend(smooths.into_iter().flatten());
     // range: a cyclic error of the distance meter, whatever its period.
-    for p in 0..PERIODS {
-        out.push(periodic(infos, period_of(p as f64)));
-    }
+    out.par_extend(
+        (0..PERIODS)
+            .into_par_iter()
+            .map(|p| periodic(infos, period_of(p as f64))),
+    );
     // az: a Fourier series (the tracker turns full circles).
     for comp in 0..3 {
         let mut c = Signature::new(8);
@@ -405,7 +415,7 @@ fn refine_period(
         .filter(|&j| j != 0)
         .map(|j| periodic(infos, period_of(p + j as f64 / 8.0)))
         .map(|b| {
-            let f = lm.fit(&Signature::concat(members, &b.columns));
+            let f = lm.fit(&Signature::joined(members, &b.columns));
             (b, f)
         })
         .fold(best, |a, b| {
@@ -442,57 +452,66 @@ fn offsets(
 /// `station × time`: one station's pose (translation, rotation) and range
 /// stepping after a time, tried at quantiles of its readings' times.
 fn station_steps(infos: &[ReadingInfo], stations: &[String]) -> Vec<Basis> {
-    let mut out = Vec::new();
-    for (s, id) in stations.iter().enumerate() {
-        let mut times: Vec<f64> = infos
-            .iter()
-            .filter(|r| r.station == s)
-            .filter_map(|r| r.since_station_s)
-            .collect();
-        times.sort_by(f64::total_cmp);
-        times.dedup();
-        // Not in the first or last three readings: a step there is a
-        // blunder's business.
-        if times.len() < 8 {
-            continue;
-        }
-        let inner = &times[3..times.len() - 3];
-        let n = inner.len().min(STEP_TIMES);
-        for q in 0..n {
-            let t0 = inner[q * inner.len() / n];
-            let mut c = Signature::new(7);
-            for (i, r) in infos.iter().enumerate() {
-                if r.station != s || r.since_station_s.is_none_or(|t| t < t0) {
-                    continue;
-                }
-                let arm = r.point - r.station_pos;
-                for a in 0..3 {
-                    let mut e = Vector3::zeros();
-                    e[a] = 1.0;
-                    // The origin moves by v: the reflector seems to move by −v.
-                    put_point(&mut c, i, r, a, -1e-3 * e);
-                    // The station turns by ω: the reflector seems to turn by −ω.
-                    put_point(&mut c, i, r, 3 + a, -1e-6 * e.cross(&arm));
-                }
-                c.add(i, 2, 6, 1e-3 / r.sigma.z);
+    // Each station's steps on their own (passes over every reading): in
+    // parallel, collected in station order — the same bases.
+    let per_station: Vec<Vec<Basis>> = stations
+        .par_iter()
+        .enumerate()
+        .map(|(s, id)| {
+            let mut out = Vec::new();
+            let mut times: Vec<f64> = infos
+                .iter()
+                .filter(|r| r.station == s)
+                .filter_map(|r| r.since_station_s)
+                .collect();
+            times.sort_by(f64::total_cmp);
+            times.dedup();
+            // Not in the first or last three readings: a step there is a
+            // blunder's business.
+            if times.len() < 8 {
+                return out;
             }
-            let labels = [
-                "x_um", "y_um", "z_um", "rx_urad", "ry_urad", "rz_urad", "d_um",
-            ];
-            out.push(Basis {
-                factor: "station × time",
-                what: format!("a step of {id}'s pose and range {t0:.0} s after its first reading"),
-                columns: c,
-                shape: Shape::Labels(labels.iter().map(|l| l.to_string()).collect()),
-                unit: "µm, µrad",
-                template: Template::Step {
-                    station: id.clone(),
-                    t0_s: t0,
-                },
-            });
-        }
-    }
-    out
+            let inner = &times[3..times.len() - 3];
+            let n = inner.len().min(STEP_TIMES);
+            for q in 0..n {
+                let t0 = inner[q * inner.len() / n];
+                let mut c = Signature::new(7);
+                for (i, r) in infos.iter().enumerate() {
+                    if r.station != s || r.since_station_s.is_none_or(|t| t < t0) {
+                        continue;
+                    }
+                    let arm = r.point - r.station_pos;
+                    for a in 0..3 {
+                        let mut e = Vector3::zeros();
+                        e[a] = 1.0;
+                        // The origin moves by v: the reflector seems to move by −v.
+                        put_point(&mut c, i, r, a, -1e-3 * e);
+                        // The station turns by ω: the reflector seems to turn by −ω.
+                        put_point(&mut c, i, r, 3 + a, -1e-6 * e.cross(&arm));
+                    }
+                    c.add(i, 2, 6, 1e-3 / r.sigma.z);
+                }
+                let labels = [
+                    "x_um", "y_um", "z_um", "rx_urad", "ry_urad", "rz_urad", "d_um",
+                ];
+                out.push(Basis {
+                    factor: "station × time",
+                    what: format!(
+                        "a step of {id}'s pose and range {t0:.0} s after its first reading"
+                    ),
+                    columns: c,
+                    shape: Shape::Labels(labels.iter().map(|l| l.to_string()).collect()),
+                    unit: "µm, µrad",
+                    template: Template::Step {
+                        station: id.clone(),
+                        t0_s: t0,
+                    },
+                });
+            }
+            out
+        })
+        .collect();
+    per_station.into_iter().flatten().collect()
 }
 
 /// What the explanation set leaves, and against what it is tested.
@@ -536,7 +555,7 @@ pub(super) fn fitted(
     };
     let fits = all
         .par_iter()
-        .map(|b| lm.fit(&Signature::concat(members, &b.columns)))
+        .map(|b| lm.fit(&Signature::joined(members, &b.columns)))
         .collect();
     Fitted {
         all,
@@ -668,7 +687,7 @@ pub(super) fn localise(rest: &Rest, fitted: &Fitted, infos: &[ReadingInfo]) -> V
             let left = (rest.chi2 - delta).max(1e-300);
             let dof_aug = rest.dof.saturating_sub(k).max(1);
             let p_adjusted = (p * tried as f64).min(1.0);
-            let joint = Signature::concat(rest.members, &b.columns);
+            let joint = Signature::joined(rest.members, &b.columns);
             let cv = rest.lm.cv_rms_um(&joint);
             let gap = rest.cv_rms_um - rest.floor.um;
             let var_factor = (left / dof_aug as f64).max(1.0);

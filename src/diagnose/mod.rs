@@ -1835,7 +1835,7 @@ impl StepContext<'_> {
             .collect();
         let fits: Vec<linear::Fit> = open
             .par_iter()
-            .map(|&i| lm.fit(&Signature::concat(&against, &st.cands[i].columns)))
+            .map(|&i| lm.fit(&Signature::joined(&against, &st.cands[i].columns)))
             .collect();
         let gain = |f: &linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
         let mut best: Vec<(usize, usize, f64)> = Vec::new();
@@ -1871,7 +1871,7 @@ impl StepContext<'_> {
                 let p = f_test::p_value(k as f64, dof_aug as f64, f_stat);
                 let p_corrected = (p * tried as f64 * spend).min(1.0);
                 let delta_bic = delta_chi2 - k as f64 * m.ln();
-                let rms_after = lm.cv_rms_um(&Signature::concat(&against, &cand.columns));
+                let rms_after = lm.cv_rms_um(&Signature::joined(&against, &cand.columns));
                 let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
                 let cov = fit.cov.view((k_a, k_a), (k, k)).into_owned();
                 // A candidate the set (or the base model) already spans in
