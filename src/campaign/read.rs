@@ -329,6 +329,12 @@ fn load(path: &Path, required: bool, problems: &mut Vec<Problem>) -> Option<Sour
 /// separators and surrounding spaces are not plain decimals; an empty cell
 /// is handled by the caller (it means "not known").
 fn parse_number(text: &str) -> Result<f64, String> {
+    // A plain decimal has no spaces and is neither NaN nor infinity, so the
+    // tests below, which only choose the message, are for the rest (issue
+    // 34: this runs for every number of a campaign).
+    if is_plain_decimal(text) {
+        return finite(text);
+    }
     let plain = || {
         format!(
             "`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)"
@@ -348,11 +354,18 @@ fn parse_number(text: &str) -> Result<f64, String> {
     if unsigned.eq_ignore_ascii_case("inf") || unsigned.eq_ignore_ascii_case("infinity") {
         return Err(format!("`{text}` is not a finite number"));
     }
-    if !is_plain_decimal(text) {
-        return Err(plain());
-    }
-    // The grammar above is a subset of what `f64::from_str` accepts.
-    let v: f64 = text.parse().map_err(|_| plain())?;
+    Err(plain())
+}
+
+/// A plain decimal's value, if finite.
+fn finite(text: &str) -> Result<f64, String> {
+    // The grammar of [`is_plain_decimal`] is a subset of what
+    // `f64::from_str` accepts.
+    let v: f64 = text.parse().map_err(|_| {
+        format!(
+            "`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)"
+        )
+    })?;
     if v.is_infinite() {
         return Err(format!("`{text}` is too large: it is not a finite number"));
     }

@@ -11,12 +11,51 @@
 //! stay `f64`, angles stay in degrees.
 
 use super::StageInputs;
-use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Issue, Meta, Target, Tracker};
+use crate::campaign::{
+    self, Aim, Campaign, CampaignReading, GaugeLength, Issue, Meta, Target, Tracker,
+};
 use crate::kinematics::Face;
 use crate::table::{TableBuilder, TableRef};
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
-use polars::prelude::DataFrame;
+use polars::prelude::{DataFrame, Series};
+use std::sync::{Arc, Mutex};
+
+/// How many campaigns [`ISSUED`] keeps: a pipeline imports a few folders;
+/// past this the oldest is dropped (its tables are then rebuilt and checked
+/// by the stages that take them, as tables of any other origin are).
+const ISSUED_MAX: usize = 4;
+
+/// Campaigns that passed [`Campaign::check`] with the tables this process
+/// built from them ([`Campaign::checked_tables`]), newest last.
+static ISSUED: Mutex<Vec<Issued>> = Mutex::new(Vec::new());
+
+/// One checked campaign and its tables' columns, in the order of
+/// [`campaign::TABLES`]. The columns are clones of the tables' own: they
+/// share the tables' data, and hold it alive, so no other data can come to
+/// sit at the same address while the entry is kept, and polars copies a
+/// column shared like this before it changes it. A column that is the same
+/// object as one kept here is therefore this data, unchanged.
+struct Issued {
+    columns: Vec<Vec<Series>>,
+    campaign: Arc<Campaign>,
+}
+
+impl Issued {
+    /// Whether `tables` (in the order of [`campaign::TABLES`]) are these
+    /// tables: the same column objects, in the same order, and no others.
+    fn is(&self, tables: &[TableRef]) -> bool {
+        self.columns.len() == tables.len()
+            && self.columns.iter().zip(tables).all(|(kept, t)| {
+                let cols = t.df.columns();
+                kept.len() == cols.len()
+                    && kept.iter().zip(cols).all(|(k, c)| {
+                        c.as_series()
+                            .is_some_and(|s| Arc::ptr_eq(&k.0, &s.0))
+                    })
+            })
+    }
+}
 
 impl Campaign {
     /// `readings`, `targets`, `gauge` and `meta`, in the order of [`campaign::TABLES`].
@@ -29,11 +68,58 @@ impl Campaign {
         ])
     }
 
+    /// [`Campaign::to_tables`] of a campaign that passed [`Campaign::check`]
+    /// (the `import_campaign` stage's, read from its folder), remembered
+    /// ([`ISSUED`]) so that [`Campaign::from_inputs`] given these very tables
+    /// takes the campaign back instead of rebuilding and checking it again
+    /// (issue 34: 5 % of the instructions of an import and calibration).
+    pub fn checked_tables(c: &Arc<Campaign>) -> Result<Vec<(String, DataFrame)>> {
+        let tables = c.to_tables()?;
+        let columns = tables
+            .iter()
+            .map(|(_, df)| {
+                df.columns()
+                    .iter()
+                    .map(|c| c.as_materialized_series().clone())
+                    .collect()
+            })
+            .collect();
+        let mut issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
+        if issued.len() == ISSUED_MAX {
+            issued.remove(0);
+        }
+        issued.push(Issued {
+            columns,
+            campaign: Arc::clone(c),
+        });
+        Ok(tables)
+    }
+
     /// The campaign wired to the group slot `slot` (tables `<slot>.readings`,
     /// `<slot>.targets`, `<slot>.gauge`, `<slot>.meta`), held to the format's
     /// rules: a stage never works on a campaign that could not be written.
-    pub fn from_inputs(inputs: &StageInputs, slot: &str) -> Result<Campaign> {
+    ///
+    /// Tables that are the very tables [`Campaign::checked_tables`] built
+    /// give back the campaign they were built from, not rebuilt or checked
+    /// again. That skips nothing, whatever stage the tables come from: the
+    /// rebuild of those tables is that campaign (the round trip is exact,
+    /// `a_campaign_rebuilt_from_its_tables_is_the_campaign`), which passed
+    /// the same [`Campaign::check`] this would run. Any other tables —
+    /// read back from the cache, made by another stage, or the same tables
+    /// with a column changed or added — are other column objects
+    /// ([`Issued`]), and are rebuilt and checked in full.
+    pub fn from_inputs(inputs: &StageInputs, slot: &str) -> Result<Arc<Campaign>> {
         let table = |name: &str| inputs.get(&format!("{slot}.{name}"));
+        let tables: Option<Vec<TableRef>> = campaign::TABLES
+            .iter()
+            .map(|name| inputs.optional(&format!("{slot}.{name}")))
+            .collect();
+        if let Some(tables) = tables {
+            let issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(kept) = issued.iter().rev().find(|kept| kept.is(&tables)) {
+                return Ok(Arc::clone(&kept.campaign));
+            }
+        }
         let c = Campaign {
             meta: meta_from(&table("meta")?)?,
             readings: readings_from(&table("readings")?)?,
@@ -48,7 +134,7 @@ impl Campaign {
                 list.join("\n  ")
             );
         }
-        Ok(c)
+        Ok(Arc::new(c))
     }
 
     fn readings_table(&self) -> Result<DataFrame> {
@@ -136,10 +222,13 @@ fn readings_from(t: &TableRef) -> Result<Vec<CampaignReading>> {
     let pressure = t.opt_f64("pressure_hpa")?;
     let humidity = t.opt_f64("humidity_pct")?;
     let line = t.opt_i64("line")?;
-    Ok((0..t.height())
-        .map(|i| CampaignReading {
-            station: station[i].clone(),
-            target: target[i].clone(),
+    Ok(station
+        .into_iter()
+        .zip(target)
+        .enumerate()
+        .map(|(i, (station, target))| CampaignReading {
+            station,
+            target,
             az_deg: az[i],
             el_deg: el[i],
             d_mm: d[i],
