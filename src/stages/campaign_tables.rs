@@ -49,10 +49,10 @@ impl Issued {
             && self.columns.iter().zip(tables).all(|(kept, t)| {
                 let cols = t.df.columns();
                 kept.len() == cols.len()
-                    && kept.iter().zip(cols).all(|(k, c)| {
-                        c.as_series()
-                            .is_some_and(|s| Arc::ptr_eq(&k.0, &s.0))
-                    })
+                    && kept
+                        .iter()
+                        .zip(cols)
+                        .all(|(k, c)| c.as_series().is_some_and(|s| Arc::ptr_eq(&k.0, &s.0)))
             })
     }
 }
