@@ -18,26 +18,22 @@ use crate::kinematics::Face;
 use crate::table::{TableBuilder, TableRef};
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
-use polars::prelude::{DataFrame, Series};
-use std::sync::{Arc, Mutex};
-
-/// How many campaigns [`ISSUED`] keeps: a pipeline imports a few folders;
-/// past this the oldest is dropped (its tables are then rebuilt and checked
-/// by the stages that take them, as tables of any other origin are).
-const ISSUED_MAX: usize = 4;
+use polars::prelude::{DataFrame, SeriesTrait};
+use std::sync::{Arc, Mutex, Weak};
 
 /// Campaigns that passed [`Campaign::check`] with the tables this process
-/// built from them ([`Campaign::checked_tables`]), newest last.
+/// built from them ([`Campaign::checked_tables`]), for as long as the
+/// tables live.
 static ISSUED: Mutex<Vec<Issued>> = Mutex::new(Vec::new());
 
 /// One checked campaign and its tables' columns, in the order of
-/// [`campaign::TABLES`]. The columns are clones of the tables' own: they
-/// share the tables' data, and hold it alive, so no other data can come to
-/// sit at the same address while the entry is kept, and polars copies a
-/// column shared like this before it changes it. A column that is the same
-/// object as one kept here is therefore this data, unchanged.
+/// [`campaign::TABLES`], held weakly: a weak reference keeps a column's
+/// allocation from being freed (so no other column can come to sit at its
+/// address) without keeping its data, and polars copies a column before it
+/// changes one that anything else refers to, weakly or not. A live column at
+/// the address kept here is therefore that column, unchanged.
 struct Issued {
-    columns: Vec<Vec<Series>>,
+    columns: Vec<Vec<Weak<dyn SeriesTrait>>>,
     campaign: Arc<Campaign>,
 }
 
@@ -49,11 +45,16 @@ impl Issued {
             && self.columns.iter().zip(tables).all(|(kept, t)| {
                 let cols = t.df.columns();
                 kept.len() == cols.len()
-                    && kept
-                        .iter()
-                        .zip(cols)
-                        .all(|(k, c)| c.as_series().is_some_and(|s| Arc::ptr_eq(&k.0, &s.0)))
+                    && kept.iter().zip(cols).all(|(k, c)| {
+                        c.as_series()
+                            .is_some_and(|s| std::ptr::addr_eq(k.as_ptr(), Arc::as_ptr(&s.0)))
+                    })
             })
+    }
+
+    /// Whether some table could still be these: none of its columns is gone.
+    fn alive(&self) -> bool {
+        self.columns.iter().flatten().all(|k| k.strong_count() > 0)
     }
 }
 
@@ -70,7 +71,7 @@ impl Campaign {
 
     /// [`Campaign::to_tables`] of a campaign that passed [`Campaign::check`]
     /// (the `import_campaign` stage's, read from its folder), remembered
-    /// ([`ISSUED`]) so that [`Campaign::from_inputs`] given these very tables
+    /// ([`ISSUED`], while the tables live) so that [`Campaign::from_inputs`] given these very tables
     /// takes the campaign back instead of rebuilding and checking it again
     /// (issue 34: 5 % of the instructions of an import and calibration).
     pub fn checked_tables(c: &Arc<Campaign>) -> Result<Vec<(String, DataFrame)>> {
@@ -80,14 +81,12 @@ impl Campaign {
             .map(|(_, df)| {
                 df.columns()
                     .iter()
-                    .map(|c| c.as_materialized_series().clone())
+                    .map(|c| Arc::downgrade(&c.as_materialized_series().0))
                     .collect()
             })
             .collect();
         let mut issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
-        if issued.len() == ISSUED_MAX {
-            issued.remove(0);
-        }
+        issued.retain(Issued::alive);
         issued.push(Issued {
             columns,
             campaign: Arc::clone(c),
@@ -350,5 +349,71 @@ pub fn columns(table: &str) -> Option<&'static [&'static str]> {
             "smr_radius_mm",
         ]),
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::table::{from_parquet_bytes, to_parquet_bytes};
+    use polars::prelude::Series;
+    use std::path::Path;
+
+    fn example() -> Campaign {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns/example-00-none");
+        crate::campaign::read(&dir).unwrap()
+    }
+
+    /// The tables wired to the group slot `campaign`.
+    fn inputs(tables: Vec<(String, DataFrame)>) -> StageInputs {
+        let mut inputs = StageInputs::default();
+        for (name, df) in tables {
+            let slot = format!("campaign.{name}");
+            inputs.insert(&slot, slot.clone(), Arc::new(df));
+        }
+        inputs
+    }
+
+    /// What lets [`Campaign::from_inputs`] give back the checked campaign for
+    /// its own tables: their rebuild (here from tables read back from
+    /// Parquet, other column objects) is that campaign, field for field.
+    #[test]
+    fn a_campaign_rebuilt_from_its_tables_is_the_campaign() {
+        let c = example();
+        let copies = c
+            .to_tables()
+            .unwrap()
+            .into_iter()
+            .map(|(n, df)| {
+                (
+                    n,
+                    from_parquet_bytes(&to_parquet_bytes(&df).unwrap()).unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(
+            *Campaign::from_inputs(&inputs(copies), "campaign").unwrap(),
+            c
+        );
+    }
+
+    /// Issue 34: the tables of a checked campaign give that campaign back
+    /// (not rebuilt); the same tables with one column changed are rebuilt and
+    /// checked — a broken value is refused, not answered with the campaign.
+    #[test]
+    fn checked_tables_give_their_campaign_back_and_a_changed_column_is_checked() {
+        let c = Arc::new(example());
+        let tables = Campaign::checked_tables(&c).unwrap();
+        let same = Campaign::from_inputs(&inputs(tables.clone()), "campaign").unwrap();
+        assert!(Arc::ptr_eq(&same, &c));
+
+        let mut changed = tables;
+        let readings = &mut changed[0].1;
+        let n = readings.height();
+        readings
+            .with_column(Series::new("d_mm".into(), vec![-1.0; n]))
+            .unwrap();
+        let e = Campaign::from_inputs(&inputs(changed), "campaign").unwrap_err();
+        assert!(e.to_string().contains("a distance must be > 0"), "{e}");
     }
 }
