@@ -356,7 +356,7 @@ pub fn columns(table: &str) -> Option<&'static [&'static str]> {
 mod tests {
     use super::*;
     use crate::table::{from_parquet_bytes, to_parquet_bytes};
-    use polars::prelude::Series;
+    use polars::prelude::Column;
     use std::path::Path;
 
     fn example() -> Campaign {
@@ -411,7 +411,7 @@ mod tests {
         let readings = &mut changed[0].1;
         let n = readings.height();
         readings
-            .with_column(Series::new("d_mm".into(), vec![-1.0; n]))
+            .with_column(Column::new("d_mm".into(), vec![-1.0; n]))
             .unwrap();
         let e = Campaign::from_inputs(&inputs(changed), "campaign").unwrap_err();
         assert!(e.to_string().contains("a distance must be > 0"), "{e}");
