@@ -12,7 +12,7 @@ use super::Campaign;
 use crate::kinematics::nominal_point;
 use crate::trackers::TrackerModel;
 use nalgebra::Vector3;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, HashMap, HashSet, btree_map};
 use std::fmt;
 
 /// How far (mm) every reflector a station sees may lie from one line for
@@ -172,7 +172,7 @@ impl Campaign {
 
     fn check_targets(&self, out: &mut Vec<Issue>) {
         let t = Table::Targets;
-        let mut seen = BTreeSet::new();
+        let mut seen = HashSet::new();
         for (i, target) in self.targets.iter().enumerate() {
             if target.id.is_empty() {
                 out.push(Issue::cell(t, i, "target", "the target id is empty".into()));
@@ -204,7 +204,9 @@ impl Campaign {
                 message: "the campaign has no readings".into(),
             });
         }
-        let targets: BTreeSet<&str> = self.targets.iter().map(|t| t.id.as_str()).collect();
+        // Sets only asked whether they hold an id: hashed (a lookup per
+        // reading, issue 34), their order never shows.
+        let targets: HashSet<&str> = self.targets.iter().map(|t| t.id.as_str()).collect();
         for (i, r) in self.readings.iter().enumerate() {
             if r.station.is_empty() {
                 out.push(Issue::cell(
@@ -250,8 +252,11 @@ impl Campaign {
 
     fn check_gauge(&self, out: &mut Vec<Issue>) {
         let t = Table::Gauge;
-        let targets: BTreeSet<&str> = self.targets.iter().map(|t| t.id.as_str()).collect();
-        let seen: BTreeSet<&str> = self.readings.iter().map(|r| r.target.as_str()).collect();
+        if self.gauge.is_empty() {
+            return;
+        }
+        let targets: HashSet<&str> = self.targets.iter().map(|t| t.id.as_str()).collect();
+        let seen: HashSet<&str> = self.readings.iter().map(|r| r.target.as_str()).collect();
         for (i, g) in self.gauge.iter().enumerate() {
             for (column, id) in [("target_a", &g.target_a), ("target_b", &g.target_b)] {
                 if id.is_empty() {
@@ -305,7 +310,8 @@ impl Campaign {
     /// on the nominal points of its readings in its own frame (its pose is
     /// unknown, and the frame is all the file gives).
     fn check_stations(&self, out: &mut Vec<Issue>) {
-        let mut stations: BTreeMap<&str, Seen> = BTreeMap::new();
+        // (Put in row order below: hashed, their order never shows.)
+        let mut stations: HashMap<&str, Seen> = HashMap::new();
         // A reading without a station id is reported on its own.
         for (i, r) in self
             .readings
@@ -318,9 +324,14 @@ impl Campaign {
                 points: BTreeMap::new(),
                 all_finite: true,
             });
-            let p = nominal_point(r.reading());
-            seen.all_finite &= p.iter().all(|v| v.is_finite());
-            seen.points.entry(r.target.as_str()).or_insert(p);
+            // A reading's nominal point is finite exactly when its three
+            // values are (products of a finite distance and sines and
+            // cosines), so it is made for the first reading of a reflector
+            // only (issue 34).
+            seen.all_finite &= r.az_deg.is_finite() && r.el_deg.is_finite() && r.d_mm.is_finite();
+            if let btree_map::Entry::Vacant(v) = seen.points.entry(r.target.as_str()) {
+                v.insert(nominal_point(r.reading()));
+            }
         }
         let mut by_row: Vec<_> = stations.into_iter().collect();
         by_row.sort_by_key(|(_, seen)| seen.first_row);

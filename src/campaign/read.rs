@@ -329,6 +329,12 @@ fn load(path: &Path, required: bool, problems: &mut Vec<Problem>) -> Option<Sour
 /// separators and surrounding spaces are not plain decimals; an empty cell
 /// is handled by the caller (it means "not known").
 fn parse_number(text: &str) -> Result<f64, String> {
+    // A plain decimal has no spaces and is neither NaN nor infinity, so the
+    // tests below, which only choose the message, are for the rest (issue
+    // 34: this runs for every number of a campaign).
+    if is_plain_decimal(text) {
+        return finite(text);
+    }
     let plain = || {
         format!(
             "`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)"
@@ -348,11 +354,18 @@ fn parse_number(text: &str) -> Result<f64, String> {
     if unsigned.eq_ignore_ascii_case("inf") || unsigned.eq_ignore_ascii_case("infinity") {
         return Err(format!("`{text}` is not a finite number"));
     }
-    if !is_plain_decimal(text) {
-        return Err(plain());
-    }
-    // The grammar above is a subset of what `f64::from_str` accepts.
-    let v: f64 = text.parse().map_err(|_| plain())?;
+    Err(plain())
+}
+
+/// A plain decimal's value, if finite.
+fn finite(text: &str) -> Result<f64, String> {
+    // The grammar of [`is_plain_decimal`] is a subset of what
+    // `f64::from_str` accepts.
+    let v: f64 = text.parse().map_err(|_| {
+        format!(
+            "`{text}` is not a number (numbers are plain decimals like 1234.5, -0.0012 or 1e-3)"
+        )
+    })?;
     if v.is_infinite() {
         return Err(format!("`{text}` is too large: it is not a finite number"));
     }
@@ -519,8 +532,16 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> (Vec<Vec<Cell>>, Texts
     let mut out = vec![0u8; 1024];
     // Unquoting takes only quotes (ASCII) out of UTF-8 text: the cells'
     // texts together are at most the file's size.
-    let mut texts = String::with_capacity(bytes.len());
+    let mut texts: Vec<u8> = Vec::with_capacity(bytes.len());
+    // The texts are UTF-8 (the file's text is a `String`; unquoting takes
+    // only ASCII quotes out, and cells end at ASCII delimiters), so they are
+    // checked once, together, rather than cell by cell (issue 34).
+    let texts_of = |texts: Vec<u8>| {
+        Texts(String::from_utf8(texts).expect("cells of UTF-8 text split at ASCII are UTF-8"))
+    };
     let mut records = Vec::new();
+    // A record as wide as the header, grown only for a wider row.
+    let mut width = 0;
     let mut record: Vec<Cell> = Vec::new();
     let mut open_quote = false;
     let mut pos = 0;
@@ -541,7 +562,7 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> (Vec<Vec<Cell>>, Texts
             }
         };
         let Some(record_end) = record_end else {
-            return (records, Texts(texts));
+            return (records, texts_of(texts));
         };
         // A field's bytes run from where the previous one stopped to its
         // delimiter; at a record's start they include the line ending of the
@@ -572,13 +593,14 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> (Vec<Vec<Cell>>, Texts
             )));
         }
         let t0 = texts.len();
-        texts.push_str(&String::from_utf8_lossy(&out[..written]));
+        texts.extend_from_slice(&out[..written]);
         record.push(Cell {
             text: t0..texts.len(),
             span: a..b,
         });
         if record_end {
-            let cells = std::mem::take(&mut record);
+            width = width.max(record.len());
+            let cells = std::mem::replace(&mut record, Vec::with_capacity(width));
             if !std::mem::take(&mut open_quote) {
                 records.push(cells);
             }
@@ -597,7 +619,7 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> (Vec<Vec<Cell>>, Texts
                          that many already takes minutes)"
                     ),
                 )));
-                return (records, Texts(texts));
+                return (records, texts_of(texts));
             }
         }
     }

@@ -11,12 +11,52 @@
 //! stay `f64`, angles stay in degrees.
 
 use super::StageInputs;
-use crate::campaign::{Aim, Campaign, CampaignReading, GaugeLength, Issue, Meta, Target, Tracker};
+use crate::campaign::{
+    self, Aim, Campaign, CampaignReading, GaugeLength, Issue, Meta, Target, Tracker,
+};
 use crate::kinematics::Face;
 use crate::table::{TableBuilder, TableRef};
 use anyhow::{Result, anyhow, bail};
 use nalgebra::Vector3;
-use polars::prelude::DataFrame;
+use polars::prelude::{DataFrame, SeriesTrait};
+use std::sync::{Arc, Mutex, Weak};
+
+/// Campaigns that passed [`Campaign::check`] with the tables this process
+/// built from them ([`Campaign::checked_tables`]), for as long as the
+/// tables live.
+static ISSUED: Mutex<Vec<Issued>> = Mutex::new(Vec::new());
+
+/// One checked campaign and its tables' columns, in the order of
+/// [`campaign::TABLES`], held weakly: a weak reference keeps a column's
+/// allocation from being freed (so no other column can come to sit at its
+/// address) without keeping its data, and polars copies a column before it
+/// changes one that anything else refers to, weakly or not. A live column at
+/// the address kept here is therefore that column, unchanged.
+struct Issued {
+    columns: Vec<Vec<Weak<dyn SeriesTrait>>>,
+    campaign: Arc<Campaign>,
+}
+
+impl Issued {
+    /// Whether `tables` (in the order of [`campaign::TABLES`]) are these
+    /// tables: the same column objects, in the same order, and no others.
+    fn is(&self, tables: &[TableRef]) -> bool {
+        self.columns.len() == tables.len()
+            && self.columns.iter().zip(tables).all(|(kept, t)| {
+                let cols = t.df.columns();
+                kept.len() == cols.len()
+                    && kept.iter().zip(cols).all(|(k, c)| {
+                        c.as_series()
+                            .is_some_and(|s| std::ptr::addr_eq(k.as_ptr(), Arc::as_ptr(&s.0)))
+                    })
+            })
+    }
+
+    /// Whether some table could still be these: none of its columns is gone.
+    fn alive(&self) -> bool {
+        self.columns.iter().flatten().all(|k| k.strong_count() > 0)
+    }
+}
 
 impl Campaign {
     /// `readings`, `targets`, `gauge` and `meta`, in the order of [`campaign::TABLES`].
@@ -29,11 +69,57 @@ impl Campaign {
         ])
     }
 
+    /// [`Campaign::to_tables`] of a campaign that passed [`Campaign::check`]
+    /// (the `import_campaign` stage's, read from its folder), remembered
+    /// ([`ISSUED`], while the tables live) so that [`Campaign::from_inputs`]
+    /// given these very tables takes the campaign back instead of rebuilding
+    /// and checking it again (issue 34: 4 % of the instructions of the race's
+    /// import and calibration of 24 000 readings).
+    pub fn checked_tables(c: &Arc<Campaign>) -> Result<Vec<(String, DataFrame)>> {
+        let tables = c.to_tables()?;
+        let columns = tables
+            .iter()
+            .map(|(_, df)| {
+                df.columns()
+                    .iter()
+                    .map(|c| Arc::downgrade(&c.as_materialized_series().0))
+                    .collect()
+            })
+            .collect();
+        let mut issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
+        issued.retain(Issued::alive);
+        issued.push(Issued {
+            columns,
+            campaign: Arc::clone(c),
+        });
+        Ok(tables)
+    }
+
     /// The campaign wired to the group slot `slot` (tables `<slot>.readings`,
     /// `<slot>.targets`, `<slot>.gauge`, `<slot>.meta`), held to the format's
     /// rules: a stage never works on a campaign that could not be written.
-    pub fn from_inputs(inputs: &StageInputs, slot: &str) -> Result<Campaign> {
+    ///
+    /// Tables that are the very tables [`Campaign::checked_tables`] built
+    /// give back the campaign they were built from, not rebuilt or checked
+    /// again. That skips nothing, whatever stage the tables come from: the
+    /// rebuild of those tables is that campaign (the round trip is exact,
+    /// `a_campaign_rebuilt_from_its_tables_is_the_campaign`), which passed
+    /// the same [`Campaign::check`] this would run. Any other tables —
+    /// read back from the cache, made by another stage, or the same tables
+    /// with a column changed or added — are other column objects
+    /// ([`Issued`]), and are rebuilt and checked in full.
+    pub fn from_inputs(inputs: &StageInputs, slot: &str) -> Result<Arc<Campaign>> {
         let table = |name: &str| inputs.get(&format!("{slot}.{name}"));
+        let tables: Option<Vec<TableRef>> = campaign::TABLES
+            .iter()
+            .map(|name| inputs.optional(&format!("{slot}.{name}")))
+            .collect();
+        if let Some(tables) = tables {
+            let issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(kept) = issued.iter().rev().find(|kept| kept.is(&tables)) {
+                return Ok(Arc::clone(&kept.campaign));
+            }
+        }
         let c = Campaign {
             meta: meta_from(&table("meta")?)?,
             readings: readings_from(&table("readings")?)?,
@@ -48,7 +134,7 @@ impl Campaign {
                 list.join("\n  ")
             );
         }
-        Ok(c)
+        Ok(Arc::new(c))
     }
 
     fn readings_table(&self) -> Result<DataFrame> {
@@ -136,10 +222,13 @@ fn readings_from(t: &TableRef) -> Result<Vec<CampaignReading>> {
     let pressure = t.opt_f64("pressure_hpa")?;
     let humidity = t.opt_f64("humidity_pct")?;
     let line = t.opt_i64("line")?;
-    Ok((0..t.height())
-        .map(|i| CampaignReading {
-            station: station[i].clone(),
-            target: target[i].clone(),
+    Ok(station
+        .into_iter()
+        .zip(target)
+        .enumerate()
+        .map(|(i, (station, target))| CampaignReading {
+            station,
+            target,
             az_deg: az[i],
             el_deg: el[i],
             d_mm: d[i],
@@ -261,5 +350,71 @@ pub fn columns(table: &str) -> Option<&'static [&'static str]> {
             "smr_radius_mm",
         ]),
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::table::{from_parquet_bytes, to_parquet_bytes};
+    use polars::prelude::Column;
+    use std::path::Path;
+
+    fn example() -> Campaign {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/campaigns/example-00-none");
+        crate::campaign::read(&dir).unwrap()
+    }
+
+    /// The tables wired to the group slot `campaign`.
+    fn inputs(tables: Vec<(String, DataFrame)>) -> StageInputs {
+        let mut inputs = StageInputs::default();
+        for (name, df) in tables {
+            let slot = format!("campaign.{name}");
+            inputs.insert(&slot, slot.clone(), Arc::new(df));
+        }
+        inputs
+    }
+
+    /// What lets [`Campaign::from_inputs`] give back the checked campaign for
+    /// its own tables: their rebuild (here from tables read back from
+    /// Parquet, other column objects) is that campaign, field for field.
+    #[test]
+    fn a_campaign_rebuilt_from_its_tables_is_the_campaign() {
+        let c = example();
+        let copies = c
+            .to_tables()
+            .unwrap()
+            .into_iter()
+            .map(|(n, df)| {
+                (
+                    n,
+                    from_parquet_bytes(&to_parquet_bytes(&df).unwrap()).unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(
+            *Campaign::from_inputs(&inputs(copies), "campaign").unwrap(),
+            c
+        );
+    }
+
+    /// Issue 34: the tables of a checked campaign give that campaign back
+    /// (not rebuilt); the same tables with one column changed are rebuilt and
+    /// checked — a broken value is refused, not answered with the campaign.
+    #[test]
+    fn checked_tables_give_their_campaign_back_and_a_changed_column_is_checked() {
+        let c = Arc::new(example());
+        let tables = Campaign::checked_tables(&c).unwrap();
+        let same = Campaign::from_inputs(&inputs(tables.clone()), "campaign").unwrap();
+        assert!(Arc::ptr_eq(&same, &c));
+
+        let mut changed = tables;
+        let readings = &mut changed[0].1;
+        let n = readings.height();
+        readings
+            .with_column(Column::new("d_mm".into(), vec![-1.0; n]))
+            .unwrap();
+        let e = Campaign::from_inputs(&inputs(changed), "campaign").unwrap_err();
+        assert!(e.to_string().contains("a distance must be > 0"), "{e}");
     }
 }

@@ -119,7 +119,7 @@ impl StageKind for ImportCampaignStage {
             );
         }
         Ok(StageOutput {
-            tables: c.to_tables()?,
+            tables: Campaign::checked_tables(&c)?,
             files: Vec::new(),
         })
     }

@@ -286,7 +286,7 @@ impl StageKind for LayoutDesignStage {
         if let Some(c) = campaign {
             let name = c.meta.name.clone();
             rows.push(
-                self.evaluate(tracker, &name, c)
+                self.evaluate(tracker, &name, std::sync::Arc::unwrap_or_clone(c))
                     .context("the input campaign")?,
             );
         }

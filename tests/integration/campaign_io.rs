@@ -397,7 +397,7 @@ fn export_then_import_gives_the_identical_campaign_and_tables() {
         assert_same_tables(&back, &original);
         let from_tables =
             Campaign::from_inputs(&as_inputs(&original, "campaign"), "campaign").unwrap();
-        assert_eq!(from_tables, original, "{name}: tables round trip");
+        assert_eq!(*from_tables, original, "{name}: tables round trip");
     }
 }
 
@@ -418,7 +418,7 @@ fn every_column_and_value_survives_the_round_trip() {
     let back = read_ok(&out);
     assert_eq!(back, c);
     assert!(back.readings[2].az_deg.is_sign_negative());
-    assert_eq!(Campaign::from_inputs(&as_inputs(&c, "x"), "x").unwrap(), c);
+    assert_eq!(*Campaign::from_inputs(&as_inputs(&c, "x"), "x").unwrap(), c);
     let header = std::fs::read_to_string(out.join("readings.csv")).unwrap();
     assert!(
         header.starts_with(
@@ -480,7 +480,7 @@ fn a_campaign_without_gauge_survives_the_tables_through_parquet() {
         let df = ltcal::table::from_parquet_bytes(&bytes).unwrap();
         inputs.insert(&format!("c.{name}"), name.clone(), Arc::new(df));
     }
-    assert_eq!(Campaign::from_inputs(&inputs, "c").unwrap(), c);
+    assert_eq!(*Campaign::from_inputs(&inputs, "c").unwrap(), c);
 }
 
 #[test]
