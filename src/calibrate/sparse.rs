@@ -495,8 +495,9 @@ impl<'a> Accumulator<'a> {
     /// the plain double loop over column pairs forms it; the products of a
     /// column with a part lying after it are formed side by side
     /// ([`add_products`]) — the same sums, in a loop the compiler
-    /// vectorises (issue 34: the assembly was a sixth of a 24 000-reading
-    /// run's instructions, most of it loop overhead).
+    /// vectorises instead of a scattered update per pair (issue 34; the
+    /// column gathers and the position's cross products below remain a
+    /// sixth of a 24 000-reading run's instructions).
     fn add(&mut self, b: usize, pb: Option<&mut PointBlock>) {
         let (j, n_a) = (self.j, self.j.n_a);
         let blk = &j.blocks[b];
