@@ -134,6 +134,20 @@ impl Layout {
             n: off,
         }
     }
+
+    /// A reading's Jacobian parts on its station's pose (width 0 when the
+    /// station is fixed) and on its reflector, as `(first column, width)`
+    /// with the columns counted from `first`: the fit's and the
+    /// analysis's blocks alike ([`Bundle::jacobian_in`],
+    /// [`Bundle::design_jacobian`]).
+    fn reading_parts(&self, o: &super::Observation, first: usize) -> [(usize, usize); 2] {
+        let (po, _) = self.point[o.target].expect("seen targets have positions");
+        let station = match self.station[o.station] {
+            Some(so) => (so - first, 6),
+            None => (0, 0),
+        };
+        [station, (po - first, 3)]
+    }
 }
 
 /// The bundle's normal equations, as the solver sees them.
@@ -389,16 +403,11 @@ impl<'a> Bundle<'a> {
         // assembly ([`BlockJacobian::push_grouped`]).
         let nz = self.layout.n_z;
         let shapes = self.net.obs.iter().map(|o| {
-            let (po, _) = self.layout.point[o.target].expect("seen");
-            let station = self.layout.station[o.station];
+            let [station, point] = self.layout.reading_parts(o, 0);
             BlockShape {
                 rows: 3,
-                parts: [
-                    (0, nz),
-                    (station.unwrap_or(0), if station.is_some() { 6 } else { 0 }),
-                    (po, 3),
-                ],
-                group: po,
+                parts: [(0, nz), station, point],
+                group: point.0,
             }
         });
         let mut r = vec![0.0; 3 * n_obs];
@@ -448,18 +457,10 @@ impl<'a> Bundle<'a> {
         // The readings' blocks stored in reading order: the analysis's
         // projection reads them block by block.
         let shapes = self.net.obs.iter().map(|o| {
-            let (po, _) = self.layout.point[o.target].expect("seen");
-            let station = self.layout.station[o.station];
+            let [station, point] = self.layout.reading_parts(o, k);
             BlockShape {
                 rows: 3,
-                parts: [
-                    (
-                        station.map_or(0, |so| so - k),
-                        if station.is_some() { 6 } else { 0 },
-                    ),
-                    (po - k, 3),
-                    (0, 0),
-                ],
+                parts: [station, point, (0, 0)],
                 group: 0,
             }
         });
