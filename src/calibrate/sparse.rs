@@ -495,10 +495,10 @@ impl<'a> Accumulator<'a> {
     /// the plain double loop over column pairs forms it; the products of a
     /// column with a part lying after it are formed side by side
     /// ([`add_products`]) — the same sums, in a loop the compiler
-    /// vectorises instead of a scattered update per pair (issue 34; the
-    /// column gathers and the position's cross products below remain a
-    /// sixth of a 24 000-reading run's instructions).
-    fn add(&mut self, b: usize, pb: Option<&mut PointBlock>) {
+    /// vectorises instead of a scattered update per pair (issue 34). A
+    /// reading's block whose parts ascend takes [`Self::add_reading`]
+    /// instead: the same sums, without this path's column gathers.
+    fn add(&mut self, b: usize, mut pb: Option<&mut PointBlock>) {
         let (j, n_a) = (self.j, self.j.n_a);
         let blk = &j.blocks[b];
         let rows = blk.rows;
@@ -511,6 +511,9 @@ impl<'a> Accumulator<'a> {
             } else {
                 self.dense.push((col, w, v));
             }
+        }
+        if rows == 3 && self.add_reading(res, x_part, pb.as_deref_mut()) {
+            return;
         }
         let mut point = pb.zip(x_part);
         if let Some((_, x)) = point {
@@ -571,7 +574,114 @@ impl<'a> Accumulator<'a> {
             }
         }
     }
+    /// [`Self::add`] for a reading's block — three rows whose dense parts
+    /// (already in `self.dense`) ascend without overlapping and fit
+    /// [`READING_WIDTH`] columns; `false` (nothing added) for any other.
+    ///
+    /// The block's rows are copied side by side onto the stack once, so
+    /// that each column is three loads and each row of its products in
+    /// `H_AA` one loop over consecutive entries, with no gather, no
+    /// closure and no bounds check per product: the assembly's cost was in
+    /// that bookkeeping, not in its ~450 multiply-adds a reading (issue 34).
+    /// Every entry receives the very sum [`Self::add`] gives it —
+    /// `a₀·x₀ + a₁·x₁ + a₂·x₂`, rows in order — once per block, in block
+    /// order: the same numbers, bit for bit.
+    fn add_reading(
+        &mut self,
+        res: Option<&[f64]>,
+        x_part: Option<&[f64]>,
+        pb: Option<&mut PointBlock>,
+    ) -> bool {
+        let n_a = self.j.n_a;
+        let mut width = 0;
+        for (i, &(col, w, _)) in self.dense.iter().enumerate() {
+            let ascends = i == 0 || {
+                let (prev, pw, _) = self.dense[i - 1];
+                prev + pw <= col
+            };
+            if !ascends || width + w > READING_WIDTH {
+                return false;
+            }
+            width += w;
+        }
+        // The rows side by side; each local column's global one, where its
+        // part ends, and its row of the position's `H_AX`.
+        let mut r = [[0.0; READING_WIDTH]; 3];
+        let mut global = [0usize; READING_WIDTH];
+        let mut part_end = [0usize; READING_WIDTH];
+        let mut h_ax_row = [0usize; READING_WIDTH];
+        let mut point = pb.zip(x_part);
+        let mut at = 0;
+        for &(col, w, v) in &self.dense {
+            for (row, out) in r.iter_mut().enumerate() {
+                out[at..at + w].copy_from_slice(&v[row * w..(row + 1) * w]);
+            }
+            let first = point.as_ref().map_or(0, |(pb, _)| {
+                pb.cols
+                    .binary_search(&col)
+                    .expect("collected from these blocks")
+            });
+            for k in 0..w {
+                global[at + k] = col + k;
+                part_end[at + k] = at + w;
+                h_ax_row[at + k] = first + k;
+            }
+            at += w;
+        }
+        let [r0, r1, r2] = &r;
+        for a in 0..width {
+            let (a0, a1, a2) = (r0[a], r1[a], r2[a]);
+            let ga = global[a];
+            if let Some(res) = res {
+                self.g_a[ga] += a0 * res[0] + a1 * res[1] + a2 * res[2];
+            }
+            // Row `ga` of the lower triangle: this part from column `a`,
+            // then each later part whole, each over consecutive entries.
+            let mut c = a;
+            while c < width {
+                let end = part_end[c];
+                let at = ga * n_a + global[c];
+                let out = &mut self.h_aa[at..at + (end - c)];
+                for (((o, x0), x1), x2) in out
+                    .iter_mut()
+                    .zip(&r0[c..end])
+                    .zip(&r1[c..end])
+                    .zip(&r2[c..end])
+                {
+                    *o += a0 * x0 + a1 * x1 + a2 * x2;
+                }
+                c = end;
+            }
+            if let Some((pb, x)) = point.as_mut() {
+                for (c, out) in pb.h_ax[h_ax_row[a]].iter_mut().enumerate() {
+                    *out += a0 * x[c] + a1 * x[3 + c] + a2 * x[6 + c];
+                }
+            }
+        }
+        if let Some((pb, x)) = point {
+            for a in 0..3 {
+                let (a0, a1, a2) = (x[a], x[3 + a], x[6 + a]);
+                if let Some(res) = res {
+                    pb.g_x[a] += a0 * res[0] + a1 * res[1] + a2 * res[2];
+                }
+                for c in a..3 {
+                    let h = a0 * x[c] + a1 * x[3 + c] + a2 * x[6 + c];
+                    pb.h_xx[(a, c)] += h;
+                    if a != c {
+                        pb.h_xx[(c, a)] += h;
+                    }
+                }
+            }
+        }
+        true
+    }
 }
+
+/// The widest dense part (error-parameter coordinates and a station's
+/// pose) [`Accumulator::add_reading`] holds on the stack: all 18
+/// coefficients and a pose fit with room for shape terms; a wider block
+/// takes the general path.
+const READING_WIDTH: usize = 32;
 
 /// `out[c − from] += la·(column c of v)` for `c` in `from..w`, `v` a
 /// part's rows side by side (`la.len()` rows of `w`): each entry the
@@ -1302,6 +1412,49 @@ mod tests {
     /// covariances a run of consecutive columns at a time. A network whose
     /// reflectors see stations with gaps between their columns, and blocks
     /// whose parts come in any order, against the dense normal equations.
+    #[test]
+    fn a_reading_assembled_on_the_stack_is_the_general_assembly_bit_for_bit() {
+        // Coordinates (4 columns), three stations (6 each), five reflectors,
+        // every reading's block pushed twice over: its parts in ascending
+        // order (the stack path, `Accumulator::add_reading`) and backwards
+        // (the general path). Both must give the same normal equations to
+        // the last bit, with and without residuals.
+        let (n_z, n_st, n_pts) = (4, 3, 5);
+        let n_a = n_z + 6 * n_st;
+        let n = n_a + 3 * n_pts;
+        let (mut fwd, mut bwd) = (BlockJacobian::new(n_a, n), BlockJacobian::new(n_a, n));
+        let mut s = 0.37_f64;
+        let mut next = || {
+            s = (s * 9301.0 + 49297.0) % 233280.0;
+            s / 233280.0 - 0.5
+        };
+        for p in 0..n_pts {
+            for st in [p % n_st, (p + 1) % n_st, p % n_st] {
+                let z: Vec<f64> = (0..3 * n_z).map(|_| next()).collect();
+                let pose: Vec<f64> = (0..18).map(|_| next() * 1e3).collect();
+                let x: Vec<f64> = (0..9).map(|_| next() + 1.5).collect();
+                let (sc, pc) = (n_z + 6 * st, n_a + 3 * p);
+                fwd.push(3, &[(0, &z), (sc, &pose), (pc, &x)]);
+                bwd.push(3, &[(pc, &x), (sc, &pose), (0, &z)]);
+            }
+        }
+        let r = DVector::from_fn(fwd.nrows(), |i, _| (i as f64 * 1.3).cos());
+        for r in [None, Some(&r)] {
+            let (a, b) = (
+                Normal::assemble(&fwd, r, |_| true),
+                Normal::assemble(&bwd, r, |_| true),
+            );
+            let bits = |m: &[f64]| m.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(a.h_aa.as_slice()), bits(b.h_aa.as_slice()));
+            assert_eq!(bits(a.g.as_slice()), bits(b.g.as_slice()));
+            for (pa, pb) in a.points.iter().zip(&b.points) {
+                assert_eq!(pa.cols, pb.cols);
+                assert_eq!(bits(pa.h_ax.as_flattened()), bits(pb.h_ax.as_flattened()));
+                assert_eq!(bits(pa.h_xx.as_slice()), bits(pb.h_xx.as_slice()));
+            }
+        }
+    }
+
     #[test]
     fn assembly_with_parts_in_any_order_and_columns_with_gaps_matches_the_dense_one() {
         // Dense part: 2 "parameters", then three "stations" of 3 columns.
