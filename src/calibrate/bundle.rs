@@ -664,7 +664,8 @@ impl Setup {
             points0: alignment.points,
             weights: net
                 .obs
-                .iter()
+                .par_iter()
+                .with_min_len(1024)
                 .map(|o| design_weight(o, o.reading))
                 .collect(),
         })
@@ -676,7 +677,8 @@ impl Setup {
         Setup {
             weights: net
                 .obs
-                .iter()
+                .par_iter()
+                .with_min_len(1024)
                 .map(|o| design_weight(o, o.reading))
                 .collect(),
             ..self.clone()
