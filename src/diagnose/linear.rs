@@ -82,6 +82,21 @@ impl Signature {
         self.values[at + axis * self.k + col] += v;
     }
 
+    /// Whether `self` is `wider` on some of its readings: the same columns,
+    /// and on each of its readings the same values.
+    pub fn narrows(&self, wider: &Signature) -> bool {
+        if self.k != wider.k || self.readings.len() > wider.readings.len() {
+            return false;
+        }
+        let mut theirs = wider.blocks().peekable();
+        self.blocks().all(|(i, v)| {
+            while theirs.next_if(|(j, _)| *j < i).is_some() {}
+            theirs
+                .next_if(|(j, _)| *j == i)
+                .is_some_and(|(_, w)| w == v)
+        })
+    }
+
     /// `a`'s columns, then `b`'s.
     pub fn concat(a: &Signature, b: &Signature) -> Signature {
         let k = a.k + b.k;
@@ -691,10 +706,28 @@ impl LinearModel {
         fit_with(&self.j, &self.full, &self.r_perp, c)
     }
 
-    /// The fits of the nested signatures `chain` to the residuals over all
-    /// data ([`fit_nested`]): [`LinearModel::fit`] of each, to round-off.
-    pub fn fit_nested(&self, chain: &[&Signature]) -> Vec<Fit> {
-        fit_nested(&self.j, &self.full, &self.r_perp, chain)
+    /// [`LinearModel::fit`] of each of `cs`, in parallel, in their order: a
+    /// run of nested signatures (each [`Signature::narrows`] the one before:
+    /// a station's steps at later and later times, a reflector's shift from
+    /// later and later stations) as one chain ([`fit_nested`], equal to the
+    /// fits one by one to round-off), every other signature on its own.
+    pub fn fit_each(&self, cs: &[&Signature]) -> Vec<Fit> {
+        let mut runs: Vec<std::ops::Range<usize>> = Vec::new();
+        for (i, c) in cs.iter().enumerate() {
+            match runs.last_mut() {
+                Some(run) if c.narrows(cs[i - 1]) => run.end = i + 1,
+                _ => runs.push(i..i + 1),
+            }
+        }
+        runs.par_iter()
+            .map(|run| match run.len() {
+                1 => vec![self.fit(cs[run.start])],
+                _ => fit_nested(&self.j, &self.full, &self.r_perp, &cs[run.clone()]),
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .flatten()
+            .collect()
     }
 
     /// Baarda's w-test of every reading coordinate ([`snooping`]) against
@@ -1338,7 +1371,12 @@ mod tests {
         let steps: Vec<Signature> = (1..n_read - 2).step_by(2).map(step).collect();
         assert!(steps.len() > 3);
         let chain: Vec<&Signature> = steps.iter().collect();
-        let got = lm.fit_nested(&chain);
+        assert!(
+            chain
+                .windows(2)
+                .all(|w| w[1].narrows(w[0]) && !w[0].narrows(w[1]))
+        );
+        let got = lm.fit_each(&chain);
         assert_eq!(got.len(), steps.len());
         let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-9 * scale.max(1e-300);
         for (g, c) in got.iter().zip(&steps) {

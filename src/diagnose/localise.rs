@@ -554,49 +554,18 @@ pub(super) fn fitted(
         lm.fit(members).delta_chi2
     };
     // Without members, a station's steps (nested: each the one before on
-    // its later readings) are fitted as one chain ([`LinearModel::fit_nested`]),
-    // every other basis on its own; the chains and bases in parallel,
-    // collected in the order of `all`.
-    let mut runs: Vec<std::ops::Range<usize>> = Vec::new();
-    for (i, b) in all.iter().enumerate() {
-        match runs.last_mut() {
-            Some(run)
-                if members.ncols() == 0
-                    && step_station(b).is_some()
-                    && step_station(&all[run.start]) == step_station(b) =>
-            {
-                run.end = i + 1
-            }
-            _ => runs.push(i..i + 1),
-        }
-    }
-    let fits = runs
-        .par_iter()
-        .map(|run| {
-            if run.len() == 1 {
-                vec![lm.fit(&Signature::joined(members, &all[run.start].columns))]
-            } else {
-                let chain: Vec<&Signature> = all[run.clone()].iter().map(|b| &b.columns).collect();
-                lm.fit_nested(&chain)
-            }
-        })
-        .collect::<Vec<_>>()
-        .into_iter()
-        .flatten()
-        .collect();
+    // its later readings) are fitted as one chain ([`LinearModel::fit_each`]).
+    let fits = if members.ncols() == 0 {
+        lm.fit_each(&all.iter().map(|b| &b.columns).collect::<Vec<_>>())
+    } else {
+        all.par_iter()
+            .map(|b| lm.fit(&Signature::joined(members, &b.columns)))
+            .collect()
+    };
     Fitted {
         all,
         members_chi2,
         fits,
-    }
-}
-
-/// The station a basis of `station × time` steps at (its steps at later
-/// and later times, built one after another, are nested).
-fn step_station(b: &Basis) -> Option<&str> {
-    match &b.template {
-        Template::Step { station, .. } => Some(station),
-        _ => None,
     }
 }
 
