@@ -82,6 +82,21 @@ impl Signature {
         self.values[at + axis * self.k + col] += v;
     }
 
+    /// Whether `self` is `wider` on some of its readings: the same columns,
+    /// and on each of its readings the same values.
+    pub fn narrows(&self, wider: &Signature) -> bool {
+        if self.k != wider.k || self.readings.len() > wider.readings.len() {
+            return false;
+        }
+        let mut theirs = wider.blocks().peekable();
+        self.blocks().all(|(i, v)| {
+            while theirs.next_if(|(j, _)| *j < i).is_some() {}
+            theirs
+                .next_if(|(j, _)| *j == i)
+                .is_some_and(|(_, w)| w == v)
+        })
+    }
+
     /// `a`'s columns, then `b`'s.
     pub fn concat(a: &Signature, b: &Signature) -> Signature {
         let k = a.k + b.k;
@@ -342,8 +357,73 @@ impl Products {
 fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signature) -> Fit {
     let pr = products(j, c, Some(r_perp), |_| true);
     let (gram, _) = pr.projected_gram(full);
-    let (beta, cov) = lstsq(&gram, &pr.ctx, c.column_scale(|_| true));
-    let delta_chi2 = beta.dot(&(&gram * &beta)).max(0.0);
+    fit_of(&gram, &pr.ctx, c.column_scale(|_| true))
+}
+
+/// The fits of the nested signatures `chain` (each the one before on
+/// fewer of its readings, the same values there: a station's steps at
+/// later and later times) to `r_perp` on the factor `full`, in the order of
+/// `chain`. `CᵀC`, `Cᵀr⊥`, `v = u_A − Σₓ W·uₓ` and each position's `uₓ`
+/// are linear in the readings' terms: the readings only `chain[g]` has
+/// (not `chain[g + 1]`) form a segment, and `chain[g]`'s sums are its
+/// segment's plus `chain[g + 1]`'s — one pass over the first signature's
+/// readings instead of one per signature (a station's 24 steps each over
+/// about half its readings were 12 passes). Only the quadratic forms
+/// (`vᵀS⁻¹v`, `Σₓ uₓᵀH_XX⁻¹uₓ`) are formed per signature. The sums run in
+/// another order than [`fit_with`]'s, so the fits equal its to round-off.
+fn fit_nested(
+    j: &BlockJacobian,
+    full: &Factor,
+    r_perp: &DVector<f64>,
+    chain: &[&Signature],
+) -> Vec<Fit> {
+    let mut fits = Vec::with_capacity(chain.len());
+    let Some(last) = chain.last() else {
+        return fits;
+    };
+    let k = last.k;
+    let mut ctc = DMatrix::zeros(k, k);
+    let mut ctx = DVector::zeros(k);
+    let mut v = DMatrix::zeros(j.n_a(), k);
+    let mut u_x: Vec<(usize, DMatrix<f64>)> = Vec::new();
+    let mut slot_of: Vec<usize> = Vec::new();
+    for g in (0..chain.len()).rev() {
+        let c = chain[g];
+        debug_assert_eq!(c.k, k);
+        let seg = match chain.get(g + 1) {
+            Some(next) => products(j, c, Some(r_perp), |i| {
+                next.readings.binary_search(&i).is_err()
+            }),
+            None => products(j, c, Some(r_perp), |_| true),
+        };
+        ctc += &seg.ctc;
+        ctx += &seg.ctx;
+        v += full.reduce_sparse(&seg.u_a, &seg.u_x);
+        for (p, m) in seg.u_x {
+            if slot_of.len() <= p {
+                slot_of.resize(p + 1, usize::MAX);
+            }
+            match slot_of[p] {
+                usize::MAX => {
+                    slot_of[p] = u_x.len();
+                    u_x.push((p, m));
+                }
+                at => u_x[at].1 += m,
+            }
+        }
+        let mut q = full.schur_quadratic_form(&v);
+        add_point_forms(&mut q, full, &u_x);
+        fits.push(fit_of(&(&ctc - q), &ctx, c.column_scale(|_| true)));
+    }
+    fits.reverse();
+    fits
+}
+
+/// The fit from the projected Gram matrix `CᵀP⊥C` and `Cᵀr⊥` of columns
+/// whose largest squared norm is `scale`.
+fn fit_of(gram: &DMatrix<f64>, ctx: &DVector<f64>, scale: f64) -> Fit {
+    let (beta, cov) = lstsq(gram, ctx, scale);
+    let delta_chi2 = beta.dot(&(gram * &beta)).max(0.0);
     // 1 − R² of each column on the others: `1 / (G⁻¹)ⱼⱼ / Gⱼⱼ`.
     let independence = (0..gram.nrows())
         .map(|j| 1.0 / (cov[(j, j)] * gram[(j, j)]))
@@ -624,6 +704,30 @@ impl LinearModel {
     /// The fit of `c` to the residuals over all data.
     pub fn fit(&self, c: &Signature) -> Fit {
         fit_with(&self.j, &self.full, &self.r_perp, c)
+    }
+
+    /// [`LinearModel::fit`] of each of `cs`, in parallel, in their order: a
+    /// run of nested signatures (each [`Signature::narrows`] the one before:
+    /// a station's steps at later and later times, a reflector's shift from
+    /// later and later stations) as one chain ([`fit_nested`], equal to the
+    /// fits one by one to round-off), every other signature on its own.
+    pub fn fit_each(&self, cs: &[&Signature]) -> Vec<Fit> {
+        let mut runs: Vec<std::ops::Range<usize>> = Vec::new();
+        for (i, c) in cs.iter().enumerate() {
+            match runs.last_mut() {
+                Some(run) if c.narrows(cs[i - 1]) => run.end = i + 1,
+                _ => runs.push(i..i + 1),
+            }
+        }
+        runs.par_iter()
+            .map(|run| match run.len() {
+                1 => vec![self.fit(cs[run.start])],
+                _ => fit_nested(&self.j, &self.full, &self.r_perp, &cs[run.clone()]),
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .flatten()
+            .collect()
     }
 
     /// Baarda's w-test of every reading coordinate ([`snooping`]) against
@@ -1237,6 +1341,60 @@ mod tests {
         let one = on(1);
         assert!(one > 0.0);
         assert_eq!(one.to_bits(), on(3).to_bits());
+    }
+
+    /// Issue 34: a station's steps at later and later times (nested
+    /// signatures) fitted as one chain — each segment's sums once, added
+    /// up — are each step's own fit, to round-off.
+    #[test]
+    fn nested_steps_fitted_as_one_chain_are_each_steps_own_fit() {
+        let (j, jd) = network();
+        let n_read = j.nrows() / 3;
+        let r = projector(&jd) * DVector::from_fn(j.nrows(), |i, _| ((i * 7) % 5) as f64 - 2.0);
+        let fold_of: Vec<usize> = (0..n_read).map(|i| (i / 6 + i) % 3).collect();
+        let lm = LinearModel::new(j, r, &fold_of, 3, vec![Matrix3::identity(); n_read]).unwrap();
+        // A step from reading `t0` on, two columns on every coordinate, and
+        // a third on every other reading only.
+        let step = |t0: usize| {
+            let mut c = Signature::new(3);
+            for i in t0..n_read {
+                for a in 0..3 {
+                    c.add(i, a, 0, ((i * 3 + a) as f64 * 0.7).sin());
+                    c.add(i, a, 1, 1.0 + ((i + 2 * a) % 4) as f64);
+                    if i % 2 == 0 {
+                        c.add(i, a, 2, ((i * 5 + a) as f64 * 0.3).cos());
+                    }
+                }
+            }
+            c
+        };
+        let steps: Vec<Signature> = (1..n_read - 2).step_by(2).map(step).collect();
+        assert!(steps.len() > 3);
+        let chain: Vec<&Signature> = steps.iter().collect();
+        assert!(
+            chain
+                .windows(2)
+                .all(|w| w[1].narrows(w[0]) && !w[0].narrows(w[1]))
+        );
+        let got = lm.fit_each(&chain);
+        assert_eq!(got.len(), steps.len());
+        let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-9 * scale.max(1e-300);
+        for (g, c) in got.iter().zip(&steps) {
+            let want = lm.fit(c);
+            assert!(want.delta_chi2 > 0.0);
+            assert!(
+                close(g.delta_chi2, want.delta_chi2, want.delta_chi2),
+                "{g:?} vs {want:?}"
+            );
+            let b_max = want.beta.iter().fold(0.0f64, |m, b| m.max(b.abs()));
+            for (x, y) in g.beta.iter().zip(&want.beta) {
+                assert!(close(*x, *y, b_max), "{g:?} vs {want:?}");
+            }
+            let c_max = want.cov.amax();
+            for (x, y) in g.cov.iter().zip(want.cov.iter()) {
+                assert!(close(*x, *y, c_max), "{g:?} vs {want:?}");
+            }
+        }
     }
 
     /// Issue 34: the noise floor's draws come in two calls (its first

@@ -553,10 +553,15 @@ pub(super) fn fitted(
     } else {
         lm.fit(members).delta_chi2
     };
-    let fits = all
-        .par_iter()
-        .map(|b| lm.fit(&Signature::joined(members, &b.columns)))
-        .collect();
+    // Without members, a station's steps (nested: each the one before on
+    // its later readings) are fitted as one chain ([`LinearModel::fit_each`]).
+    let fits = if members.ncols() == 0 {
+        lm.fit_each(&all.iter().map(|b| &b.columns).collect::<Vec<_>>())
+    } else {
+        all.par_iter()
+            .map(|b| lm.fit(&Signature::joined(members, &b.columns)))
+            .collect()
+    };
     Fitted {
         all,
         members_chi2,

@@ -1833,10 +1833,20 @@ impl StepContext<'_> {
         let open: Vec<usize> = (0..st.cands.len())
             .filter(|&i| !used.contains(&st.cands[i].effect.as_str()))
             .collect();
-        let fits: Vec<linear::Fit> = open
-            .par_iter()
-            .map(|&i| lm.fit(&Signature::joined(&against, &st.cands[i].columns)))
-            .collect();
+        // Without members, a reflector's shifts from later and later
+        // stations (nested) are fitted as one chain ([`LinearModel::fit_each`]).
+        let fits: Vec<linear::Fit> = if against.ncols() == 0 {
+            lm.fit_each(
+                &open
+                    .iter()
+                    .map(|&i| &st.cands[i].columns)
+                    .collect::<Vec<_>>(),
+            )
+        } else {
+            open.par_iter()
+                .map(|&i| lm.fit(&Signature::joined(&against, &st.cands[i].columns)))
+                .collect()
+        };
         let gain = |f: &linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
         let mut best: Vec<(usize, usize, f64)> = Vec::new();
         // Each (effect, place)'s entry in `best`: a search of `best` per
