@@ -604,6 +604,7 @@ impl<'a> Accumulator<'a> {
             }
         }
     }
+
     /// [`Self::add`] for a reading's block — three rows whose dense parts
     /// (already in `self.dense`) ascend without overlapping and fit
     /// [`READING_WIDTH`] columns; `false` (nothing added) for any other.
@@ -1437,11 +1438,6 @@ mod tests {
         assert!((cp - inv.fixed_view::<3, 3>(2 + 6, 2 + 6)).norm() < 1e-10);
     }
 
-    /// Issue 34: the assembly forms a column's products with the parts
-    /// after it side by side, the elimination and the positions'
-    /// covariances a run of consecutive columns at a time. A network whose
-    /// reflectors see stations with gaps between their columns, and blocks
-    /// whose parts come in any order, against the dense normal equations.
     #[test]
     fn products_by_fused_rows_and_columns_are_the_one_at_a_time_products_bit_for_bit() {
         // The same matrix twice: as three-row blocks with parts seven wide
@@ -1530,6 +1526,11 @@ mod tests {
         }
     }
 
+    /// Issue 34: the assembly forms a column's products with the parts
+    /// after it side by side, the elimination and the positions'
+    /// covariances a run of consecutive columns at a time. A network whose
+    /// reflectors see stations with gaps between their columns, and blocks
+    /// whose parts come in any order, against the dense normal equations.
     #[test]
     fn assembly_with_parts_in_any_order_and_columns_with_gaps_matches_the_dense_one() {
         // Dense part: 2 "parameters", then three "stations" of 3 columns.
