@@ -67,6 +67,16 @@ fn design_weight(o: &super::Observation, r: crate::kinematics::Reading) -> Matri
     Matrix3::from_diagonal(&o.sigma.map(|s| 1.0 / s)) * jinv
 }
 
+/// Every reading's [`design_weight`] at its measured reading, each its own:
+/// in parallel, the same values (issue 34).
+fn reading_weights(net: &Network) -> Vec<Matrix3<f64>> {
+    net.obs
+        .par_iter()
+        .with_min_len(1024)
+        .map(|o| design_weight(o, o.reading))
+        .collect()
+}
+
 /// `J_r(φ)`, the right Jacobian of SO(3): `Exp(φ + δ) ≈ Exp(φ)·Exp(J_r(φ)·δ)`.
 fn right_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
     let t = phi.norm();
@@ -662,12 +672,7 @@ impl Setup {
             fixed_station: (!use_references).then_some(0),
             poses0: alignment.poses,
             points0: alignment.points,
-            weights: net
-                .obs
-                .par_iter()
-                .with_min_len(1024)
-                .map(|o| design_weight(o, o.reading))
-                .collect(),
+            weights: reading_weights(net),
         })
     }
 
@@ -675,12 +680,7 @@ impl Setup {
     /// network re-weighted by its variance components).
     fn reweighted(&self, net: &Network) -> Setup {
         Setup {
-            weights: net
-                .obs
-                .par_iter()
-                .with_min_len(1024)
-                .map(|o| design_weight(o, o.reading))
-                .collect(),
+            weights: reading_weights(net),
             ..self.clone()
         }
     }
