@@ -8,11 +8,12 @@
 //! in a number column, a truncated row) is the reader's business, not this
 //! module's.
 
-use super::Campaign;
+use super::{Campaign, CampaignReading};
 use crate::kinematics::nominal_point;
 use crate::trackers::TrackerModel;
 use nalgebra::Vector3;
-use std::collections::{BTreeMap, HashMap, HashSet, btree_map};
+use rayon::prelude::*;
+use std::collections::{BTreeMap, HashMap, HashSet, btree_map, hash_map};
 use std::fmt;
 
 /// How far (mm) every reflector a station sees may lie from one line for
@@ -26,6 +27,10 @@ pub const LINE_TOLERANCE_MM: f64 = 1.0;
 /// The lowest and highest elevation reading, degrees: the front face reads
 /// [−90°, 90°], the back face `180° − el`, i.e. [90°, 270°].
 const EL_RANGE_DEG: (f64, f64) = (-90.0, 270.0);
+
+/// Readings per parallel task of the checks (any split gives the same
+/// issues, in row order).
+const CHECK_CHUNK: usize = 4096;
 
 /// The data tables of a campaign: a CSV file each (`readings.csv`), a
 /// pipeline table each (`readings`).
@@ -207,47 +212,21 @@ impl Campaign {
         // Sets only asked whether they hold an id: hashed (a lookup per
         // reading, issue 34), their order never shows.
         let targets: HashSet<&str> = self.targets.iter().map(|t| t.id.as_str()).collect();
-        for (i, r) in self.readings.iter().enumerate() {
-            if r.station.is_empty() {
-                out.push(Issue::cell(
-                    t,
-                    i,
-                    "station",
-                    "the station id is empty".into(),
-                ));
-            }
-            if r.target.is_empty() {
-                out.push(Issue::cell(t, i, "target", "the target id is empty".into()));
-            } else if !targets.contains(r.target.as_str()) {
-                out.push(Issue::cell(
-                    t,
-                    i,
-                    "target",
-                    format!("target `{}` is not in targets.csv", r.target),
-                ));
-            }
-            if let Some(m) = not_finite(r.az_deg) {
-                out.push(Issue::cell(t, i, "az_deg", m));
-            }
-            if let Some(m) = not_finite(r.el_deg).or_else(|| el_out_of_range(r.el_deg)) {
-                out.push(Issue::cell(t, i, "el_deg", m));
-            }
-            if let Some(m) = not_finite(r.d_mm).or_else(|| {
-                (r.d_mm <= 0.0).then(|| format!("a distance must be > 0, got d_mm = {}", r.d_mm))
-            }) {
-                out.push(Issue::cell(t, i, "d_mm", m));
-            }
-            for (column, v) in [
-                ("time_s", r.time_s),
-                ("temperature_c", r.temperature_c),
-                ("pressure_hpa", r.pressure_hpa),
-                ("humidity_pct", r.humidity_pct),
-            ] {
-                if let Some(m) = v.and_then(not_finite) {
-                    out.push(Issue::cell(t, i, column, m));
+        // Each reading's checks are its own: chunks in parallel, their
+        // issues then taken in row order (issue 34).
+        let chunks: Vec<Vec<Issue>> = self
+            .readings
+            .par_chunks(CHECK_CHUNK)
+            .enumerate()
+            .map(|(c, chunk)| {
+                let mut out = Vec::new();
+                for (k, r) in chunk.iter().enumerate() {
+                    check_reading(c * CHECK_CHUNK + k, r, &targets, &mut out);
                 }
-            }
-        }
+                out
+            })
+            .collect();
+        out.extend(chunks.into_iter().flatten());
     }
 
     fn check_gauge(&self, out: &mut Vec<Issue>) {
@@ -310,27 +289,55 @@ impl Campaign {
     /// on the nominal points of its readings in its own frame (its pose is
     /// unknown, and the frame is all the file gives).
     fn check_stations(&self, out: &mut Vec<Issue>) {
-        // (Put in row order below: hashed, their order never shows.)
-        let mut stations: HashMap<&str, Seen> = HashMap::new();
-        // A reading without a station id is reported on its own.
-        for (i, r) in self
+        // (Put in row order below: hashed, their order never shows.) Each
+        // chunk of readings is gathered on its own, in parallel, and the
+        // chunks joined in row order: a station's first row, and each
+        // reflector's first reading, are the whole file's (issue 34).
+        let chunks: Vec<HashMap<&str, Seen>> = self
             .readings
-            .iter()
+            .par_chunks(CHECK_CHUNK)
             .enumerate()
-            .filter(|(_, r)| !r.station.is_empty())
-        {
-            let seen = stations.entry(r.station.as_str()).or_insert_with(|| Seen {
-                first_row: i,
-                points: BTreeMap::new(),
-                all_finite: true,
-            });
-            // A reading's nominal point is finite exactly when its three
-            // values are (products of a finite distance and sines and
-            // cosines), so it is made for the first reading of a reflector
-            // only (issue 34).
-            seen.all_finite &= r.az_deg.is_finite() && r.el_deg.is_finite() && r.d_mm.is_finite();
-            if let btree_map::Entry::Vacant(v) = seen.points.entry(r.target.as_str()) {
-                v.insert(nominal_point(r.reading()));
+            .map(|(c, chunk)| {
+                let mut stations: HashMap<&str, Seen> = HashMap::new();
+                // A reading without a station id is reported on its own.
+                for (k, r) in chunk
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, r)| !r.station.is_empty())
+                {
+                    let seen = stations.entry(r.station.as_str()).or_insert_with(|| Seen {
+                        first_row: c * CHECK_CHUNK + k,
+                        points: BTreeMap::new(),
+                        all_finite: true,
+                    });
+                    // A reading's nominal point is finite exactly when its
+                    // three values are (products of a finite distance and
+                    // sines and cosines), so it is made for the first
+                    // reading of a reflector only (issue 34).
+                    seen.all_finite &=
+                        r.az_deg.is_finite() && r.el_deg.is_finite() && r.d_mm.is_finite();
+                    if let btree_map::Entry::Vacant(v) = seen.points.entry(r.target.as_str()) {
+                        v.insert(nominal_point(r.reading()));
+                    }
+                }
+                stations
+            })
+            .collect();
+        let mut stations: HashMap<&str, Seen> = HashMap::new();
+        for chunk in chunks {
+            for (station, later) in chunk {
+                match stations.entry(station) {
+                    hash_map::Entry::Vacant(v) => {
+                        v.insert(later);
+                    }
+                    hash_map::Entry::Occupied(o) => {
+                        let seen = o.into_mut();
+                        seen.all_finite &= later.all_finite;
+                        for (target, p) in later.points {
+                            seen.points.entry(target).or_insert(p);
+                        }
+                    }
+                }
             }
         }
         let mut by_row: Vec<_> = stations.into_iter().collect();
@@ -360,6 +367,50 @@ impl Campaign {
                 )
             };
             out.push(Issue::cell(Table::Readings, row, "station", message));
+        }
+    }
+}
+
+/// The checks of reading `i` on its own, its issues pushed onto `out`.
+fn check_reading(i: usize, r: &CampaignReading, targets: &HashSet<&str>, out: &mut Vec<Issue>) {
+    let t = Table::Readings;
+    if r.station.is_empty() {
+        out.push(Issue::cell(
+            t,
+            i,
+            "station",
+            "the station id is empty".into(),
+        ));
+    }
+    if r.target.is_empty() {
+        out.push(Issue::cell(t, i, "target", "the target id is empty".into()));
+    } else if !targets.contains(r.target.as_str()) {
+        out.push(Issue::cell(
+            t,
+            i,
+            "target",
+            format!("target `{}` is not in targets.csv", r.target),
+        ));
+    }
+    if let Some(m) = not_finite(r.az_deg) {
+        out.push(Issue::cell(t, i, "az_deg", m));
+    }
+    if let Some(m) = not_finite(r.el_deg).or_else(|| el_out_of_range(r.el_deg)) {
+        out.push(Issue::cell(t, i, "el_deg", m));
+    }
+    if let Some(m) = not_finite(r.d_mm).or_else(|| {
+        (r.d_mm <= 0.0).then(|| format!("a distance must be > 0, got d_mm = {}", r.d_mm))
+    }) {
+        out.push(Issue::cell(t, i, "d_mm", m));
+    }
+    for (column, v) in [
+        ("time_s", r.time_s),
+        ("temperature_c", r.temperature_c),
+        ("pressure_hpa", r.pressure_hpa),
+        ("humidity_pct", r.humidity_pct),
+    ] {
+        if let Some(m) = v.and_then(not_finite) {
+            out.push(Issue::cell(t, i, column, m));
         }
     }
 }
@@ -479,6 +530,54 @@ mod tests {
 
     fn v(x: f64, y: f64, z: f64) -> Vector3<f64> {
         Vector3::new(x, y, z)
+    }
+
+    /// The readings are checked in chunks in parallel: the issues still
+    /// come in row order, and a station first seen in one chunk and read
+    /// again in a later one is judged on all its readings, at its first row.
+    #[test]
+    fn issues_of_readings_checked_in_chunks_come_in_row_order_at_each_stations_first_row() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("examples/campaigns/example-00-none");
+        let mut c = crate::campaign::read(&dir).unwrap();
+        let base = c.readings.clone();
+        c.readings = (0..3 * CHECK_CHUNK)
+            .map(|i| base[i % base.len()].clone())
+            .collect();
+        let (t0, t1) = (c.targets[0].id.clone(), c.targets[1].id.clone());
+        for (row, target) in [
+            (CHECK_CHUNK + 5, &t0),
+            (2 * CHECK_CHUNK + 7, &t1),
+            (2 * CHECK_CHUNK + 9, &t0),
+        ] {
+            c.readings[row].station = "late".into();
+            c.readings[row].target = target.clone();
+        }
+        c.readings[CHECK_CHUNK - 1].el_deg = f64::NAN;
+        c.readings[2 * CHECK_CHUNK].target = "nowhere".into();
+        let issues = c.check();
+        let places: Vec<(usize, &str)> = issues
+            .iter()
+            .map(|i| match &i.place {
+                Place::Cell { row, column, .. } => (*row, *column),
+                p => panic!("not a cell: {p:?}"),
+            })
+            .collect();
+        assert_eq!(
+            places,
+            [
+                (CHECK_CHUNK - 1, "el_deg"),
+                (2 * CHECK_CHUNK, "target"),
+                (CHECK_CHUNK + 5, "station"),
+            ]
+        );
+        assert!(
+            issues[2]
+                .message
+                .contains(&format!("it sees 2 reflectors ({t0}, {t1})")),
+            "{}",
+            issues[2].message
+        );
     }
 
     #[test]
