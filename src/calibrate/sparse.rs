@@ -912,6 +912,7 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
     if !p.seen {
         return Some(FactorPoint {
             cols: Vec::new(),
+            runs: Vec::new(),
             inv: Matrix3::zeros(),
             w: DMatrix::zeros(0, 3),
         });
@@ -960,6 +961,7 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
     }
     Some(FactorPoint {
         cols: p.cols.clone(),
+        runs,
         inv,
         w: DMatrix::from_fn(w.len(), 3, |a, c| w[a][c]),
     })
@@ -983,6 +985,9 @@ fn consecutive_runs(cols: &[usize]) -> Vec<(usize, usize)> {
 #[derive(Clone, Debug)]
 struct FactorPoint {
     cols: Vec<usize>,
+    /// The runs of consecutive columns in `cols` ([`consecutive_runs`]),
+    /// kept for [`Factor::point_covariance`].
+    runs: Vec<(usize, usize)>,
     /// `H_XX⁻¹` (damped).
     inv: Matrix3<f64>,
     /// `H_AX·H_XX⁻¹` on `cols`.
@@ -1109,13 +1114,12 @@ impl Factor {
         // entry summed over the columns in order, a run of consecutive
         // columns' entries side by side (a loop that vectorises; issue 34).
         let mut cw: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; n]);
-        let runs = consecutive_runs(&p.cols);
         for (a, &ca) in p.cols.iter().enumerate() {
             let row = dense_cov_rows.column(ca);
             let row = row.as_slice();
             for (k, cw) in cw.iter_mut().enumerate() {
                 let wa = p.w[(a, k)];
-                for &(lo, hi) in &runs {
+                for &(lo, hi) in &p.runs {
                     let c = &row[p.cols[lo]..p.cols[lo] + hi - lo];
                     for (o, c) in cw[lo..hi].iter_mut().zip(c) {
                         *o += c * wa;

@@ -303,7 +303,9 @@ impl Entry {
     ) -> anyhow::Result<Entry> {
         // Each table encoded and hashed on its own, in parallel (issue 34:
         // the encoding was the largest cost of a 24 000-reading run outside
-        // its stages); recorded in the stage's order.
+        // its stages); recorded in the stage's order. Collected whole first,
+        // so that of two tables that fail, the first in that order is the
+        // one reported, whichever thread failed first.
         let encoded = tables
             .par_iter()
             .map(|(name, df)| {
@@ -315,6 +317,8 @@ impl Entry {
                 };
                 Ok((record, b))
             })
+            .collect::<Vec<anyhow::Result<_>>>()
+            .into_iter()
             .collect::<anyhow::Result<Vec<_>>>()?;
         let mut bytes = BTreeMap::new();
         let mut records = Vec::with_capacity(encoded.len());
