@@ -670,24 +670,23 @@ impl LinearModel {
                     let lk = l * kr.select_columns(&nz);
                     let lkt_a = lk.tr_mul(&a);
                     // `lkᵀ·lk` (as `tr_mul` sums it: three terms from
-                    // zero), each pair once: its two entries are the same
-                    // sum of the same products.
+                    // zero, the `+0` dropped — it changes no sum but the
+                    // sign of a zero, which an accumulator from `+0` never
+                    // keeps), each pair once, into the lower triangle:
+                    // column `cx` is contiguous. The upper triangle is its
+                    // mirror (each pair's two entries were the same sum of
+                    // the same products).
+                    let lk = lk.as_slice();
                     for (x, &cx) in nz.iter().enumerate() {
                         h_k[cx] += lkt_a[x];
-                        let kx = lk.column(x);
-                        for (y, &cy) in nz.iter().enumerate().skip(x) {
-                            let ky = lk.column(y);
-                            let mut v = 0.0;
-                            for (a, b) in kx.iter().zip(ky.iter()) {
-                                v += a * b;
-                            }
-                            g_k[(cx, cy)] += v;
-                            if y != x {
-                                g_k[(cy, cx)] += v;
-                            }
+                        let kx = &lk[3 * x..3 * x + 3];
+                        let column = &mut g_k.as_mut_slice()[cx * n_a..(cx + 1) * n_a];
+                        for (ky, &cy) in lk[3 * x..].chunks_exact(3).zip(&nz[x..]) {
+                            column[cy] += kx[0] * ky[0] + kx[1] * ky[1] + kx[2] * ky[2];
                         }
                     }
                 }
+                g_k.fill_upper_triangle_with_lower_triangle();
                 Ok(Fold {
                     test,
                     factor,
