@@ -702,12 +702,34 @@ pub fn one_per_cell(pixels: &[(i32, i32)], max: usize) -> (Vec<usize>, Option<i3
     if pixels.len() <= max {
         return ((0..pixels.len()).collect(), None);
     }
+    let (lo, hi) = pixels.iter().fold(
+        ((i32::MAX, i32::MAX), (i32::MIN, i32::MIN)),
+        |(lo, hi), &(x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
+    );
     let mut cell = 2;
     loop {
-        let mut seen = std::collections::HashSet::new();
-        let kept: Vec<usize> = (0..pixels.len())
-            .filter(|&i| seen.insert((pixels[i].0.div_euclid(cell), pixels[i].1.div_euclid(cell))))
-            .collect();
+        let cell_of = |i: usize| (pixels[i].0.div_euclid(cell), pixels[i].1.div_euclid(cell));
+        // The occupied cells marked on a grid over the points' extent (a
+        // hash of every point's cell was most of a big network's figures),
+        // by a hash only where that grid would be huge: the same cells.
+        let c0 = (lo.0.div_euclid(cell) as i64, lo.1.div_euclid(cell) as i64);
+        let c1 = (hi.0.div_euclid(cell) as i64, hi.1.div_euclid(cell) as i64);
+        let (nx, ny) = (c1.0 - c0.0 + 1, c1.1 - c0.1 + 1);
+        let kept: Vec<usize> = if nx * ny <= 1 << 22 {
+            let mut seen = vec![false; (nx * ny) as usize];
+            (0..pixels.len())
+                .filter(|&i| {
+                    let (cx, cy) = cell_of(i);
+                    let at = (cy as i64 - c0.1) * nx + (cx as i64 - c0.0);
+                    !std::mem::replace(&mut seen[at as usize], true)
+                })
+                .collect()
+        } else {
+            let mut seen = std::collections::HashSet::new();
+            (0..pixels.len())
+                .filter(|&i| seen.insert(cell_of(i)))
+                .collect()
+        };
         // A cell the size of any canvas holds one point: the loop ends.
         if kept.len() <= max || cell >= 1 << 16 {
             return (kept, Some(cell));
@@ -2065,6 +2087,42 @@ mod tests {
         assert_eq!(one_per_cell(&pixels, 4), (vec![0, 2, 4], Some(2)));
         // Cells of 13 px (2, 3, 4, 6, 9, 13): (0,0) and (10,10) share one.
         assert_eq!(one_per_cell(&pixels, 2), (vec![0, 4], Some(13)));
+    }
+
+    #[test]
+    fn one_per_cell_on_a_grid_keeps_the_cells_a_hash_keeps() {
+        // The definition: the first point of each cell, by a hash of cells.
+        let by_hash = |pixels: &[(i32, i32)], max: usize| {
+            let mut cell = 2;
+            loop {
+                let mut seen = std::collections::HashSet::new();
+                let kept: Vec<usize> = (0..pixels.len())
+                    .filter(|&i| {
+                        seen.insert((pixels[i].0.div_euclid(cell), pixels[i].1.div_euclid(cell)))
+                    })
+                    .collect();
+                if kept.len() <= max || cell >= 1 << 16 {
+                    return (kept, Some(cell));
+                }
+                cell += (cell / 2).max(1);
+            }
+        };
+        let mut state = 12345u64;
+        let mut next = |m: i32| {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 33) % m as u64) as i32 - m / 4
+        };
+        let canvas: Vec<(i32, i32)> = (0..5000).map(|_| (next(900), next(820))).collect();
+        let mut spread = canvas.clone();
+        // An outlier far off the canvas: the grid would be huge, a hash serves.
+        spread.push((i32::MAX - 3, i32::MIN + 5));
+        for pixels in [&canvas, &spread] {
+            for max in [100, 1500, 4000] {
+                assert_eq!(one_per_cell(pixels, max), by_hash(pixels, max));
+            }
+        }
     }
 
     #[test]

@@ -243,6 +243,16 @@ fn products(
     // twenty): its products cost those columns, not all of them.
     let mut vcols: Vec<[f64; 3]> = Vec::with_capacity(k);
     let mut nz: Vec<usize> = Vec::with_capacity(k);
+    // Per column, the rows (az, el, d) not zero on the reading. A zero
+    // row's term in a three-term sum from `+0` is `±0`, which leaves the
+    // sum as the other terms make it (up to the sign of a zero, which an
+    // accumulator that started at `+0` never keeps): each sum below runs
+    // over those rows only, the same numbers. Most bases touch one row of
+    // a reading (a cyclic error of the range, a smooth function or a
+    // Fourier series on one coordinate, an offset): their `u_A` is one
+    // row of each part times a number, contiguous, not a gather of three
+    // strided values per entry.
+    let mut rows_of: Vec<Rows> = Vec::with_capacity(k);
     for (i, v) in c.blocks() {
         if !keep(i) {
             continue;
@@ -251,6 +261,8 @@ fn products(
         vcols.extend((0..k).map(|b| col3(v, k, b)));
         nz.clear();
         nz.extend((0..k).filter(|&b| vcols[b] != [0.0; 3]));
+        rows_of.clear();
+        rows_of.extend(vcols.iter().map(|cb| Rows::of(*cb)));
         for (at, &a) in nz.iter().enumerate() {
             let ca = vcols[a];
             // `CᵀC` is symmetric: each pair's product once, added to both
@@ -270,15 +282,11 @@ fn products(
             // A column of `u_a` at a time: contiguous (column-major), each
             // entry still one addition per part.
             for &b in &nz {
-                let cb = vcols[b];
                 let out = &mut u_a.as_mut_slice()[b * n_a + col..b * n_a + col + w];
-                for (a, o) in out.iter_mut().enumerate() {
-                    *o += dot3(col3(part, w, a), cb);
-                }
+                rows_of[b].add_part_product(out, part, w, vcols[b]);
             }
         }
         if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
-            let jcols = [col3(part, 3, 0), col3(part, 3, 1), col3(part, 3, 2)];
             if slot_of.is_empty() {
                 slot_of = vec![u32::MAX; j.points()];
             }
@@ -292,16 +300,69 @@ fn products(
             };
             // A new position's entries are their first terms added to
             // `+0`: the same numbers as formed directly.
-            let m = &mut u_x[at].1;
+            // Its 3 × k matrix is column-major: a column is `u_a`'s sum
+            // on the position's part.
+            let m = u_x[at].1.as_mut_slice();
             for &b in &nz {
-                let cb = vcols[b];
-                for (a, &ja) in jcols.iter().enumerate() {
-                    m[(a, b)] += dot3(ja, cb);
-                }
+                rows_of[b].add_part_product(&mut m[3 * b..3 * b + 3], part, 3, vcols[b]);
             }
         }
     }
     Products { u_a, u_x, ctc, ctx }
+}
+
+/// The rows (az, el, d) of a reading on which a column is not zero
+/// ([`products`]); `Three` also for a column zero on every row (never
+/// asked: such a column is skipped).
+#[derive(Clone, Copy)]
+enum Rows {
+    One(usize),
+    Two(usize, usize),
+    Three,
+}
+
+impl Rows {
+    fn of(c: [f64; 3]) -> Rows {
+        match c.map(|v| v != 0.0) {
+            [true, false, false] => Rows::One(0),
+            [false, true, false] => Rows::One(1),
+            [false, false, true] => Rows::One(2),
+            [true, true, false] => Rows::Two(0, 1),
+            [true, false, true] => Rows::Two(0, 2),
+            [false, true, true] => Rows::Two(1, 2),
+            _ => Rows::Three,
+        }
+    }
+
+    /// `out += partᵀ·c` (`part`: 3 × w, row-major; `c`: a column's values
+    /// on the reading's rows, not zero on these rows): each entry the
+    /// three-term sum from `+0` without its zero terms — the same number,
+    /// up to the sign of a zero.
+    #[inline]
+    fn add_part_product(self, out: &mut [f64], part: &[f64], w: usize, c: [f64; 3]) {
+        let row = |r: usize| &part[r * w..(r + 1) * w];
+        match self {
+            Rows::One(r) => {
+                for (o, p) in out.iter_mut().zip(row(r)) {
+                    *o += p * c[r];
+                }
+            }
+            Rows::Two(r, s) => {
+                for ((o, p), q) in out.iter_mut().zip(row(r)).zip(row(s)) {
+                    *o += p * c[r] + q * c[s];
+                }
+            }
+            Rows::Three => {
+                for (a, o) in out.iter_mut().enumerate() {
+                    let mut s = 0.0;
+                    for (r, cr) in c.iter().enumerate() {
+                        s += part[r * w + a] * cr;
+                    }
+                    *o += s;
+                }
+            }
+        }
+    }
 }
 
 impl Products {
@@ -609,24 +670,23 @@ impl LinearModel {
                     let lk = l * kr.select_columns(&nz);
                     let lkt_a = lk.tr_mul(&a);
                     // `lkᵀ·lk` (as `tr_mul` sums it: three terms from
-                    // zero), each pair once: its two entries are the same
-                    // sum of the same products.
+                    // zero, the `+0` dropped — it changes no sum but the
+                    // sign of a zero, which an accumulator from `+0` never
+                    // keeps), each pair once, into the lower triangle:
+                    // column `cx` is contiguous. The upper triangle is its
+                    // mirror (each pair's two entries were the same sum of
+                    // the same products).
+                    let lk = lk.as_slice();
                     for (x, &cx) in nz.iter().enumerate() {
                         h_k[cx] += lkt_a[x];
-                        let kx = lk.column(x);
-                        for (y, &cy) in nz.iter().enumerate().skip(x) {
-                            let ky = lk.column(y);
-                            let mut v = 0.0;
-                            for (a, b) in kx.iter().zip(ky.iter()) {
-                                v += a * b;
-                            }
-                            g_k[(cx, cy)] += v;
-                            if y != x {
-                                g_k[(cy, cx)] += v;
-                            }
+                        let kx = &lk[3 * x..3 * x + 3];
+                        let column = &mut g_k.as_mut_slice()[cx * n_a..(cx + 1) * n_a];
+                        for (ky, &cy) in lk[3 * x..].chunks_exact(3).zip(&nz[x..]) {
+                            column[cy] += kx[0] * ky[0] + kx[1] * ky[1] + kx[2] * ky[2];
                         }
                     }
                 }
+                g_k.fill_upper_triangle_with_lower_triangle();
                 Ok(Fold {
                     test,
                     factor,

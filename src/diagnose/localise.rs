@@ -411,20 +411,24 @@ fn refine_period(
     };
     let p = (PERIODS - 1) as f64 * (period_mm / PERIOD_MIN_MM).ln()
         / (PERIOD_MAX_MM / PERIOD_MIN_MM).ln();
-    (-8..=8)
+    // The 16 periods built and fitted in parallel (one thread's work
+    // while the other waited), then taken in their order: the same choice.
+    let tried: Vec<(Basis, super::linear::Fit)> = (-8..=8)
+        .into_par_iter()
         .filter(|&j| j != 0)
-        .map(|j| periodic(infos, period_of(p + j as f64 / 8.0)))
-        .map(|b| {
+        .map(|j| {
+            let b = periodic(infos, period_of(p + j as f64 / 8.0));
             let f = lm.fit(&Signature::joined(members, &b.columns));
             (b, f)
         })
-        .fold(best, |a, b| {
-            if b.1.delta_chi2 > a.1.delta_chi2 {
-                b
-            } else {
-                a
-            }
-        })
+        .collect();
+    tried.into_iter().fold(best, |a, b| {
+        if b.1.delta_chi2 > a.1.delta_chi2 {
+            b
+        } else {
+            a
+        }
+    })
 }
 
 /// A range offset per station or reflector (`scope`), `of` a reading's
