@@ -93,7 +93,7 @@ impl Determined {
     /// Analyses `j`, the Jacobian of the free coefficients (columns in
     /// their order), at the relative threshold `rank_tol`.
     pub fn analyse(
-        j: &DMatrix<f64>,
+        j: &impl identifiability::Tall,
         start: &ErrorParams,
         free: &[bool],
         rank_tol: f64,

@@ -48,7 +48,7 @@ use super::{
 };
 use crate::determined::Determined;
 use crate::error_model::{ErrorParams, Evaluator, Links};
-use crate::identifiability::{Analysis, Combination};
+use crate::identifiability::{Analysis, Combination, RowMajor};
 use crate::identify::{VC_MAX_ITERS, VC_ROUND_OFF, helmert_round, helmert_u};
 use crate::kinematics::nominal_jacobian;
 use crate::solver::{LevenbergMarquardt, LmJacobian, NormalEquations};
@@ -463,7 +463,7 @@ impl<'a> Bundle<'a> {
         let mut nuisance =
             BlockJacobian::with_capacity(self.layout.n_a - k, self.layout.n - k, room);
         let mut lead = Vec::with_capacity((3 * n_obs + n_gauge + 3 * n_refs) * k);
-        lead.resize(3 * n_obs * k, 0.0);
+        sparse::extend_with_zeros(&mut lead, 3 * n_obs * k);
         // The readings' blocks stored in reading order: the analysis's
         // projection reads them block by block.
         let shapes = self.net.obs.iter().map(|o| {
@@ -766,9 +766,8 @@ fn analyse_setup(
              (e.g. a reading or gauge length that divides by zero)"
         );
     }
-    let m = nuisance.nrows();
     let projected = if nuisance.ncols() == 0 {
-        DMatrix::from_row_slice(m, n, &jz)
+        jz
     } else {
         let f = Normal::assemble(&nuisance, None, |_| true)
             .factor(0.0)
@@ -779,11 +778,17 @@ fn analyse_setup(
                      reflectors not on a line"
                 )
             })?;
-        DMatrix::from_row_slice(m, n, &sparse::project_out_rows(&nuisance, &f, &jz, n))
+        sparse::project_out_rows_in(&nuisance, &f, jz, n)
     };
     let free: Vec<bool> = (0..start.coefs().len())
         .map(|i| setup.free_index.contains(&i))
         .collect();
+    // Row-major as projected: the analysis reads it in blocks of rows.
+    let projected = RowMajor {
+        values: &projected,
+        nrows: nuisance.nrows(),
+        ncols: n,
+    };
     Determined::analyse(&projected, start, &free, rank_tol)
 }
 

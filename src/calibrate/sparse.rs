@@ -202,7 +202,7 @@ impl BlockJacobian {
             }
         }
         let total = sized.iter().map(|&(_, len)| len).sum::<usize>();
-        self.values.resize(base + total, 0.0);
+        extend_with_zeros(&mut self.values, total);
         // The storage cut into the blocks' ranges in storage order, then
         // handed out in block order.
         let mut first = vec![0usize; groups + 1];
@@ -428,11 +428,16 @@ impl BlockJacobian {
         self.n_a
     }
 
-    /// The columns of the dense part block `b` touches, ascending.
-    fn dense_cols(&self, b: &Block, out: &mut Vec<usize>) {
+    /// The columns of the dense part block `b` touches that `seen` has not
+    /// marked yet, appended to `out` and marked.
+    fn new_dense_cols(&self, b: &Block, seen: &mut [bool], out: &mut Vec<usize>) {
         for p in &self.parts[b.parts.0..b.parts.1] {
             if p.col < self.n_a {
-                out.extend(p.col..p.col + p.width);
+                for c in p.col..p.col + p.width {
+                    if !std::mem::replace(&mut seen[c], true) {
+                        out.push(c);
+                    }
+                }
             }
         }
     }
@@ -780,15 +785,22 @@ impl Normal {
             .par_chunks(chunk)
             .map(|blocks_of| {
                 let mut acc = Accumulator::new(j, r);
+                // A position's dense columns, each once: its readings
+                // share the coordinates and their stations' poses, so
+                // marking them leaves a handful to sort, not every
+                // reading's (issue 34).
+                let mut seen = vec![false; n_a];
                 let points = blocks_of
                     .iter()
                     .map(|blocks| {
                         let mut cols = Vec::new();
                         for &b in blocks {
-                            j.dense_cols(&j.blocks[b], &mut cols);
+                            j.new_dense_cols(&j.blocks[b], &mut seen, &mut cols);
                         }
                         cols.sort_unstable();
-                        cols.dedup();
+                        for &c in &cols {
+                            seen[c] = false;
+                        }
                         let mut pb = PointBlock {
                             h_ax: vec![[0.0; 3]; cols.len()],
                             cols,
@@ -1261,6 +1273,13 @@ pub fn leverages(j: &BlockJacobian, f: &Factor, readings: usize) -> Vec<Matrix3<
         .collect()
 }
 
+/// `v` grown by `n` zeros, written in parallel. A Jacobian's storage is
+/// tens of megabytes, and the kernel zeroes a fresh page when it is first
+/// written: on every core this way, not on one (issue 34).
+pub fn extend_with_zeros(v: &mut Vec<f64>, n: usize) {
+    v.par_extend(rayon::iter::repeat_n(0.0, n));
+}
+
 /// `x − J·N⁻¹·Jᵀ·x`: what of `x` no combination of `J`'s columns
 /// reproduces, by the corrected semi-normal equations (see the module doc).
 pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f64> {
@@ -1272,14 +1291,21 @@ pub fn project_out(j: &BlockJacobian, f: &Factor, x: &DVector<f64>) -> DVector<f
 /// identifiability analysis (18 columns) cost a few passes, not 18 × a few.
 pub fn project_out_columns(j: &BlockJacobian, f: &Factor, x: &DMatrix<f64>) -> DMatrix<f64> {
     let k = x.ncols();
-    let r = project_out_rows(j, f, x.transpose().as_slice(), k);
+    let r = project_out_rows_in(j, f, x.transpose().data.into(), k);
     DMatrix::from_row_slice(j.m, k, &r)
 }
 
 /// [`project_out`] for the `k` columns of `x` given row-major (a row's
 /// `k` values side by side), the result likewise.
 pub fn project_out_rows(j: &BlockJacobian, f: &Factor, x: &[f64], k: usize) -> Vec<f64> {
-    let mut r = x.to_vec();
+    project_out_rows_in(j, f, x.to_vec(), k)
+}
+
+/// [`project_out_rows`] in `x`'s own storage: no copy of a matrix that is
+/// not needed afterwards (the identifiability analysis's, 10 MB at 24 000
+/// readings).
+pub fn project_out_rows_in(j: &BlockJacobian, f: &Factor, x: Vec<f64>, k: usize) -> Vec<f64> {
+    let mut r = x;
     // The solve, then one correction from the unsquared residual.
     for _ in 0..2 {
         let y = f.solve_rows(&j.tr_mul_rows(&r, k, |_| true), k);
