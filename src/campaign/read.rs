@@ -556,25 +556,32 @@ fn tokenize(src: &Source, problems: &mut Vec<Problem>) -> (Vec<Vec<Cell>>, Texts
         let (records, texts) = tokenize_piece(src, 0..bytes.len(), problems);
         return (records, texts_of(texts));
     };
-    let (records, texts) = tokenize_pieces(src, pieces);
+    let (records, texts) = tokenize_pieces(src, pieces, problems);
     (records, texts_of(texts))
 }
 
 /// The records of a plain file's `pieces` (see [`plain_pieces`]), each
-/// tokenized on its own, in parallel, and joined in order.
-fn tokenize_pieces(src: &Source, pieces: Vec<Range<usize>>) -> (Vec<Vec<Cell>>, Vec<u8>) {
-    let parts: Vec<(Vec<Vec<Cell>>, Vec<u8>)> = pieces
+/// tokenized on its own, in parallel, and joined in order; the pieces'
+/// problems likewise (a plain piece has none: no quote can be left open in
+/// it, and it holds fewer rows than the limit — but what a piece reports
+/// is kept, not assumed away).
+fn tokenize_pieces(
+    src: &Source,
+    pieces: Vec<Range<usize>>,
+    problems: &mut Vec<Problem>,
+) -> (Vec<Vec<Cell>>, Vec<u8>) {
+    let parts: Vec<(Vec<Vec<Cell>>, Vec<u8>, Vec<Problem>)> = pieces
         .into_par_iter()
         .map(|piece| {
-            let mut none = Vec::new();
-            let part = tokenize_piece(src, piece, &mut none);
-            debug_assert!(none.is_empty(), "a plain piece has no open quote");
-            part
+            let mut found = Vec::new();
+            let (records, texts) = tokenize_piece(src, piece, &mut found);
+            (records, texts, found)
         })
         .collect();
-    let mut records = Vec::with_capacity(parts.iter().map(|(r, _)| r.len()).sum());
-    let mut texts: Vec<u8> = Vec::with_capacity(parts.iter().map(|(_, t)| t.len()).sum());
-    for (part, part_texts) in parts {
+    let mut records = Vec::with_capacity(parts.iter().map(|(r, _, _)| r.len()).sum());
+    let mut texts: Vec<u8> = Vec::with_capacity(parts.iter().map(|(_, t, _)| t.len()).sum());
+    for (part, part_texts, found) in parts {
+        problems.extend(found);
         let shift = texts.len();
         texts.extend_from_slice(&part_texts);
         records.extend(part.into_iter().map(|mut record| {
@@ -1346,7 +1353,7 @@ mod tests {
             pieces.push(start..text.len());
             let mut problems = Vec::new();
             let (whole, whole_texts) = tokenize_piece(&src, 0..text.len(), &mut problems);
-            let (split, split_texts) = tokenize_pieces(&src, pieces);
+            let (split, split_texts) = tokenize_pieces(&src, pieces, &mut problems);
             prop_assert!(problems.is_empty());
             let show = |records: &[Vec<Cell>], texts: &[u8]| -> Vec<Vec<(Vec<u8>, Range<usize>)>> {
                 records

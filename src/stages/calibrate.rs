@@ -310,15 +310,27 @@ fn rejected_table(c: &Campaign, rejected: &[Rejected]) -> Result<DataFrame> {
 
 /// The output tables of a calibration.
 pub fn tables(net: &Network, cal: &Calibration) -> Result<StageOutput> {
-    let [params, singular_values, combinations] = fitting::tables(&cal.estimate)?;
+    // The residuals' table (a row per reading) built beside the others.
+    let (residuals, rest) = rayon::join(
+        || residuals_table(net, cal),
+        || -> Result<_> {
+            Ok((
+                fitting::tables(&cal.estimate)?,
+                fit_table(net, cal)?,
+                stations_table(net, cal)?,
+                targets_table(net, cal)?,
+            ))
+        },
+    );
+    let ([params, singular_values, combinations], fit, stations, targets) = rest?;
     Ok(StageOutput::default()
         .table("params", params)
         .table("singular_values", singular_values)
         .table("combinations", combinations)
-        .table("fit", fit_table(net, cal)?)
-        .table("stations", stations_table(net, cal)?)
-        .table("targets", targets_table(net, cal)?)
-        .table("residuals", residuals_table(net, cal)?))
+        .table("fit", fit)
+        .table("stations", stations)
+        .table("targets", targets)
+        .table("residuals", residuals?))
 }
 
 fn fit_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
@@ -410,12 +422,18 @@ fn targets_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
 
 fn residuals_table(net: &Network, cal: &Calibration) -> Result<DataFrame> {
     let r = &cal.residuals;
-    let obs = |f: &dyn Fn(&crate::calibrate::Observation) -> String| {
-        r.iter().map(|x| f(&net.obs[x.obs])).collect::<Vec<_>>()
-    };
+    // The names borrowed, not copied: two strings a reading otherwise.
+    let stations: Vec<&str> = r
+        .iter()
+        .map(|x| net.stations[net.obs[x.obs].station].as_str())
+        .collect();
+    let targets: Vec<&str> = r
+        .iter()
+        .map(|x| net.targets[net.obs[x.obs].target].as_str())
+        .collect();
     TableBuilder::new()
-        .str("station", &obs(&|o| net.stations[o.station].clone()))
-        .str("target", &obs(&|o| net.targets[o.target].clone()))
+        .str("station", &stations)
+        .str("target", &targets)
         .i64(
             "face",
             r.iter().map(|x| net.obs[x.obs].face.number()).collect(),
