@@ -410,6 +410,43 @@ mod tests {
         assert!(e.contains("row 4, column 2"), "{e}");
     }
 
+    /// The bundle adjustment hands its projected Jacobian over row-major
+    /// (issue 34): the analysis of it must be the dense matrix's bit for
+    /// bit — one QR, eight blocks, or a wide matrix — and a non-finite
+    /// entry reported at the same place.
+    #[test]
+    fn a_row_major_matrix_is_analysed_as_its_dense_copy_bit_for_bit() {
+        for (m, n) in [(57, 2), (4099, 5), (3, 4)] {
+            let dense = DMatrix::from_fn(m, n, |i, k| {
+                ((i * 7 + k * 13) % 17) as f64 - 8.0 + (i * k) as f64 * 1e-4
+            });
+            let values: Vec<f64> = dense.transpose().as_slice().to_vec();
+            let rows = RowMajor {
+                values: &values,
+                nrows: m,
+                ncols: n,
+            };
+            assert_eq!(triangular_factor(&rows), triangular_factor(&dense));
+            let (a, b) = (
+                analyse(&rows, DEFAULT_REL_TOL).unwrap(),
+                analyse(&dense, DEFAULT_REL_TOL).unwrap(),
+            );
+            assert_eq!(a.singular_values, b.singular_values);
+            assert_eq!(a.row_basis, b.row_basis);
+        }
+        let mut dense = DMatrix::from_element(6, 3, 1.0);
+        dense[(4, 2)] = f64::NAN;
+        dense[(5, 1)] = f64::INFINITY;
+        let values: Vec<f64> = dense.transpose().as_slice().to_vec();
+        let rows = RowMajor {
+            values: &values,
+            nrows: 6,
+            ncols: 3,
+        };
+        assert_eq!(rows.first_non_finite(), Some((5, 1)));
+        assert_eq!(rows.first_non_finite(), dense.first_non_finite());
+    }
+
     #[test]
     fn finds_and_names_a_duplicated_and_a_dead_column() {
         // Columns: a, b (= a), c (zero), d.
