@@ -433,8 +433,9 @@ impl BlockJacobian {
     fn new_dense_cols(&self, b: &Block, seen: &mut [bool], out: &mut Vec<usize>) {
         for p in &self.parts[b.parts.0..b.parts.1] {
             if p.col < self.n_a {
-                for c in p.col..p.col + p.width {
-                    if !std::mem::replace(&mut seen[c], true) {
+                let cols = p.col..p.col + p.width;
+                for (c, seen) in cols.clone().zip(&mut seen[cols]) {
+                    if !std::mem::replace(seen, true) {
                         out.push(c);
                     }
                 }

@@ -570,7 +570,7 @@ fn tokenize_pieces(
     pieces: Vec<Range<usize>>,
     problems: &mut Vec<Problem>,
 ) -> (Vec<Vec<Cell>>, Vec<u8>) {
-    let parts: Vec<(Vec<Vec<Cell>>, Vec<u8>, Vec<Problem>)> = pieces
+    let parts: Vec<_> = pieces
         .into_par_iter()
         .map(|piece| {
             let mut found = Vec::new();
