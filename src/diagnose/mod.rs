@@ -379,23 +379,32 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     // fitted (its adjustment fails) is skipped with the reason, as an
     // effect whose inputs are missing is.
     let mut skipped_models = Vec::new();
-    let (floor, models) = rayon::join(
-        || noise_floor(&base.lm, s),
+    // … and so does *where* (the base model's residuals, with each
+    // coordinate's w-test, by factor): beside them, not after them, or its
+    // passes over every reading were one thread's work while the other
+    // waited.
+    let ((floor, models), (residuals, factor_defs, factor_tests)) = rayon::join(
         || {
-            if compare {
-                compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
-            } else {
-                Vec::new()
-            }
+            rayon::join(
+                || noise_floor(&base.lm, s),
+                || {
+                    if compare {
+                        compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
+                    } else {
+                        Vec::new()
+                    }
+                },
+            )
+        },
+        || {
+            let residuals = residual_rows(c, &net0, &base.cal, &base.infos, &base_tests);
+            let factor_defs = factors::factors(&residuals);
+            let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
+            (residuals, factor_defs, factor_tests)
         },
     );
     let members: Vec<Member> = Vec::new();
-
-    // Where: the base model's residuals, with each coordinate's w-test.
-    let residuals = residual_rows(c, &net0, &base.cal, &base.infos, &base_tests);
     let base_cv_rms_um = base.lm.cv_rms_um_base();
-    let factor_defs = factors::factors(&residuals);
-    let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
     let base_cal = base.cal.clone();
     let open = s.max_steps >= 1;
@@ -511,12 +520,6 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         b.row.significant &= still_open;
         b.row
     }));
-    let final_residuals = residual_rows(c, &net0, &final_state.cal, &final_state.infos, &[]);
-    let final_factors = factors::analyse(
-        &final_residuals,
-        &factors::factors(&final_residuals),
-        s.alpha,
-    );
     // A large effect can hide a wrong model (the model row above must beat
     // it on the raw readings), and a wrong model breeds members (an
     // encoder harmonic, a target shift, blunders where the beam path
@@ -565,18 +568,27 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             }
         }
     }
-    let unexplained = localise::localise(
-        &localise::Rest {
-            lm: &final_state.lm,
-            members: &final_state.members,
-            chi2: final_state.lm.chi2() - final_state.members_chi2(),
-            dof: final_state.dof(),
-            cv_rms_um: final_state.cv_rms_um(),
-            floor,
-            alpha: s.alpha,
+    // What the set leaves, by factor and by basis: side by side.
+    let (final_factors, unexplained) = rayon::join(
+        || {
+            let rows = residual_rows(c, &net0, &final_state.cal, &final_state.infos, &[]);
+            factors::analyse(&rows, &factors::factors(&rows), s.alpha)
         },
-        final_state.bases(),
-        &final_state.infos,
+        || {
+            localise::localise(
+                &localise::Rest {
+                    lm: &final_state.lm,
+                    members: &final_state.members,
+                    chi2: final_state.lm.chi2() - final_state.members_chi2(),
+                    dof: final_state.dof(),
+                    cv_rms_um: final_state.cv_rms_um(),
+                    floor,
+                    alpha: s.alpha,
+                },
+                final_state.bases(),
+                &final_state.infos,
+            )
+        },
     );
     rows.extend(model);
     rows.push(none_row(
@@ -1744,7 +1756,13 @@ impl StepContext<'_> {
     /// effect, or the blunders, that mimic part of it, while a catalogue
     /// effect present beside it keeps its own Δχ².
     fn score(&self, st: &State, members: &[Member], step: usize, floor: Floor) -> Scored {
-        let mut plain = self.score_against(st, members, step, floor, None);
+        // Every basis fitted beside the members (the structure's), built
+        // beside the candidates' scores: its bases' passes over every
+        // reading are one thread's each.
+        let (mut plain, _) = rayon::join(
+            || self.score_against(st, members, step, floor, None),
+            || st.bases(),
+        );
         let Some(structure) = localise::structure(
             st.bases(),
             &st.lm,

@@ -7,6 +7,7 @@ use crate::diagnose::linear::Signature;
 use crate::random;
 use nalgebra::Vector3;
 use rand::rngs::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -78,33 +79,47 @@ impl Effect for TargetShift {
         for (k, &s) in order.iter().enumerate() {
             rank[s] = k;
         }
-        for (t, id) in cx.targets.iter().enumerate() {
-            if of_target[t].is_empty() {
-                continue;
-            }
-            for (k, &from) in order.iter().enumerate().skip(1) {
-                let mut c = Signature::new(3);
+        // Each reflector's candidates are their own: the reflectors in
+        // parallel, joined in their order. A reading's block (the shift
+        // along x, y, z) is the same in every candidate that holds it —
+        // from any station measuring no later than the reading's — so it
+        // is formed once per reading (`all`: from the first station on)
+        // and each candidate keeps the blocks of the readings from its
+        // station on: the same numbers.
+        let per_target: Vec<Vec<Candidate>> = cx
+            .targets
+            .par_iter()
+            .enumerate()
+            .map(|(t, id)| {
+                if of_target[t].is_empty() {
+                    return Vec::new();
+                }
+                let mut all = Signature::new(3);
                 for &i in &of_target[t] {
                     let r = &cx.readings[i];
-                    if rank[r.station] >= k {
-                        for a in 0..3 {
-                            let mut s = Vector3::zeros();
-                            s[a] = 1e-3;
-                            put_point(&mut c, i, r, a, s);
-                        }
+                    for a in 0..3 {
+                        let mut s = Vector3::zeros();
+                        s[a] = 1e-3;
+                        put_point(&mut all, i, r, a, s);
                     }
                 }
-                out.candidates.push(Candidate {
-                    effect: Self::ID.into(),
-                    place: id.clone(),
-                    columns: c,
-                    magnitude: Arc::new(norm),
-                    unit: "µm".into(),
-                    alternatives: n_from,
-                    detail: format!("from station {}", cx.stations[from]),
-                });
-            }
-        }
+                order
+                    .iter()
+                    .enumerate()
+                    .skip(1)
+                    .map(|(k, &from)| Candidate {
+                        effect: Self::ID.into(),
+                        place: id.clone(),
+                        columns: all.on(|i| rank[cx.readings[i].station] >= k),
+                        magnitude: Arc::new(norm),
+                        unit: "µm".into(),
+                        alternatives: n_from,
+                        detail: format!("from station {}", cx.stations[from]),
+                    })
+                    .collect()
+            })
+            .collect();
+        out.candidates.extend(per_target.into_iter().flatten());
     }
 
     /// One reflector, from a station but the first, 30–200 µm in a random
