@@ -1180,25 +1180,77 @@ impl StepContext<'_> {
                 .linearisation
                 .clone()
                 .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
-            let infos = reading_infos(self.campaign, &net, &cal);
-            let cx = candidates::Context {
-                readings: &infos,
-                stations: &net.stations,
-                targets: &net.targets,
-                station_order: &self.order,
+            // A rejected coordinate's held-out residual is the blunder
+            // itself: it no longer counts in the RMS.
+            let model = |lin: calibrate::bundle::Linearisation| {
+                let to_mm: Vec<Matrix3<f64>> = net
+                    .obs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, o)| {
+                        let mut m = nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma);
+                        for &(_, c) in rejected.iter().filter(|(r, _)| *r == i) {
+                            m.column_mut(c).fill(0.0);
+                        }
+                        m
+                    })
+                    .collect();
+                LinearModel::new(
+                    lin.jacobian,
+                    lin.residuals,
+                    self.fold_of,
+                    self.n_folds,
+                    to_mm,
+                )
             };
-            let (mut cands, mut skipped) = candidates::build(&cx, self.enabled);
-            let lines: Vec<Option<usize>> = self.campaign.readings.iter().map(|r| r.line).collect();
-            let (hyp, hyp_skipped) = hypotheses::build(
-                &self.settings.hypotheses,
-                &infos,
-                &net.stations,
-                &net.targets,
-                &lines,
-            )
-            .map_err(anyhow::Error::from)?;
-            cands.extend(hyp);
-            skipped.extend(hyp_skipped);
+            let candidates = || -> Result<(Vec<ReadingInfo>, Vec<Candidate>, Vec<Skipped>)> {
+                let infos = reading_infos(self.campaign, &net, &cal);
+                let cx = candidates::Context {
+                    readings: &infos,
+                    stations: &net.stations,
+                    targets: &net.targets,
+                    station_order: &self.order,
+                };
+                let (mut cands, mut skipped) = candidates::build(&cx, self.enabled);
+                let lines: Vec<Option<usize>> =
+                    self.campaign.readings.iter().map(|r| r.line).collect();
+                let (hyp, hyp_skipped) = hypotheses::build(
+                    &self.settings.hypotheses,
+                    &infos,
+                    &net.stations,
+                    &net.targets,
+                    &lines,
+                )
+                .map_err(anyhow::Error::from)?;
+                cands.extend(hyp);
+                skipped.extend(hyp_skipped);
+                Ok((infos, cands, skipped))
+            };
+            // Without an effect among the members nothing is refitted:
+            // the linear model (the folds' factors) is built beside the
+            // candidates, which need only the readings — five folds on two
+            // threads left one idle for a fold's time, the candidates one
+            // thread's work after them. An error is the one the order
+            // below met first: the candidates', then the model's.
+            if !members.iter().any(|m| matches!(m, Member::Effect { .. })) {
+                let (built, lm) = rayon::join(candidates, || model(lin));
+                let (infos, cands, skipped) = built?;
+                let lm = lm?;
+                let sig = member_signature(members, &cands)?;
+                return Ok(State {
+                    net,
+                    cal,
+                    infos,
+                    cands,
+                    skipped,
+                    members: sig,
+                    rejected: rejected.clone(),
+                    lm,
+                    bases: std::sync::OnceLock::new(),
+                    tests: std::sync::OnceLock::new(),
+                });
+            }
+            let (infos, cands, skipped) = candidates()?;
             let sig = member_signature(members, &cands)?;
             if sig.ncols() > 0 && refit < MAX_REFITS {
                 let step = linear::fit_once(&lin.jacobian, &lin.residuals, &sig)?;
@@ -1208,27 +1260,7 @@ impl StepContext<'_> {
                     continue;
                 }
             }
-            // A rejected coordinate's held-out residual is the blunder
-            // itself: it no longer counts in the RMS.
-            let to_mm: Vec<Matrix3<f64>> = net
-                .obs
-                .iter()
-                .enumerate()
-                .map(|(i, o)| {
-                    let mut m = nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma);
-                    for &(_, c) in rejected.iter().filter(|(r, _)| *r == i) {
-                        m.column_mut(c).fill(0.0);
-                    }
-                    m
-                })
-                .collect();
-            let lm = LinearModel::new(
-                lin.jacobian,
-                lin.residuals,
-                self.fold_of,
-                self.n_folds,
-                to_mm,
-            )?;
+            let lm = model(lin)?;
             return Ok(State {
                 net,
                 cal,
