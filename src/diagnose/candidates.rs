@@ -12,6 +12,7 @@
 use super::linear::Signature;
 use crate::effects::{IncidenceAngles, incidence_angles};
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 use std::sync::Arc;
 
 /// What the candidates need to know about one reading.
@@ -173,9 +174,26 @@ impl Found {
 /// Every candidate of the catalogue's effects that `enabled` lets through,
 /// in the catalogue's order.
 pub fn build(cx: &Context, enabled: &dyn Fn(&str) -> bool) -> (Vec<Candidate>, Vec<Skipped>) {
+    // Each effect's candidates are its own (built from `cx` alone): the
+    // effects in parallel, each into its own list, joined in the
+    // catalogue's order — the same candidates in the same order. One after
+    // another they were the main thread's work while the other waited.
+    let kinds: Vec<&crate::effects::Kind> = crate::effects::kinds()
+        .iter()
+        .filter(|k| enabled(k.id))
+        .collect();
+    let each: Vec<Found> = kinds
+        .par_iter()
+        .map(|kind| {
+            let mut found = Found::default();
+            (kind.candidates)(cx, &mut found);
+            found
+        })
+        .collect();
     let mut found = Found::default();
-    for kind in crate::effects::kinds().iter().filter(|k| enabled(k.id)) {
-        (kind.candidates)(cx, &mut found);
+    for f in each {
+        found.candidates.extend(f.candidates);
+        found.skipped.extend(f.skipped);
     }
     (found.candidates, found.skipped)
 }

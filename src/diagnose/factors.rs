@@ -5,6 +5,8 @@
 //! is significant (F test, Bonferroni-corrected over all factors and
 //! components).
 
+use rayon::prelude::*;
+
 /// One reading's residual and the factor values it is grouped by.
 #[derive(Clone, Debug)]
 pub struct ResidualRow {
@@ -32,11 +34,14 @@ pub const COMPONENTS: [&str; 3] = ["az", "el", "d"];
 #[derive(Clone, Debug)]
 pub struct Factor {
     pub name: &'static str,
-    /// Group label of each reading (`None`: the reading lacks the value).
-    pub groups: Vec<Option<String>>,
+    /// Each reading's group, an index into `labels` (`None`: the reading
+    /// lacks the value). An index, not the label: the analysis sums by
+    /// group, and a label per reading was a string cloned (and compared in
+    /// a map) 24 000 times per factor on a big hall.
+    pub group: Vec<Option<usize>>,
     /// A numeric position of each reading for plots.
     pub x: Vec<f64>,
-    /// Group labels in plotting order.
+    /// Group labels in plotting order (sorted).
     pub labels: Vec<String>,
 }
 
@@ -55,23 +60,22 @@ pub struct FactorTest {
     pub worst_mean_sigma: f64,
 }
 
-fn categorical(name: &'static str, values: Vec<Option<String>>) -> Factor {
-    let mut labels: Vec<String> = values.iter().flatten().cloned().collect();
-    labels.sort();
+fn categorical(name: &'static str, values: &[Option<&str>]) -> Factor {
+    let mut labels: Vec<&str> = values.iter().flatten().copied().collect();
+    labels.sort_unstable();
     labels.dedup();
-    let x = values
+    let group: Vec<Option<usize>> = values
         .iter()
-        .map(|v| {
-            v.as_ref()
-                .and_then(|v| labels.binary_search(v).ok())
-                .map_or(f64::NAN, |i| i as f64)
-        })
+        .map(|v| v.and_then(|v| labels.binary_search(&v).ok()))
         .collect();
     Factor {
         name,
-        groups: values,
-        x,
-        labels,
+        x: group
+            .iter()
+            .map(|g| g.map_or(f64::NAN, |i| i as f64))
+            .collect(),
+        group,
+        labels: labels.into_iter().map(String::from).collect(),
     }
 }
 
@@ -104,144 +108,144 @@ fn binned(name: &'static str, values: Vec<Option<f64>>, n: usize, unit: &str) ->
         .iter()
         .map(|v| v.map(|v| edges.iter().filter(|&&e| v >= e).count()))
         .collect();
-    // The labels present, sorted: those of the bins some value falls in.
+    // The labels present, sorted: those of the bins some value falls in
+    // (each bin's label is its own: it starts with the bin's index).
     let mut present = vec![false; bin_labels.len()];
     for &k in bins.iter().flatten() {
         present[k] = true;
     }
-    let mut labels: Vec<String> = (0..bin_labels.len())
-        .filter(|&k| present[k])
-        .map(|k| bin_labels[k].clone())
-        .collect();
-    labels.sort();
-    labels.dedup();
-    let groups: Vec<Option<String>> = bins
-        .iter()
-        .map(|b| b.map(|k| bin_labels[k].clone()))
-        .collect();
+    let mut order: Vec<usize> = (0..bin_labels.len()).filter(|&k| present[k]).collect();
+    order.sort_by(|&a, &b| bin_labels[a].cmp(&bin_labels[b]));
+    let mut at = vec![usize::MAX; bin_labels.len()];
+    for (g, &k) in order.iter().enumerate() {
+        at[k] = g;
+    }
     Factor {
         name,
-        groups,
+        group: bins.iter().map(|b| b.map(|k| at[k])).collect(),
         x: values.iter().map(|v| v.unwrap_or(f64::NAN)).collect(),
-        labels,
+        labels: order.into_iter().map(|k| bin_labels[k].clone()).collect(),
     }
 }
 
 /// The factors the readings carry (those without values are left out).
 pub fn factors(rows: &[ResidualRow]) -> Vec<Factor> {
-    let mut out = vec![
-        categorical(
-            "station",
-            rows.iter().map(|r| Some(r.station.clone())).collect(),
-        ),
-        categorical(
-            "reflector",
-            rows.iter().map(|r| Some(r.target.clone())).collect(),
-        ),
-        categorical(
-            "face",
-            rows.iter().map(|r| Some(r.face.to_string())).collect(),
-        ),
-        binned(
-            "range_mm",
-            rows.iter().map(|r| Some(r.range_mm)).collect(),
-            5,
-            "mm",
-        ),
-        binned(
-            "azimuth_deg",
-            rows.iter().map(|r| Some(r.azimuth_deg)).collect(),
-            6,
-            "°",
-        ),
-        binned(
-            "elevation_deg",
-            rows.iter().map(|r| Some(r.elevation_deg)).collect(),
-            5,
-            "°",
-        ),
-    ];
-    if rows.iter().all(|r| r.incidence_deg.is_some()) {
-        out.push(binned(
-            "incidence_deg",
-            rows.iter().map(|r| r.incidence_deg).collect(),
-            5,
-            "°",
-        ));
-    }
-    if rows.iter().all(|r| r.time_s.is_some()) {
-        out.push(binned(
-            "time_s",
-            rows.iter().map(|r| r.time_s).collect(),
-            5,
-            "s",
-        ));
-    }
-    if rows.iter().all(|r| r.temperature_c.is_some()) {
-        out.push(binned(
-            "temperature_c",
-            rows.iter().map(|r| r.temperature_c).collect(),
-            5,
-            "°C",
-        ));
-    }
-    out.retain(|f| f.labels.len() >= 2);
-    out
+    // Each factor is a pass of its own over the readings (a sort, a
+    // search per reading): the nine side by side, kept in their order.
+    let all = |f: fn(&ResidualRow) -> Option<f64>| rows.iter().all(|r| f(r).is_some());
+    let build = |n: usize| -> Option<Factor> {
+        let num = |f: fn(&ResidualRow) -> Option<f64>| rows.iter().map(f).collect::<Vec<_>>();
+        match n {
+            0 => Some(categorical(
+                "station",
+                &rows
+                    .iter()
+                    .map(|r| Some(r.station.as_str()))
+                    .collect::<Vec<_>>(),
+            )),
+            1 => Some(categorical(
+                "reflector",
+                &rows
+                    .iter()
+                    .map(|r| Some(r.target.as_str()))
+                    .collect::<Vec<_>>(),
+            )),
+            2 => {
+                let faces: Vec<String> = rows.iter().map(|r| r.face.to_string()).collect();
+                Some(categorical(
+                    "face",
+                    &faces.iter().map(|f| Some(f.as_str())).collect::<Vec<_>>(),
+                ))
+            }
+            3 => Some(binned("range_mm", num(|r| Some(r.range_mm)), 5, "mm")),
+            4 => Some(binned("azimuth_deg", num(|r| Some(r.azimuth_deg)), 6, "°")),
+            5 => Some(binned(
+                "elevation_deg",
+                num(|r| Some(r.elevation_deg)),
+                5,
+                "°",
+            )),
+            6 => all(|r| r.incidence_deg)
+                .then(|| binned("incidence_deg", num(|r| r.incidence_deg), 5, "°")),
+            7 => all(|r| r.time_s).then(|| binned("time_s", num(|r| r.time_s), 5, "s")),
+            _ => all(|r| r.temperature_c)
+                .then(|| binned("temperature_c", num(|r| r.temperature_c), 5, "°C")),
+        }
+    };
+    let out: Vec<Option<Factor>> = (0..9).into_par_iter().map(build).collect();
+    out.into_iter()
+        .flatten()
+        .filter(|f| f.labels.len() >= 2)
+        .collect()
 }
 
 /// One-way analysis of variance of every component by every factor.
 pub fn analyse(rows: &[ResidualRow], factors: &[Factor], alpha: f64) -> Vec<FactorTest> {
     let n_tests = (factors.len() * COMPONENTS.len()).max(1);
-    let mut out = Vec::new();
-    for f in factors {
-        for (c, &component) in COMPONENTS.iter().enumerate() {
-            let mut sums: std::collections::BTreeMap<&str, (f64, usize)> = Default::default();
-            let mut all = Vec::new();
-            for (r, g) in rows.iter().zip(&f.groups) {
-                if let Some(g) = g {
-                    let e = sums.entry(g.as_str()).or_insert((0.0, 0));
-                    e.0 += r.sigma_units[c];
-                    e.1 += 1;
-                    all.push(r.sigma_units[c]);
+    // Each factor's tests are its own: the factors in parallel, their
+    // tests kept in order.
+    let each: Vec<Vec<FactorTest>> = factors
+        .par_iter()
+        .map(|f| {
+            let mut out = Vec::new();
+            for (c, &component) in COMPONENTS.iter().enumerate() {
+                // Per group (in the labels' order, which is the sorted
+                // order a map by label kept): the sum and the count, each
+                // summed in reading order.
+                let mut sums = vec![(0.0, 0usize); f.labels.len()];
+                let mut all = Vec::new();
+                for (r, g) in rows.iter().zip(&f.group) {
+                    if let Some(g) = *g {
+                        let e = &mut sums[g];
+                        e.0 += r.sigma_units[c];
+                        e.1 += 1;
+                        all.push(r.sigma_units[c]);
+                    }
                 }
+                let present = || {
+                    f.labels
+                        .iter()
+                        .zip(&sums)
+                        .filter(|(_, (_, k))| *k > 0)
+                        .map(|(l, s)| (l, *s))
+                };
+                let n = all.len();
+                let g = present().count();
+                if g < 2 || n <= g {
+                    continue;
+                }
+                let grand = all.iter().sum::<f64>() / n as f64;
+                let ss_total: f64 = all.iter().map(|x| (x - grand).powi(2)).sum();
+                let ss_between: f64 = present()
+                    .map(|(_, (s, k))| k as f64 * (s / k as f64 - grand).powi(2))
+                    .sum();
+                let ss_within = (ss_total - ss_between).max(1e-300);
+                let f_stat = (ss_between / (g - 1) as f64) / (ss_within / (n - g) as f64);
+                let p = super::f_test::p_value((g - 1) as f64, (n - g) as f64, f_stat);
+                let (worst, mean) = present()
+                    .map(|(l, (s, m))| (l, s / m as f64))
+                    .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+                    .expect("two groups");
+                out.push(FactorTest {
+                    factor: f.name,
+                    component,
+                    groups: g,
+                    eta2: if ss_total > 0.0 {
+                        ss_between / ss_total
+                    } else {
+                        0.0
+                    },
+                    f: f_stat,
+                    p,
+                    significant: p * (n_tests as f64) < alpha,
+                    worst_group: worst.clone(),
+                    worst_mean_sigma: mean,
+                });
             }
-            let n = all.len();
-            let g = sums.len();
-            if g < 2 || n <= g {
-                continue;
-            }
-            let grand = all.iter().sum::<f64>() / n as f64;
-            let ss_total: f64 = all.iter().map(|x| (x - grand).powi(2)).sum();
-            let ss_between: f64 = sums
-                .values()
-                .map(|(s, k)| *k as f64 * (s / *k as f64 - grand).powi(2))
-                .sum();
-            let ss_within = (ss_total - ss_between).max(1e-300);
-            let f_stat = (ss_between / (g - 1) as f64) / (ss_within / (n - g) as f64);
-            let p = super::f_test::p_value((g - 1) as f64, (n - g) as f64, f_stat);
-            let (worst, mean) = sums
-                .iter()
-                .map(|(k, (s, m))| (k.to_string(), s / *m as f64))
-                .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
-                .expect("two groups");
-            out.push(FactorTest {
-                factor: f.name,
-                component,
-                groups: g,
-                eta2: if ss_total > 0.0 {
-                    ss_between / ss_total
-                } else {
-                    0.0
-                },
-                f: f_stat,
-                p,
-                significant: p * (n_tests as f64) < alpha,
-                worst_group: worst,
-                worst_mean_sigma: mean,
-            });
-        }
-    }
-    out
+            out
+        })
+        .collect();
+    each.into_iter().flatten().collect()
 }
 
 #[cfg(test)]
@@ -278,7 +282,10 @@ mod tests {
             .collect();
         let f = vec![categorical(
             "station",
-            rows.iter().map(|r| Some(r.station.clone())).collect(),
+            &rows
+                .iter()
+                .map(|r| Some(r.station.as_str()))
+                .collect::<Vec<_>>(),
         )];
         for t in analyse(&rows, &f, 0.01) {
             assert!(!t.significant && t.p == 1.0, "{t:?}");
@@ -297,7 +304,10 @@ mod tests {
         }
         let f = vec![categorical(
             "station",
-            rows.iter().map(|r| Some(r.station.clone())).collect(),
+            &rows
+                .iter()
+                .map(|r| Some(r.station.as_str()))
+                .collect::<Vec<_>>(),
         )];
         let t = analyse(&rows, &f, 0.01);
         let d = t.iter().find(|t| t.component == "d").unwrap();

@@ -97,6 +97,16 @@ impl Signature {
         })
     }
 
+    /// `self` on the readings `keep` admits: their blocks as they are.
+    pub fn on(&self, keep: impl Fn(usize) -> bool) -> Signature {
+        let mut out = Signature::new(self.k);
+        for (i, v) in self.blocks().filter(|(i, _)| keep(*i)) {
+            out.readings.push(i);
+            out.values.extend_from_slice(v);
+        }
+        out
+    }
+
     /// `a`'s columns, then `b`'s.
     pub fn concat(a: &Signature, b: &Signature) -> Signature {
         let k = a.k + b.k;

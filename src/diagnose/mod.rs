@@ -379,23 +379,32 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
     // fitted (its adjustment fails) is skipped with the reason, as an
     // effect whose inputs are missing is.
     let mut skipped_models = Vec::new();
-    let (floor, models) = rayon::join(
-        || noise_floor(&base.lm, s),
+    // … and so does *where* (the base model's residuals, with each
+    // coordinate's w-test, by factor): beside them, not after them, or its
+    // passes over every reading were one thread's work while the other
+    // waited.
+    let ((floor, models), (residuals, factor_defs, factor_tests)) = rayon::join(
         || {
-            if compare {
-                compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
-            } else {
-                Vec::new()
-            }
+            rayon::join(
+                || noise_floor(&base.lm, s),
+                || {
+                    if compare {
+                        compare_models(&net0, &base, &ctx, &mut skipped_models).unwrap_or_default()
+                    } else {
+                        Vec::new()
+                    }
+                },
+            )
+        },
+        || {
+            let residuals = residual_rows(c, &net0, &base.cal, &base.infos, &base_tests);
+            let factor_defs = factors::factors(&residuals);
+            let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
+            (residuals, factor_defs, factor_tests)
         },
     );
     let members: Vec<Member> = Vec::new();
-
-    // Where: the base model's residuals, with each coordinate's w-test.
-    let residuals = residual_rows(c, &net0, &base.cal, &base.infos, &base_tests);
     let base_cv_rms_um = base.lm.cv_rms_um_base();
-    let factor_defs = factors::factors(&residuals);
-    let factor_tests = factors::analyse(&residuals, &factor_defs, s.alpha);
     let (chi2, dof, chi2_p) = (base.lm.chi2(), base.dof(), base.chi2_p());
     let base_cal = base.cal.clone();
     let open = s.max_steps >= 1;
@@ -511,12 +520,6 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
         b.row.significant &= still_open;
         b.row
     }));
-    let final_residuals = residual_rows(c, &net0, &final_state.cal, &final_state.infos, &[]);
-    let final_factors = factors::analyse(
-        &final_residuals,
-        &factors::factors(&final_residuals),
-        s.alpha,
-    );
     // A large effect can hide a wrong model (the model row above must beat
     // it on the raw readings), and a wrong model breeds members (an
     // encoder harmonic, a target shift, blunders where the beam path
@@ -565,18 +568,27 @@ fn explain(c: &Campaign, s: &Settings, compare: bool) -> Result<Diagnosis> {
             }
         }
     }
-    let unexplained = localise::localise(
-        &localise::Rest {
-            lm: &final_state.lm,
-            members: &final_state.members,
-            chi2: final_state.lm.chi2() - final_state.members_chi2(),
-            dof: final_state.dof(),
-            cv_rms_um: final_state.cv_rms_um(),
-            floor,
-            alpha: s.alpha,
+    // What the set leaves, by factor and by basis: side by side.
+    let (final_factors, unexplained) = rayon::join(
+        || {
+            let rows = residual_rows(c, &net0, &final_state.cal, &final_state.infos, &[]);
+            factors::analyse(&rows, &factors::factors(&rows), s.alpha)
         },
-        final_state.bases(),
-        &final_state.infos,
+        || {
+            localise::localise(
+                &localise::Rest {
+                    lm: &final_state.lm,
+                    members: &final_state.members,
+                    chi2: final_state.lm.chi2() - final_state.members_chi2(),
+                    dof: final_state.dof(),
+                    cv_rms_um: final_state.cv_rms_um(),
+                    floor,
+                    alpha: s.alpha,
+                },
+                final_state.bases(),
+                &final_state.infos,
+            )
+        },
     );
     rows.extend(model);
     rows.push(none_row(
@@ -1168,25 +1180,77 @@ impl StepContext<'_> {
                 .linearisation
                 .clone()
                 .ok_or_else(|| anyhow!("the bundle adjustment gave no linearisation"))?;
-            let infos = reading_infos(self.campaign, &net, &cal);
-            let cx = candidates::Context {
-                readings: &infos,
-                stations: &net.stations,
-                targets: &net.targets,
-                station_order: &self.order,
+            // A rejected coordinate's held-out residual is the blunder
+            // itself: it no longer counts in the RMS.
+            let model = |lin: calibrate::bundle::Linearisation| {
+                let to_mm: Vec<Matrix3<f64>> = net
+                    .obs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, o)| {
+                        let mut m = nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma);
+                        for &(_, c) in rejected.iter().filter(|(r, _)| *r == i) {
+                            m.column_mut(c).fill(0.0);
+                        }
+                        m
+                    })
+                    .collect();
+                LinearModel::new(
+                    lin.jacobian,
+                    lin.residuals,
+                    self.fold_of,
+                    self.n_folds,
+                    to_mm,
+                )
             };
-            let (mut cands, mut skipped) = candidates::build(&cx, self.enabled);
-            let lines: Vec<Option<usize>> = self.campaign.readings.iter().map(|r| r.line).collect();
-            let (hyp, hyp_skipped) = hypotheses::build(
-                &self.settings.hypotheses,
-                &infos,
-                &net.stations,
-                &net.targets,
-                &lines,
-            )
-            .map_err(anyhow::Error::from)?;
-            cands.extend(hyp);
-            skipped.extend(hyp_skipped);
+            let candidates = || -> Result<(Vec<ReadingInfo>, Vec<Candidate>, Vec<Skipped>)> {
+                let infos = reading_infos(self.campaign, &net, &cal);
+                let cx = candidates::Context {
+                    readings: &infos,
+                    stations: &net.stations,
+                    targets: &net.targets,
+                    station_order: &self.order,
+                };
+                let (mut cands, mut skipped) = candidates::build(&cx, self.enabled);
+                let lines: Vec<Option<usize>> =
+                    self.campaign.readings.iter().map(|r| r.line).collect();
+                let (hyp, hyp_skipped) = hypotheses::build(
+                    &self.settings.hypotheses,
+                    &infos,
+                    &net.stations,
+                    &net.targets,
+                    &lines,
+                )
+                .map_err(anyhow::Error::from)?;
+                cands.extend(hyp);
+                skipped.extend(hyp_skipped);
+                Ok((infos, cands, skipped))
+            };
+            // Without an effect among the members nothing is refitted:
+            // the linear model (the folds' factors) is built beside the
+            // candidates, which need only the readings — five folds on two
+            // threads left one idle for a fold's time, the candidates one
+            // thread's work after them. An error is the one the order
+            // below met first: the candidates', then the model's.
+            if !members.iter().any(|m| matches!(m, Member::Effect { .. })) {
+                let (built, lm) = rayon::join(candidates, || model(lin));
+                let (infos, cands, skipped) = built?;
+                let lm = lm?;
+                let sig = member_signature(members, &cands)?;
+                return Ok(State {
+                    net,
+                    cal,
+                    infos,
+                    cands,
+                    skipped,
+                    members: sig,
+                    rejected: rejected.clone(),
+                    lm,
+                    bases: std::sync::OnceLock::new(),
+                    tests: std::sync::OnceLock::new(),
+                });
+            }
+            let (infos, cands, skipped) = candidates()?;
             let sig = member_signature(members, &cands)?;
             if sig.ncols() > 0 && refit < MAX_REFITS {
                 let step = linear::fit_once(&lin.jacobian, &lin.residuals, &sig)?;
@@ -1196,27 +1260,7 @@ impl StepContext<'_> {
                     continue;
                 }
             }
-            // A rejected coordinate's held-out residual is the blunder
-            // itself: it no longer counts in the RMS.
-            let to_mm: Vec<Matrix3<f64>> = net
-                .obs
-                .iter()
-                .enumerate()
-                .map(|(i, o)| {
-                    let mut m = nominal_jacobian(o.reading) * Matrix3::from_diagonal(&o.sigma);
-                    for &(_, c) in rejected.iter().filter(|(r, _)| *r == i) {
-                        m.column_mut(c).fill(0.0);
-                    }
-                    m
-                })
-                .collect();
-            let lm = LinearModel::new(
-                lin.jacobian,
-                lin.residuals,
-                self.fold_of,
-                self.n_folds,
-                to_mm,
-            )?;
+            let lm = model(lin)?;
             return Ok(State {
                 net,
                 cal,
@@ -1744,7 +1788,13 @@ impl StepContext<'_> {
     /// effect, or the blunders, that mimic part of it, while a catalogue
     /// effect present beside it keeps its own Δχ².
     fn score(&self, st: &State, members: &[Member], step: usize, floor: Floor) -> Scored {
-        let mut plain = self.score_against(st, members, step, floor, None);
+        // Every basis fitted beside the members (the structure's), built
+        // beside the candidates' scores: its bases' passes over every
+        // reading are one thread's each.
+        let (mut plain, _) = rayon::join(
+            || self.score_against(st, members, step, floor, None),
+            || st.bases(),
+        );
         let Some(structure) = localise::structure(
             st.bases(),
             &st.lm,

@@ -18,6 +18,7 @@ use crate::plots;
 use crate::table::TableBuilder;
 use anyhow::{Result, anyhow};
 use polars::prelude::DataFrame;
+use rayon::prelude::*;
 use std::fmt::Write as _;
 
 /// The columns of `diagnosis`, in order: the contract's twelve, then the
@@ -795,22 +796,31 @@ pub fn sections(d: &Diagnosis) -> Sections {
 /// valid value costs a figure, not the diagnosis.
 pub fn figures(d: &Diagnosis) -> Result<Figures> {
     let mut out = Figures::default();
-    for f in &d.factor_defs {
-        let comp: Vec<Vec<f64>> = (0..3)
-            .map(|c| d.residuals.iter().map(|r| r.physical[c]).collect())
-            .collect();
-        let categorical = matches!(f.name, "station" | "reflector" | "face");
-        let drawn = plots::residuals_by_factor(
-            &format!("{}: residuals by {}", d.campaign, plots::axis_title(f.name)),
-            &plots::axis_title(f.name),
-            categorical.then_some(&f.labels[..]),
-            &f.x,
-            [
-                ("az residual (µrad)", &comp[0]),
-                ("el residual (µrad)", &comp[1]),
-                ("d residual (µm)", &comp[2]),
-            ],
-        );
+    let comp: Vec<Vec<f64>> = (0..3)
+        .map(|c| d.residuals.iter().map(|r| r.physical[c]).collect())
+        .collect();
+    // Each factor's figure is its own (a thinning and an SVG of every
+    // reading): drawn side by side, taken in the factors' order — the
+    // same files, the same notes, the same first error.
+    let drawn: Vec<Result<String>> = d
+        .factor_defs
+        .par_iter()
+        .map(|f| {
+            let categorical = matches!(f.name, "station" | "reflector" | "face");
+            plots::residuals_by_factor(
+                &format!("{}: residuals by {}", d.campaign, plots::axis_title(f.name)),
+                &plots::axis_title(f.name),
+                categorical.then_some(&f.labels[..]),
+                &f.x,
+                [
+                    ("az residual (µrad)", &comp[0]),
+                    ("el residual (µrad)", &comp[1]),
+                    ("d residual (µm)", &comp[2]),
+                ],
+            )
+        })
+        .collect();
+    for (f, drawn) in d.factor_defs.iter().zip(drawn) {
         match drawn {
             Ok(svg) => out
                 .files
