@@ -1232,35 +1232,27 @@ impl StepContext<'_> {
             // threads left one idle for a fold's time, the candidates one
             // thread's work after them. An error is the one the order
             // below met first: the candidates', then the model's.
-            if !members.iter().any(|m| matches!(m, Member::Effect { .. })) {
-                let (built, lm) = rayon::join(candidates, || model(lin));
-                let (infos, cands, skipped) = built?;
-                let lm = lm?;
-                let sig = member_signature(members, &cands)?;
-                return Ok(State {
-                    net,
-                    cal,
-                    infos,
-                    cands,
-                    skipped,
-                    members: sig,
-                    rejected: rejected.clone(),
-                    lm,
-                    bases: std::sync::OnceLock::new(),
-                    tests: std::sync::OnceLock::new(),
-                });
-            }
-            let (infos, cands, skipped) = candidates()?;
-            let sig = member_signature(members, &cands)?;
-            if sig.ncols() > 0 && refit < MAX_REFITS {
-                let step = linear::fit_once(&lin.jacobian, &lin.residuals, &sig)?;
-                if step.delta_chi2 >= REFIT_TOL_CHI2 {
-                    set_betas(members, &step.beta);
-                    shifts = physical_shifts(members, &cands, &net)?;
-                    continue;
-                }
-            }
-            let lm = model(lin)?;
+            let (infos, cands, skipped, sig, lm) =
+                if !members.iter().any(|m| matches!(m, Member::Effect { .. })) {
+                    let (built, lm) = rayon::join(candidates, || model(lin));
+                    let (infos, cands, skipped) = built?;
+                    let lm = lm?;
+                    let sig = member_signature(members, &cands)?;
+                    (infos, cands, skipped, sig, lm)
+                } else {
+                    let (infos, cands, skipped) = candidates()?;
+                    let sig = member_signature(members, &cands)?;
+                    if sig.ncols() > 0 && refit < MAX_REFITS {
+                        let step = linear::fit_once(&lin.jacobian, &lin.residuals, &sig)?;
+                        if step.delta_chi2 >= REFIT_TOL_CHI2 {
+                            set_betas(members, &step.beta);
+                            shifts = physical_shifts(members, &cands, &net)?;
+                            continue;
+                        }
+                    }
+                    let lm = model(lin)?;
+                    (infos, cands, skipped, sig, lm)
+                };
             return Ok(State {
                 net,
                 cal,
