@@ -42,7 +42,7 @@
 //! stated noise: they are its test.
 
 use super::register::{Rigid, align};
-use super::sparse::{self, BlockJacobian, BlockShape, Normal};
+use super::sparse::{self, BlockJacobian, BlockShape, GroupedLayout, Normal};
 use super::{
     BundleStd, Calibration, FitSummary, Network, Norm, Settings, SigmaFactor, gauge_scale_ppm,
 };
@@ -57,7 +57,7 @@ use argmin::core::{Error as ArgminError, Jacobian, Operator};
 use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// `W·J(q)⁻¹` for a reading `r` with the σ of observation `o`.
 fn design_weight(o: &super::Observation, r: crate::kinematics::Reading) -> Matrix3<f64> {
@@ -207,6 +207,9 @@ struct Bundle<'a> {
     /// the fit reports as "before"): the solver's first evaluation there
     /// reads them instead of recomputing.
     known: Option<(&'a DVector<f64>, &'a DVector<f64>)>,
+    /// The readings' blocks as laid out at the first linearisation: every
+    /// later one has the same shapes.
+    grouped: OnceLock<GroupedLayout>,
 }
 
 /// The linearisation the solver built last. Its last iteration linearises
@@ -412,17 +415,20 @@ impl<'a> Bundle<'a> {
         // The readings' blocks stored reflector by reflector, for the Schur
         // assembly ([`BlockJacobian::push_grouped`]).
         let nz = self.layout.n_z;
-        let shapes = self.net.obs.iter().map(|o| {
-            let [station, point] = self.layout.reading_parts(o, 0);
-            BlockShape {
-                rows: 3,
-                parts: [(0, nz), station, point],
-                group: point.0,
-            }
+        let laid = self.grouped.get_or_init(|| {
+            let shapes = self.net.obs.iter().map(|o| {
+                let [station, point] = self.layout.reading_parts(o, 0);
+                BlockShape {
+                    rows: 3,
+                    parts: [(0, nz), station, point],
+                    group: point.0,
+                }
+            });
+            GroupedLayout::new(shapes, n)
         });
         let mut r = vec![0.0; 3 * n_obs];
         let (jz, rest): (Vec<_>, Vec<_>) = j
-            .push_grouped(shapes, n)
+            .push_laid_out(laid)
             .into_iter()
             .map(|v| v.split_at_mut(3 * nz))
             .unzip();
@@ -724,6 +730,7 @@ impl Setup {
             use_references: self.use_references,
             last: None,
             known: None,
+            grouped: OnceLock::new(),
         }
     }
 }
@@ -760,7 +767,7 @@ fn analyse_setup(
     let layout = setup.layout(net, n);
     let probe = setup.problem(net, start, &identity, &layout);
     let (nuisance, jz) = probe.design_jacobian(&setup.initial(&layout));
-    if !nuisance.is_finite() || !jz.iter().all(|v| v.is_finite()) {
+    if !nuisance.is_finite() || !sparse::all_finite(&jz) {
         bail!(
             "the Jacobian has a non-finite entry: the data are degenerate \
              (e.g. a reading or gauge length that divides by zero)"

@@ -8,6 +8,7 @@
 //! generalised Procrustes alignment of all stations at once.
 
 use nalgebra::{Matrix3, Rotation3, Vector3};
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 /// A rigid transformation `x ↦ R·x + t`.
@@ -98,50 +99,9 @@ pub fn align(
     tol_mm: f64,
 ) -> Option<Alignment> {
     let s_n = obs.len();
-    let mut poses = vec![Rigid::identity(); s_n];
-    let mut placed = vec![false; s_n];
-    let mut points: BTreeMap<usize, Vector3<f64>> = BTreeMap::new();
-    // First guess: chain stations onto what is already placed.
-    match anchor {
-        Some(a) => points.extend(a.iter().map(|(k, v)| (*k, *v))),
-        None => {
-            placed[0] = true;
-            points.extend(obs[0].iter().map(|(k, v)| (*k, *v)));
-        }
-    }
-    loop {
-        let mut progress = false;
-        for s in 0..s_n {
-            if placed[s] {
-                continue;
-            }
-            let common: Vec<usize> = obs[s]
-                .keys()
-                .filter(|k| points.contains_key(k))
-                .copied()
-                .collect();
-            let from: Vec<Vector3<f64>> = common.iter().map(|k| obs[s][k]).collect();
-            let to: Vec<Vector3<f64>> = common.iter().map(|k| points[k]).collect();
-            if let Some(p) = fit(&from, &to) {
-                poses[s] = p;
-                placed[s] = true;
-                progress = true;
-                for (k, x) in &obs[s] {
-                    points.entry(*k).or_insert_with(|| p.apply(x));
-                }
-            }
-        }
-        if !progress {
-            break;
-        }
-    }
-    if placed.iter().any(|p| !p) {
-        return None;
-    }
-    // Refine: alternate mean positions and per-station fits. The maps are
-    // laid out as vectors indexed by target once: the loop runs up to
-    // MAX_PASSES times over every observation, and each pass must stay
-    // linear.
+    // The maps laid out as vectors indexed by target once: the chaining
+    // below looks every observation up, and the refinement runs up to
+    // MAX_PASSES times over every observation; each pass must stay linear.
     let n_t = obs
         .iter()
         .flat_map(|o| o.keys())
@@ -152,15 +112,63 @@ pub fn align(
         .iter()
         .map(|o| o.iter().map(|(k, x)| (*k, *x)).collect())
         .collect();
-    let means = |poses: &[Rigid]| {
-        let mut sum = vec![(Vector3::zeros(), 0usize); n_t];
-        for (s, o) in lists.iter().enumerate() {
-            for (k, x) in o {
-                sum[*k].0 += poses[s].apply(x);
-                sum[*k].1 += 1;
+    let mut poses = vec![Rigid::identity(); s_n];
+    let mut placed = vec![false; s_n];
+    let mut points: Vec<Option<Vector3<f64>>> = vec![None; n_t];
+    // First guess: chain stations onto what is already placed.
+    match anchor {
+        Some(a) => a.iter().for_each(|(k, v)| points[*k] = Some(*v)),
+        None => {
+            placed[0] = true;
+            lists[0].iter().for_each(|(k, v)| points[*k] = Some(*v));
+        }
+    }
+    loop {
+        let mut progress = false;
+        for s in 0..s_n {
+            if placed[s] {
+                continue;
+            }
+            let (from, to): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = lists[s]
+                .iter()
+                .filter_map(|(k, x)| points[*k].map(|p| (*x, p)))
+                .unzip();
+            if let Some(p) = fit(&from, &to) {
+                poses[s] = p;
+                placed[s] = true;
+                progress = true;
+                for (k, x) in &lists[s] {
+                    points[*k].get_or_insert_with(|| p.apply(x));
+                }
             }
         }
-        sum
+        if !progress {
+            break;
+        }
+    }
+    if placed.iter().any(|p| !p) {
+        return None;
+    }
+    // Refine: alternate mean positions and per-station fits.
+    // Per target, its (station, point) in station order: each mean sums
+    // them in that order, and the targets' means are formed in parallel.
+    let mut by_target: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new(); n_t];
+    for (s, o) in lists.iter().enumerate() {
+        for (k, x) in o {
+            by_target[*k].push((s, *x));
+        }
+    }
+    let means = |poses: &[Rigid]| -> Vec<(Vector3<f64>, usize)> {
+        by_target
+            .par_iter()
+            .with_min_len(64)
+            .map(|seen| {
+                let sum = seen
+                    .iter()
+                    .fold(Vector3::zeros(), |sum, (s, x)| sum + poses[*s].apply(x));
+                (sum, seen.len())
+            })
+            .collect()
     };
     let (mut converged, mut passes) = (false, 0);
     while passes < MAX_PASSES {
@@ -174,14 +182,22 @@ pub fn align(
                 new_points[*k] = *v;
             }
         }
+        // Each station's fit on its own, in parallel; taken in order.
+        let fits: Vec<Option<Rigid>> = lists
+            .par_iter()
+            .enumerate()
+            .map(|(s, o)| {
+                if anchor.is_none() && s == 0 {
+                    return None;
+                }
+                let from: Vec<Vector3<f64>> = o.iter().map(|(_, x)| *x).collect();
+                let to: Vec<Vector3<f64>> = o.iter().map(|(k, _)| new_points[*k]).collect();
+                fit(&from, &to)
+            })
+            .collect();
         let mut moved = 0.0f64;
-        for (s, o) in lists.iter().enumerate() {
-            if anchor.is_none() && s == 0 {
-                continue;
-            }
-            let from: Vec<Vector3<f64>> = o.iter().map(|(_, x)| *x).collect();
-            let to: Vec<Vector3<f64>> = o.iter().map(|(k, _)| new_points[*k]).collect();
-            if let Some(p) = fit(&from, &to) {
+        for (s, p) in fits.into_iter().enumerate() {
+            if let Some(p) = p {
                 moved = moved.max((p.translation - poses[s].translation).norm());
                 poses[s] = p;
             }

@@ -32,7 +32,9 @@
 //! at the round-off level of `J`, as a QR factorisation would give, not at
 //! that of `JᵀJ`.
 
-use nalgebra::{DMatrix, DVector, Dyn, Matrix3, MatrixXx3, Vector3, linalg::Cholesky};
+use nalgebra::{
+    DMatrix, DVector, DVectorViewMut, Dyn, Matrix3, MatrixXx3, Vector3, linalg::Cholesky,
+};
 use rayon::prelude::*;
 
 /// One Jacobian block of a residual block: `rows × width` values,
@@ -60,6 +62,87 @@ pub struct BlockShape {
     pub rows: usize,
     pub parts: [(usize, usize); 3],
     pub group: usize,
+}
+
+/// Blocks of [`BlockShape`]s laid out as [`BlockJacobian::push_grouped`]
+/// stores them, rows, parts and values counted from zero: a fit linearises
+/// the same shapes at every iteration, and laying 24 000 readings' blocks
+/// out is per-block bookkeeping on one core, so it is done once (issue 34).
+#[derive(Clone, Debug)]
+pub struct GroupedLayout {
+    blocks: Vec<Block>,
+    parts: Vec<Part>,
+    rows: usize,
+    /// Block indices in storage order, and each block's number of values.
+    order: Vec<usize>,
+    lens: Vec<usize>,
+    total: usize,
+}
+
+impl GroupedLayout {
+    /// Lays out a block per shape, stored by `group` (below `groups`).
+    pub fn new(shapes: impl Iterator<Item = BlockShape>, groups: usize) -> GroupedLayout {
+        let n = shapes.size_hint().0;
+        let (mut blocks, mut parts, mut rows) =
+            (Vec::with_capacity(n), Vec::with_capacity(3 * n), 0);
+        // Each block's group and number of values; each group's total.
+        let mut sized = Vec::with_capacity(n);
+        let mut per_group = vec![0usize; groups + 1];
+        for shape in shapes {
+            let p0 = parts.len();
+            let mut len = 0;
+            for &(col, width) in shape.parts.iter().filter(|(_, w)| *w > 0) {
+                parts.push(Part {
+                    col,
+                    width,
+                    at: len,
+                });
+                len += shape.rows * width;
+            }
+            blocks.push(Block {
+                row: rows,
+                rows: shape.rows,
+                parts: (p0, parts.len()),
+            });
+            rows += shape.rows;
+            debug_assert!(shape.group < groups);
+            per_group[shape.group + 1] += len;
+            sized.push((shape.group, len));
+        }
+        // Where each group starts, then each block within it.
+        for g in 1..=groups {
+            per_group[g] += per_group[g - 1];
+        }
+        for (blk, &(g, len)) in blocks.iter().zip(&sized) {
+            per_group[g] += len;
+            let start = per_group[g] - len;
+            for p in &mut parts[blk.parts.0..blk.parts.1] {
+                p.at += start;
+            }
+        }
+        // The blocks in storage order: group by group, in block order.
+        let mut first = vec![0usize; groups + 1];
+        for &(g, _) in &sized {
+            first[g + 1] += 1;
+        }
+        for g in 1..=groups {
+            first[g] += first[g - 1];
+        }
+        let mut order = vec![0; sized.len()];
+        for (b, &(g, _)) in sized.iter().enumerate() {
+            order[first[g]] = b;
+            first[g] += 1;
+        }
+        let lens: Vec<usize> = sized.iter().map(|&(_, len)| len).collect();
+        GroupedLayout {
+            blocks,
+            parts,
+            rows,
+            order,
+            total: lens.iter().sum(),
+            lens,
+        }
+    }
 }
 
 /// The Jacobian of a bundle adjustment as its non-zero blocks.
@@ -158,79 +241,41 @@ impl BlockJacobian {
         shapes: impl Iterator<Item = BlockShape>,
         groups: usize,
     ) -> Vec<&mut [f64]> {
-        let (b0, base) = (self.blocks.len(), self.values.len());
-        // Each new block's group and number of values; each group's total.
-        let mut sized = Vec::new();
-        let mut per_group = vec![0usize; groups + 1];
-        for shape in shapes {
-            let p0 = self.parts.len();
-            let mut len = 0;
-            for &(col, width) in shape.parts.iter().filter(|(_, w)| *w > 0) {
-                debug_assert!(col + width <= self.n);
-                debug_assert!(col + width <= self.n_a || (col >= self.n_a && width == 3));
-                self.parts.push(Part {
-                    col,
-                    width,
-                    at: len,
-                });
-                len += shape.rows * width;
-            }
-            self.blocks.push(Block {
-                row: self.m,
-                rows: shape.rows,
-                parts: (p0, self.parts.len()),
-            });
-            self.m += shape.rows;
-            debug_assert!(shape.group < groups);
-            per_group[shape.group + 1] += len;
-            sized.push((shape.group, len));
-        }
-        // Where each group starts, then each block within it.
-        for g in 1..=groups {
-            per_group[g] += per_group[g - 1];
-        }
-        let starts: Vec<usize> = sized
-            .iter()
-            .map(|&(g, len)| {
-                per_group[g] += len;
-                per_group[g] - len
-            })
-            .collect();
-        for (blk, &start) in self.blocks[b0..].iter().zip(&starts) {
-            for p in &mut self.parts[blk.parts.0..blk.parts.1] {
-                p.at += base + start;
-            }
-        }
-        let total = sized.iter().map(|&(_, len)| len).sum::<usize>();
-        extend_with_zeros(&mut self.values, total);
+        self.push_laid_out(&GroupedLayout::new(shapes, groups))
+    }
+
+    /// [`Self::push_grouped`] of shapes laid out before.
+    pub fn push_laid_out(&mut self, laid: &GroupedLayout) -> Vec<&mut [f64]> {
+        let (m0, p0, base) = (self.m, self.parts.len(), self.values.len());
+        debug_assert!(laid.parts.iter().all(|p| p.col + p.width <= self.n
+            && (p.col + p.width <= self.n_a || (p.col >= self.n_a && p.width == 3))));
+        self.blocks.extend(laid.blocks.iter().map(|b| Block {
+            row: m0 + b.row,
+            rows: b.rows,
+            parts: (p0 + b.parts.0, p0 + b.parts.1),
+        }));
+        self.parts.extend(laid.parts.iter().map(|p| Part {
+            at: base + p.at,
+            ..*p
+        }));
+        self.m += laid.rows;
+        extend_with_zeros(&mut self.values, laid.total);
         // The storage cut into the blocks' ranges in storage order, then
         // handed out in block order.
-        let mut first = vec![0usize; groups + 1];
-        for &(g, _) in &sized {
-            first[g + 1] += 1;
-        }
-        for g in 1..=groups {
-            first[g] += first[g - 1];
-        }
-        let mut order = vec![0; sized.len()];
-        for (b, &(g, _)) in sized.iter().enumerate() {
-            order[first[g]] = b;
-            first[g] += 1;
-        }
-        let mut out: Vec<&mut [f64]> = Vec::with_capacity(sized.len());
-        out.resize_with(sized.len(), Default::default);
+        let mut out: Vec<&mut [f64]> = Vec::with_capacity(laid.lens.len());
+        out.resize_with(laid.lens.len(), Default::default);
         let mut rest = &mut self.values[base..];
-        for b in order {
-            let (head, tail) = std::mem::take(&mut rest).split_at_mut(sized[b].1);
+        for &b in &laid.order {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(laid.lens[b]);
             out[b] = head;
             rest = tail;
         }
         out
     }
 
-    /// Whether every entry is finite.
+    /// Whether every entry is finite (in parallel: millions of values).
     pub fn is_finite(&self) -> bool {
-        self.values.iter().all(|v| v.is_finite())
+        all_finite(&self.values)
     }
 
     /// Number of residuals.
@@ -770,15 +815,25 @@ impl Normal {
         // Each position's admitted blocks, in order; blocks on the dense
         // part alone (gauge lengths between coupled reflectors, their
         // readings and references) apart.
-        let mut by_point: Vec<Vec<usize>> = vec![Vec::new(); j.points()];
+        // (Each block's position found on every core, then counted and
+        // placed: a serial pass pushing 24 000 blocks one by one cost
+        // milliseconds per linearisation, issue 34.)
+        let point_of: Vec<Option<Option<usize>>> = (0..j.blocks.len())
+            .into_par_iter()
+            .with_min_len(4096)
+            .map(|b| keep(b).then(|| j.block_point(b)))
+            .collect();
+        let mut count = vec![0usize; j.points()];
+        for p in point_of.iter().flatten().flatten() {
+            count[*p] += 1;
+        }
+        let mut by_point: Vec<Vec<usize>> = count.into_iter().map(Vec::with_capacity).collect();
         let mut dense_only = Vec::new();
-        for b in 0..j.blocks.len() {
-            if !keep(b) {
-                continue;
-            }
-            match j.block_point(b) {
-                Some(p) => by_point[p].push(b),
-                None => dense_only.push(b),
+        for (b, p) in point_of.into_iter().enumerate() {
+            match p {
+                Some(Some(p)) => by_point[p].push(b),
+                Some(None) => dense_only.push(b),
+                None => {}
             }
         }
         let chunk = by_point.len().div_ceil(CHUNKS).max(1);
@@ -1043,12 +1098,22 @@ impl Factor {
         // Rows of `b` split into ranges filled in parallel, each visiting
         // the positions in order: every row summed in position order, the
         // same numbers whatever the number of threads.
+        // A single right-hand side (the fit's step) splits too once the
+        // dense part is wide: its positions × columns pairs are the work,
+        // and each task's scan of the positions is small beside its share.
         let mut b = rhs[..n_a * k].to_vec();
-        let per = n_a.div_ceil(tasks_for(k)).max(1);
+        let tasks = if n_a >= SPLIT_DENSE_ROWS {
+            rayon::current_num_threads()
+        } else {
+            tasks_for(k)
+        };
+        let per = n_a.div_ceil(tasks).max(1);
         b.par_chunks_mut(per * k).enumerate().for_each(|(t, out)| {
             let (lo, hi) = (t * per, (t * per + out.len() / k));
             for (i, p) in self.points.iter().enumerate() {
                 let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
+                let (r0, r12) = rx.split_at(k);
+                let (r1, r2) = r12.split_at(k);
                 let first = p.cols.partition_point(|&c| c < lo);
                 for (row, &c) in p.cols.iter().enumerate().skip(first) {
                     if c >= hi {
@@ -1056,8 +1121,8 @@ impl Factor {
                     }
                     let w = [p.w[(row, 0)], p.w[(row, 1)], p.w[(row, 2)]];
                     let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
-                    for (col, o) in o.iter_mut().enumerate() {
-                        *o -= w[0] * rx[col] + w[1] * rx[k + col] + w[2] * rx[2 * k + col];
+                    for (((o, x0), x1), x2) in o.iter_mut().zip(r0).zip(r1).zip(r2) {
+                        *o -= w[0] * x0 + w[1] * x1 + w[2] * x2;
                     }
                 }
             }
@@ -1102,7 +1167,15 @@ impl Factor {
 
     /// `S⁻¹`: the covariance of the dense part (in units of the residuals' variance).
     pub fn dense_covariance(&self) -> DMatrix<f64> {
-        let mut inv = self.chol.inverse();
+        // `L⁻ᵀ·L⁻¹`, the identity's columns solved each on its own (as
+        // `Cholesky::inverse` solves them one after another): in parallel,
+        // the same numbers (issue 34).
+        let n = self.n_a;
+        let mut inv = DMatrix::identity(n, n);
+        inv.as_mut_slice().par_chunks_mut(n.max(1)).for_each(|col| {
+            let mut col = DVectorViewMut::from_slice(col, n);
+            self.chol.solve_mut(&mut col);
+        });
         for i in 0..inv.nrows() {
             for j in 0..inv.ncols() {
                 inv[(i, j)] *= self.d[i] * self.d[j];
@@ -1345,6 +1418,11 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
+/// How wide a dense part [`Factor::solve_rows`] splits by rows whatever the
+/// number of right-hand sides: 96 pose columns of a 16-station hall make
+/// a single solve's reduction ~6 M instructions on one core (issue 34).
+const SPLIT_DENSE_ROWS: usize = 48;
+
 /// How many parallel tasks a product with `k` right-hand sides is split
 /// into: each task visits every block, which pays only when the blocks
 /// carry several columns' work. (Any split gives the same numbers.)
@@ -1354,6 +1432,15 @@ fn tasks_for(k: usize) -> usize {
     } else {
         1
     }
+}
+
+/// Whether every value is finite, checked on every core: a bundle's
+/// Jacobian holds millions, a serial scan milliseconds (issue 34).
+pub fn all_finite(values: &[f64]) -> bool {
+    values
+        .par_iter()
+        .with_min_len(1 << 14)
+        .all(|v| v.is_finite())
 }
 
 fn min_max(a: usize, b: usize) -> (usize, usize) {

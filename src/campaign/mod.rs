@@ -152,9 +152,16 @@ impl Campaign {
     pub fn stations(&self) -> Vec<String> {
         // A set beside the list: a search of the list per reading was
         // quadratic (40 000 stations in a million readings took minutes).
+        // A station's readings mostly follow one another: the one before is
+        // compared first, the set hashed only when the station changes.
         let mut seen = std::collections::HashSet::new();
         let mut out: Vec<String> = Vec::new();
+        let mut last: Option<&str> = None;
         for r in &self.readings {
+            if last == Some(r.station.as_str()) {
+                continue;
+            }
+            last = Some(r.station.as_str());
             if seen.insert(r.station.as_str()) {
                 out.push(r.station.clone());
             }

@@ -10,6 +10,7 @@
 
 use super::Campaign;
 use super::check::{Issue, Place, Table};
+use rayon::prelude::*;
 
 /// How close (in |cos el|) to the zenith or nadir a reading may come. At
 /// the pole the azimuth turns the beam about itself: the reading's azimuth
@@ -56,7 +57,13 @@ impl Campaign {
     pub fn count_issues(&self) -> Vec<Issue> {
         let mut out = Vec::new();
         let mut stations = std::collections::HashSet::new();
+        let mut last: Option<&str> = None;
         for (i, r) in self.readings.iter().enumerate() {
+            // Hashed only where the station changes (see `Campaign::stations`).
+            if last == Some(r.station.as_str()) {
+                continue;
+            }
+            last = Some(r.station.as_str());
             if stations.insert(r.station.as_str()) && stations.len() > MAX_STATIONS {
                 out.push(Issue {
                     place: Place::Cell {
@@ -165,38 +172,48 @@ impl Campaign {
                 });
             }
         }
-        for (i, r) in self.readings.iter().enumerate() {
-            let cell = |column: &'static str, message: String| Issue {
-                place: Place::Cell {
-                    table: Table::Readings,
-                    row: i,
-                    column,
-                },
-                message,
-            };
-            if r.el_deg.to_radians().cos().abs() < POLE_COS_EL {
-                out.push(cell(
-                    "el_deg",
-                    format!(
-                        "el_deg = {} points at the zenith or nadir: valid per \
-                         campaign-format.md but unusable for calibration (the azimuth of a \
-                         reading at the pole is undetermined, the adjustment singular); \
-                         remove the reading of {} from {}",
-                        r.el_deg, r.target, r.station
-                    ),
-                ));
-            }
-            if r.d_mm > MAX_RANGE_MM {
-                out.push(cell(
-                    "d_mm",
-                    format!(
-                        "d_mm = {:e} is valid per campaign-format.md but unusable for \
-                         calibration: ltcal calibrates distances up to {MAX_RANGE_MM:e} mm",
-                        r.d_mm
-                    ),
-                ));
-            }
-        }
+        // Each reading's checks on their own (a cosine each: milliseconds
+        // at 24 000 readings on one core, issue 34), its issues in order.
+        let per_reading = self
+            .readings
+            .par_iter()
+            .enumerate()
+            .with_min_len(1024)
+            .flat_map_iter(|(i, r)| {
+                let mut out = Vec::new();
+                let cell = |column: &'static str, message: String| Issue {
+                    place: Place::Cell {
+                        table: Table::Readings,
+                        row: i,
+                        column,
+                    },
+                    message,
+                };
+                if r.el_deg.to_radians().cos().abs() < POLE_COS_EL {
+                    out.push(cell(
+                        "el_deg",
+                        format!(
+                            "el_deg = {} points at the zenith or nadir: valid per \
+                             campaign-format.md but unusable for calibration (the azimuth of a \
+                             reading at the pole is undetermined, the adjustment singular); \
+                             remove the reading of {} from {}",
+                            r.el_deg, r.target, r.station
+                        ),
+                    ));
+                }
+                if r.d_mm > MAX_RANGE_MM {
+                    out.push(cell(
+                        "d_mm",
+                        format!(
+                            "d_mm = {:e} is valid per campaign-format.md but unusable for \
+                             calibration: ltcal calibrates distances up to {MAX_RANGE_MM:e} mm",
+                            r.d_mm
+                        ),
+                    ));
+                }
+                out
+            });
+        out.par_extend(per_reading);
         // Both ends are seen from stations within MAX_RANGE_MM, so no
         // usable gauge is longer than twice that (a fuzzed 1e23 mm one left
         // the normal matrix singular).
