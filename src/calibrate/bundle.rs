@@ -1403,6 +1403,42 @@ mod tests {
         Network::from_campaign(&sim.campaign).unwrap()
     }
 
+    /// Issue 34: the stations' means are formed per station in parallel,
+    /// and the gauge check forms its reflectors' alone; both are the means
+    /// one serial pass over the readings forms, bit for bit.
+    #[test]
+    fn station_means_per_station_are_the_serial_pass_s() {
+        let net = corner_network();
+        let params = ErrorParams::table2();
+        let eval = params.evaluator();
+        let mut serial: Vec<BTreeMap<usize, (Vector3<f64>, usize)>> =
+            vec![BTreeMap::new(); net.stations.len()];
+        for o in &net.obs {
+            let e = serial[o.station]
+                .entry(o.target)
+                .or_insert((Vector3::zeros(), 0));
+            e.0 += eval.point(o.q, &o.links);
+            e.1 += 1;
+        }
+        let serial: Vec<BTreeMap<usize, Vector3<f64>>> = serial
+            .into_iter()
+            .map(|m| m.into_iter().map(|(t, (v, n))| (t, v / n as f64)).collect())
+            .collect();
+        assert_eq!(net.station_points(&params), serial);
+        let kept = |t: usize| t % 3 == 1;
+        let some: Vec<BTreeMap<usize, Vector3<f64>>> = serial
+            .iter()
+            .map(|m| {
+                m.iter()
+                    .filter(|(t, _)| kept(**t))
+                    .map(|(t, v)| (*t, *v))
+                    .collect()
+            })
+            .collect();
+        assert_eq!(net.station_points_of(&params, kept), some);
+        assert!(some.iter().any(|m| !m.is_empty()));
+    }
+
     /// The bundle with the whole Jacobian formed densely: the reference the
     /// block-sparse path is checked against.
     struct Dense<'a>(Bundle<'a>);

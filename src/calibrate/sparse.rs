@@ -361,14 +361,29 @@ impl BlockJacobian {
         if parts <= 1 {
             return vec![(0, self.n)];
         }
-        let mut per_col = vec![0usize; self.n];
-        for blk in &self.blocks {
-            for p in &self.parts[blk.parts.0..blk.parts.1] {
-                per_col[p.col..p.col + p.width]
-                    .iter_mut()
-                    .for_each(|w| *w += blk.rows);
-            }
-        }
+        // Counted over the blocks on every core (whole numbers: any order
+        // gives the same counts).
+        let per_col = self
+            .blocks
+            .par_chunks(4096)
+            .map(|blocks| {
+                let mut per_col = vec![0usize; self.n];
+                for blk in blocks {
+                    for p in &self.parts[blk.parts.0..blk.parts.1] {
+                        per_col[p.col..p.col + p.width]
+                            .iter_mut()
+                            .for_each(|w| *w += blk.rows);
+                    }
+                }
+                per_col
+            })
+            .reduce(
+                || vec![0usize; self.n],
+                |mut a, b| {
+                    a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+                    a
+                },
+            );
         let total: usize = per_col.iter().sum();
         let target = total.div_ceil(parts.max(1)).max(1);
         let mut ranges = Vec::with_capacity(parts);
@@ -1851,6 +1866,63 @@ mod tests {
             g.tr_mul_rows(r.as_slice(), 1, |_| true),
             j.tr_mul_rows(r.as_slice(), 1, |_| true)
         );
+    }
+
+    /// Issue 34: a fit lays its readings' blocks out once and pushes that
+    /// layout at every linearisation; pushed after other blocks and into a
+    /// recycled Jacobian, it is the grouped push of its shapes.
+    #[test]
+    fn a_layout_pushed_again_is_the_grouped_push_of_its_shapes() {
+        let (j, _) = random_arrow(5, 0.43, 2.0, true);
+        assert!(j.n_a() > 0);
+        let shapes = || {
+            j.blocks.iter().enumerate().map(|(b, blk)| {
+                let mut parts = [(0, 0); 3];
+                for (out, p) in parts.iter_mut().zip(&j.parts[blk.parts.0..blk.parts.1]) {
+                    *out = (p.col, p.width);
+                }
+                BlockShape {
+                    rows: blk.rows,
+                    parts,
+                    group: j.block_point(b).expect("every block on a position"),
+                }
+            })
+        };
+        let fill = |outs: Vec<&mut [f64]>| {
+            for (blk, out) in j.blocks.iter().zip(outs) {
+                let values: Vec<f64> = j.parts_of(blk).flat_map(|(_, _, v)| v.to_vec()).collect();
+                out.copy_from_slice(&values);
+            }
+        };
+        let mut grouped = BlockJacobian::new(j.n_a(), j.ncols());
+        grouped.push(1, &[(0, &[1.5])]);
+        fill(grouped.push_grouped(shapes(), j.points()));
+        let laid = GroupedLayout::new(shapes(), j.points());
+        let mut again = BlockJacobian::new(j.n_a(), j.ncols());
+        for _ in 0..2 {
+            again = again.recycle(j.n_a(), j.ncols(), [0; 3]);
+            again.push(1, &[(0, &[1.5])]);
+            fill(again.push_laid_out(&laid));
+            assert_eq!(again.values, grouped.values);
+            assert_eq!(again.to_dense(), grouped.to_dense());
+        }
+        assert_eq!(grouped.nrows(), j.nrows() + 1);
+        assert_eq!(grouped.to_dense().rows(1, j.nrows()), j.to_dense());
+    }
+
+    /// Issue 34: the dense part's covariance solved column by column in
+    /// parallel is `Cholesky::inverse`'s, scaled, bit for bit.
+    #[test]
+    fn the_covariance_solved_by_columns_is_the_cholesky_inverse() {
+        let (j, _) = random_arrow(5, 0.43, 2.0, true);
+        let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+        let mut inv = f.chol.inverse();
+        for i in 0..inv.nrows() {
+            for k in 0..inv.ncols() {
+                inv[(i, k)] *= f.d[i] * f.d[k];
+            }
+        }
+        assert_eq!(f.dense_covariance(), inv);
     }
 
     #[test]

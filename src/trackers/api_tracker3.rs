@@ -173,13 +173,18 @@ impl Evaluate for Chain<'_> {
         jac: &mut Vec<Vector3<f64>>,
     ) -> Vector3<f64> {
         let (p, dbase) = self.with_frames(q, |fr| fr.forward_with_jacobian(links));
-        jac.extend(
-            self.params
-                .coefs()
-                .iter()
-                .zip(&self.columns)
-                .map(|(c, &(k, scale))| dbase[k] * (c.basis(q) * scale)),
-        );
+        // Every basis function of a constant model is 1, and `1 · scale`
+        // is `scale` exactly: not looked up per coefficient and reading.
+        match self.constant {
+            Some(_) => jac.extend(self.columns.iter().map(|&(k, scale)| dbase[k] * scale)),
+            None => jac.extend(
+                self.params
+                    .coefs()
+                    .iter()
+                    .zip(&self.columns)
+                    .map(|(c, &(k, scale))| dbase[k] * (c.basis(q) * scale)),
+            ),
+        }
         p
     }
 }
