@@ -527,6 +527,22 @@ impl BlockJacobian {
             .map(|(_, _, v)| v)
     }
 
+    /// The eliminated position block `b` touches and its part there
+    /// (`rows × 3`, row-major), if any: [`Self::block_point`] and
+    /// [`Self::point_part`] in one scan of the block's parts, the values
+    /// sliced for that part alone (the diagnosis asks it per reading of
+    /// every candidate).
+    pub fn point_of(&self, b: usize) -> Option<(usize, &[f64])> {
+        let blk = &self.blocks[b];
+        self.parts[blk.parts.0..blk.parts.1]
+            .iter()
+            .find(|p| p.col >= self.n_a)
+            .map(|p| {
+                let values = &self.values[p.at..p.at + blk.rows * p.width];
+                ((p.col - self.n_a) / 3, values)
+            })
+    }
+
     /// Block `b`'s parts on the dense part: `(first column, width, values)`.
     pub fn dense_parts(&self, b: usize) -> impl Iterator<Item = (usize, usize, &[f64])> {
         let blk = &self.blocks[b];
@@ -1245,6 +1261,7 @@ impl Factor {
     pub fn reduce_sparse(&self, u_a: &DMatrix<f64>, u_x: &[(usize, DMatrix<f64>)]) -> DMatrix<f64> {
         let mut v = u_a.clone();
         let n = v.nrows();
+        let mut runs: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
         for (i, ux) in u_x {
             let p = &self.points[*i];
             // `W`'s three columns as slices (column-major), walked beside
@@ -1259,14 +1276,31 @@ impl Factor {
             // column none of the position's readings touch) takes `±0`
             // off entries that are never `−0` (sums from `+0`): skipped,
             // the same numbers.
+            // The position's columns in runs of consecutive ones (its
+            // stations' poses, the error parameters): a run's entries of
+            // `v` are contiguous, as are its values of `W`, so the
+            // products go several entries at a time — each entry the same
+            // sum, taken off once.
+            runs.clear();
+            let mut start = 0;
+            for x in 1..=m {
+                if x == m || p.cols[x] != p.cols[x - 1] + 1 {
+                    runs.push((p.cols[start], start..x));
+                    start = x;
+                }
+            }
             for col in 0..v.ncols() {
                 let u = [ux[(0, col)], ux[(1, col)], ux[(2, col)]];
                 if u == [0.0; 3] {
                     continue;
                 }
                 let out = &mut v.as_mut_slice()[col * n..(col + 1) * n];
-                for (((&c, a), b), d) in p.cols.iter().zip(w0).zip(w1).zip(w2) {
-                    out[c] -= a * u[0] + b * u[1] + d * u[2];
+                for (c0, at) in &runs {
+                    let out = &mut out[*c0..*c0 + at.len()];
+                    let (w0, w1, w2) = (&w0[at.clone()], &w1[at.clone()], &w2[at.clone()]);
+                    for (((o, a), b), d) in out.iter_mut().zip(w0).zip(w1).zip(w2) {
+                        *o -= a * u[0] + b * u[1] + d * u[2];
+                    }
                 }
             }
         }

@@ -244,41 +244,40 @@ fn products(
         }
         s
     };
-    // Each column of the reading's block, gathered once per reading, and
-    // the columns not zero on it. A zero column adds `+0` to every sum
+    // The columns not zero on the reading, each with its values there,
+    // gathered once per reading. A zero column adds `+0` to every sum
     // (each a three-term sum from `+0`), which leaves an accumulator that
     // started at `+0` as it was: it is skipped, the same numbers. A
     // localisation basis touches a reading in a few of its columns (a
     // smooth function's two knots of eight, an offset's one station of
     // twenty): its products cost those columns, not all of them.
-    let mut vcols: Vec<[f64; 3]> = Vec::with_capacity(k);
-    let mut nz: Vec<usize> = Vec::with_capacity(k);
-    // Per column, the rows (az, el, d) not zero on the reading. A zero
-    // row's term in a three-term sum from `+0` is `±0`, which leaves the
-    // sum as the other terms make it (up to the sign of a zero, which an
-    // accumulator that started at `+0` never keeps): each sum below runs
-    // over those rows only, the same numbers. Most bases touch one row of
-    // a reading (a cyclic error of the range, a smooth function or a
-    // Fourier series on one coordinate, an offset): their `u_A` is one
-    // row of each part times a number, contiguous, not a gather of three
-    // strided values per entry.
-    let mut rows_of: Vec<Rows> = Vec::with_capacity(k);
+    //
+    // Per such column, too, the rows (az, el, d) not zero on the reading.
+    // A zero row's term in a three-term sum from `+0` is `±0`, which
+    // leaves the sum as the other terms make it (up to the sign of a
+    // zero, which an accumulator that started at `+0` never keeps): each
+    // sum below runs over those rows only, the same numbers. Most bases
+    // touch one row of a reading (a cyclic error of the range, a smooth
+    // function or a Fourier series on one coordinate, an offset): their
+    // `u_A` is one row of each part times a number, contiguous, not a
+    // gather of three strided values per entry.
+    let mut nz: Vec<(usize, [f64; 3], Rows)> = Vec::with_capacity(k);
     for (i, v) in c.blocks() {
         if !keep(i) {
             continue;
         }
-        vcols.clear();
-        vcols.extend((0..k).map(|b| col3(v, k, b)));
         nz.clear();
-        nz.extend((0..k).filter(|&b| vcols[b] != [0.0; 3]));
-        rows_of.clear();
-        rows_of.extend(vcols.iter().map(|cb| Rows::of(*cb)));
-        for (at, &a) in nz.iter().enumerate() {
-            let ca = vcols[a];
+        nz.extend(
+            (0..k)
+                .map(|b| (b, col3(v, k, b)))
+                .filter(|(_, cb)| *cb != [0.0; 3])
+                .map(|(b, cb)| (b, cb, Rows::of(cb))),
+        );
+        for (at, &(a, ca, _)) in nz.iter().enumerate() {
             // `CᵀC` is symmetric: each pair's product once, added to both
             // entries (`x·y` is `y·x`, the same three-term sum).
-            for &b in &nz[at..] {
-                let d = dot3(ca, vcols[b]);
+            for &(b, cb, _) in &nz[at..] {
+                let d = dot3(ca, cb);
                 ctc[(a, b)] += d;
                 if b != a {
                     ctc[(b, a)] += d;
@@ -291,12 +290,12 @@ fn products(
         for (col, w, part) in j.dense_parts(i) {
             // A column of `u_a` at a time: contiguous (column-major), each
             // entry still one addition per part.
-            for &b in &nz {
+            for &(b, cb, rows) in &nz {
                 let out = &mut u_a.as_mut_slice()[b * n_a + col..b * n_a + col + w];
-                rows_of[b].add_part_product(out, part, w, vcols[b]);
+                rows.add_part_product(out, part, w, cb);
             }
         }
-        if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
+        if let Some((p, part)) = j.point_of(i) {
             if slot_of.is_empty() {
                 slot_of = vec![u32::MAX; j.points()];
             }
@@ -313,8 +312,10 @@ fn products(
             // Its 3 × k matrix is column-major: a column is `u_a`'s sum
             // on the position's part.
             let m = u_x[at].1.as_mut_slice();
-            for &b in &nz {
-                rows_of[b].add_part_product(&mut m[3 * b..3 * b + 3], part, 3, vcols[b]);
+            let part: &[f64; 9] = part.try_into().expect("a reading's position part is 3 × 3");
+            for &(b, cb, rows) in &nz {
+                let out: &mut [f64; 3] = (&mut m[3 * b..3 * b + 3]).try_into().expect("3 rows");
+                rows.add_point_product(out, part, cb);
             }
         }
     }
@@ -373,6 +374,34 @@ impl Rows {
             }
         }
     }
+
+    /// [`Rows::add_part_product`] on a position's part (3 × 3): the same
+    /// sums, of fixed length — a call per column for three products each
+    /// was most of their cost.
+    #[inline(always)]
+    fn add_point_product(self, out: &mut [f64; 3], part: &[f64; 9], c: [f64; 3]) {
+        match self {
+            Rows::One(r) => {
+                for (a, o) in out.iter_mut().enumerate() {
+                    *o += part[3 * r + a] * c[r];
+                }
+            }
+            Rows::Two(r, s) => {
+                for (a, o) in out.iter_mut().enumerate() {
+                    *o += part[3 * r + a] * c[r] + part[3 * s + a] * c[s];
+                }
+            }
+            Rows::Three => {
+                for (a, o) in out.iter_mut().enumerate() {
+                    let mut s = 0.0;
+                    for (r, cr) in c.iter().enumerate() {
+                        s += part[3 * r + a] * cr;
+                    }
+                    *o += s;
+                }
+            }
+        }
+    }
 }
 
 impl Products {
@@ -400,9 +429,13 @@ impl Products {
         let mut ctx = DVector::zeros(c.k);
         for (i, v) in c.blocks() {
             if keep(i) {
-                for (a, o) in ctx.iter_mut().enumerate() {
-                    *o +=
-                        v[a] * x[3 * i] + v[c.k + a] * x[3 * i + 1] + v[2 * c.k + a] * x[3 * i + 2];
+                // The block's three rows side by side: the same sums,
+                // several columns at a time.
+                let (r0, rest) = v.split_at(c.k);
+                let (r1, r2) = rest.split_at(c.k);
+                let (x0, x1, x2) = (x[3 * i], x[3 * i + 1], x[3 * i + 2]);
+                for (((o, a), b), d) in ctx.iter_mut().zip(r0).zip(r1).zip(r2) {
+                    *o += a * x0 + b * x1 + d * x2;
                 }
             }
         }
@@ -672,11 +705,14 @@ impl LinearModel {
                 let mut base_sum = 0.0;
                 let mut kr = DMatrix::zeros(3, n_a);
                 let mut nz = Vec::new();
+                let mut merged = Vec::new();
+                let mut lk_rows: [Vec<f64>; 3] = Default::default();
+                let mut runs: Vec<(usize, usize)> = Vec::new();
                 for &i in &test {
                     let l = to_um[i];
                     let a = l * Vector3::new(res[3 * i], res[3 * i + 1], res[3 * i + 2]);
                     base_sum += a.norm_squared();
-                    k_rows(&j, &factor, i, &mut kr, &mut nz);
+                    k_rows(&j, &factor, i, &mut kr, &mut nz, &mut merged);
                     let lk = l * kr.select_columns(&nz);
                     let lkt_a = lk.tr_mul(&a);
                     // `lkᵀ·lk` (as `tr_mul` sums it: three terms from
@@ -685,14 +721,42 @@ impl LinearModel {
                     // keeps), each pair once, into the lower triangle:
                     // column `cx` is contiguous. The upper triangle is its
                     // mirror (each pair's two entries were the same sum of
-                    // the same products).
-                    let lk = lk.as_slice();
+                    // the same products). `lk`'s rows side by side and `nz`
+                    // in runs of consecutive columns (a reflector's
+                    // stations' poses, the error parameters): each run's
+                    // entries of a column are contiguous, and so are the
+                    // three rows' values they read, so the sums go several
+                    // entries at a time — each entry the same three-term
+                    // sum, added in the same order of readings.
+                    for (row, out) in lk_rows.iter_mut().enumerate() {
+                        out.clear();
+                        out.extend(lk.row(row).iter());
+                    }
+                    runs.clear();
+                    let mut start = 0;
+                    for x in 1..=nz.len() {
+                        if x == nz.len() || nz[x] != nz[x - 1] + 1 {
+                            runs.push((start, x));
+                            start = x;
+                        }
+                    }
+                    let [k0, k1, k2] = &lk_rows;
+                    let mut first_run = 0;
                     for (x, &cx) in nz.iter().enumerate() {
                         h_k[cx] += lkt_a[x];
-                        let kx = &lk[3 * x..3 * x + 3];
+                        let (a0, a1, a2) = (k0[x], k1[x], k2[x]);
                         let column = &mut g_k.as_mut_slice()[cx * n_a..(cx + 1) * n_a];
-                        for (ky, &cy) in lk[3 * x..].chunks_exact(3).zip(&nz[x..]) {
-                            column[cy] += kx[0] * ky[0] + kx[1] * ky[1] + kx[2] * ky[2];
+                        while runs[first_run].1 <= x {
+                            first_run += 1;
+                        }
+                        for &(s, e) in &runs[first_run..] {
+                            let s = s.max(x);
+                            let out = &mut column[nz[s]..nz[s] + (e - s)];
+                            for (((o, b0), b1), b2) in
+                                out.iter_mut().zip(&k0[s..e]).zip(&k1[s..e]).zip(&k2[s..e])
+                            {
+                                *o += a0 * b0 + a1 * b1 + a2 * b2;
+                            }
                         }
                     }
                 }
@@ -901,7 +965,7 @@ impl LinearModel {
             let a = Vector3::new(f.res[3 * i], f.res[3 * i + 1], f.res[3 * i + 2]);
             let kd = k_times(&self.j, &f.factor, i, &d_a, &mut wd_of);
             let mut s = Vector3::zeros();
-            if let (Some(p), Some(jx)) = (self.j.block_point(i), self.j.point_part(i))
+            if let Some((p, jx)) = self.j.point_of(i)
                 && let Some(Some(shift)) = shift_of.get(p)
             {
                 s += crate::calibrate::sparse::part3_mul(jx, shift);
@@ -1006,8 +1070,16 @@ fn fold_factor(n: &Normal) -> Option<Factor> {
 const FOLD_RIDGE: f64 = 1e-12;
 
 /// Reading i's `K_i = J_iA − J_iX·H_XX⁻¹·H_XA` on the fold's factor, into
-/// `out` (3 × n_a, zero outside `nz`), and its non-zero columns `nz`.
-fn k_rows(j: &BlockJacobian, f: &Factor, i: usize, out: &mut DMatrix<f64>, nz: &mut Vec<usize>) {
+/// `out` (3 × n_a, zero outside `nz`), and its non-zero columns `nz`
+/// (ascending; `merged`: scratch space).
+fn k_rows(
+    j: &BlockJacobian,
+    f: &Factor,
+    i: usize,
+    out: &mut DMatrix<f64>,
+    nz: &mut Vec<usize>,
+    merged: &mut Vec<usize>,
+) {
     for &c in nz.iter() {
         for a in 0..3 {
             out[(a, c)] = 0.0;
@@ -1022,7 +1094,8 @@ fn k_rows(j: &BlockJacobian, f: &Factor, i: usize, out: &mut DMatrix<f64>, nz: &
             nz.push(col + c);
         }
     }
-    if let (Some(p), Some(jx)) = (j.block_point(i), j.point_part(i)) {
+    let dense = nz.len();
+    if let Some((p, jx)) = j.point_of(i) {
         // H_XX⁻¹·H_XA = Wᵀ on the position's columns.
         let (cols, w) = f.point_coupling(p);
         let jx = Matrix3::from_row_slice(jx);
@@ -1034,7 +1107,26 @@ fn k_rows(j: &BlockJacobian, f: &Factor, i: usize, out: &mut DMatrix<f64>, nz: &
             nz.push(c);
         }
     }
-    nz.sort_unstable();
+    // The block's parts and the position's columns each ascend as a rule:
+    // merged, the order a sort gives, without one per reading.
+    let (a, b) = nz.split_at(dense);
+    if a.is_sorted() && b.is_sorted() {
+        merged.clear();
+        let (mut a, mut b) = (a.iter().peekable(), b.iter().peekable());
+        while let (Some(&&x), Some(&&y)) = (a.peek(), b.peek()) {
+            if x <= y {
+                merged.push(x);
+                a.next();
+            } else {
+                merged.push(y);
+                b.next();
+            }
+        }
+        merged.extend(a.chain(b));
+        std::mem::swap(nz, merged);
+    } else {
+        nz.sort_unstable();
+    }
     nz.dedup();
 }
 
@@ -1054,7 +1146,7 @@ fn k_times(
         }
     }
     let mut v = Vector3::from(out);
-    if let (Some(p), Some(jx)) = (j.block_point(i), j.point_part(i)) {
+    if let Some((p, jx)) = j.point_of(i) {
         let wd = *wd_of[p].get_or_insert_with(|| {
             let (cols, w) = f.point_coupling(p);
             let mut wd = Vector3::zeros();
@@ -1267,7 +1359,7 @@ mod tests {
                 let mut view = u_a.view_mut((col, 0), (w, k));
                 view += ji.tr_mul(&ci);
             }
-            if let (Some(p), Some(part)) = (j.block_point(i), j.point_part(i)) {
+            if let Some((p, part)) = j.point_of(i) {
                 let add = DMatrix::from_row_slice(3, 3, part).tr_mul(&ci);
                 match u_x.iter_mut().find(|(q, _)| *q == p) {
                     Some((_, m)) => *m += add,
