@@ -1862,14 +1862,9 @@ mod tests {
         assert_eq!(a.quadratic(&d), b.quadratic(&d));
     }
 
-    /// Issue 34: blocks pushed with their values stored position by
-    /// position and filled in place are the blocks pushed one by one: the
-    /// same matrix, and the same assembly and solve, bit for bit.
-    #[test]
-    fn blocks_stored_by_group_are_the_blocks_pushed_in_order() {
-        let (j, _) = random_arrow(5, 0.43, 2.0, true);
-        let mut g = BlockJacobian::new(j.n_a(), j.ncols());
-        let shapes = j.blocks.iter().enumerate().map(|(b, blk)| {
+    /// The shape of each of `j`'s blocks, grouped by its position.
+    fn shapes_of(j: &BlockJacobian) -> impl Iterator<Item = BlockShape> + '_ {
+        j.blocks.iter().enumerate().map(|(b, blk)| {
             let mut parts = [(0, 0); 3];
             for (out, p) in parts.iter_mut().zip(&j.parts[blk.parts.0..blk.parts.1]) {
                 *out = (p.col, p.width);
@@ -1879,11 +1874,25 @@ mod tests {
                 parts,
                 group: j.block_point(b).expect("every block on a position"),
             }
-        });
-        for (blk, out) in j.blocks.iter().zip(g.push_grouped(shapes, j.points())) {
+        })
+    }
+
+    /// Fills blocks pushed with [`shapes_of`]`(j)` with `j`'s values.
+    fn fill_from(j: &BlockJacobian, outs: Vec<&mut [f64]>) {
+        for (blk, out) in j.blocks.iter().zip(outs) {
             let values: Vec<f64> = j.parts_of(blk).flat_map(|(_, _, v)| v.to_vec()).collect();
             out.copy_from_slice(&values);
         }
+    }
+
+    /// Issue 34: blocks pushed with their values stored position by
+    /// position and filled in place are the blocks pushed one by one: the
+    /// same matrix, and the same assembly and solve, bit for bit.
+    #[test]
+    fn blocks_stored_by_group_are_the_blocks_pushed_in_order() {
+        let (j, _) = random_arrow(5, 0.43, 2.0, true);
+        let mut g = BlockJacobian::new(j.n_a(), j.ncols());
+        fill_from(&j, g.push_grouped(shapes_of(&j), j.points()));
         assert_ne!(g.values, j.values, "stored in another order");
         assert_eq!(g.to_dense(), j.to_dense());
         let r = DVector::from_fn(j.nrows(), |i, _| (i as f64 * 1.3).sin());
@@ -1909,34 +1918,15 @@ mod tests {
     fn a_layout_pushed_again_is_the_grouped_push_of_its_shapes() {
         let (j, _) = random_arrow(5, 0.43, 2.0, true);
         assert!(j.n_a() > 0);
-        let shapes = || {
-            j.blocks.iter().enumerate().map(|(b, blk)| {
-                let mut parts = [(0, 0); 3];
-                for (out, p) in parts.iter_mut().zip(&j.parts[blk.parts.0..blk.parts.1]) {
-                    *out = (p.col, p.width);
-                }
-                BlockShape {
-                    rows: blk.rows,
-                    parts,
-                    group: j.block_point(b).expect("every block on a position"),
-                }
-            })
-        };
-        let fill = |outs: Vec<&mut [f64]>| {
-            for (blk, out) in j.blocks.iter().zip(outs) {
-                let values: Vec<f64> = j.parts_of(blk).flat_map(|(_, _, v)| v.to_vec()).collect();
-                out.copy_from_slice(&values);
-            }
-        };
         let mut grouped = BlockJacobian::new(j.n_a(), j.ncols());
         grouped.push(1, &[(0, &[1.5])]);
-        fill(grouped.push_grouped(shapes(), j.points()));
-        let laid = GroupedLayout::new(shapes(), j.points());
+        fill_from(&j, grouped.push_grouped(shapes_of(&j), j.points()));
+        let laid = GroupedLayout::new(shapes_of(&j), j.points());
         let mut again = BlockJacobian::new(j.n_a(), j.ncols());
         for _ in 0..2 {
             again = again.recycle(j.n_a(), j.ncols(), [0; 3]);
             again.push(1, &[(0, &[1.5])]);
-            fill(again.push_laid_out(&laid));
+            fill_from(&j, again.push_laid_out(&laid));
             assert_eq!(again.values, grouped.values);
             assert_eq!(again.to_dense(), grouped.to_dense());
         }
