@@ -1039,7 +1039,8 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
     // each run's entries of a row of the update lie side by side, and
     // their loop vectorises (the same sum per entry).
     let h: [Vec<f64>; 3] = std::array::from_fn(|c| p.h_ax.iter().map(|hb| hb[c]).collect());
-    let runs = consecutive_runs(&p.cols);
+    let mut runs = Vec::new();
+    consecutive_runs(&p.cols, &mut runs);
     for (a, wa) in w.iter().enumerate() {
         let row = &mut share[p.cols[a] * n_a..(p.cols[a] + 1) * n_a];
         for &(lo, hi) in &runs {
@@ -1067,9 +1068,9 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
 }
 
 /// The maximal ranges `[lo, hi)` of `cols` (ascending) whose columns are
-/// consecutive.
-fn consecutive_runs(cols: &[usize]) -> Vec<(usize, usize)> {
-    let mut runs = Vec::new();
+/// consecutive, into `runs` (cleared first: a caller per reading keeps one).
+pub fn consecutive_runs(cols: &[usize], runs: &mut Vec<(usize, usize)>) {
+    runs.clear();
     let mut lo = 0;
     for i in 1..=cols.len() {
         if i == cols.len() || cols[i] != cols[i - 1] + 1 {
@@ -1077,7 +1078,6 @@ fn consecutive_runs(cols: &[usize]) -> Vec<(usize, usize)> {
             lo = i;
         }
     }
-    runs
 }
 
 /// One eliminated position in a factorisation.
@@ -1261,7 +1261,6 @@ impl Factor {
     pub fn reduce_sparse(&self, u_a: &DMatrix<f64>, u_x: &[(usize, DMatrix<f64>)]) -> DMatrix<f64> {
         let mut v = u_a.clone();
         let n = v.nrows();
-        let mut runs: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
         for (i, ux) in u_x {
             let p = &self.points[*i];
             // `W`'s three columns as slices (column-major), walked beside
@@ -1277,27 +1276,19 @@ impl Factor {
             // off entries that are never `−0` (sums from `+0`): skipped,
             // the same numbers.
             // The position's columns in runs of consecutive ones (its
-            // stations' poses, the error parameters): a run's entries of
-            // `v` are contiguous, as are its values of `W`, so the
-            // products go several entries at a time — each entry the same
-            // sum, taken off once.
-            runs.clear();
-            let mut start = 0;
-            for x in 1..=m {
-                if x == m || p.cols[x] != p.cols[x - 1] + 1 {
-                    runs.push((p.cols[start], start..x));
-                    start = x;
-                }
-            }
+            // stations' poses, the error parameters; kept with its factor):
+            // a run's entries of `v` are contiguous, as are its values of
+            // `W`, so the products go several entries at a time — each
+            // entry the same sum, taken off once.
             for col in 0..v.ncols() {
                 let u = [ux[(0, col)], ux[(1, col)], ux[(2, col)]];
                 if u == [0.0; 3] {
                     continue;
                 }
                 let out = &mut v.as_mut_slice()[col * n..(col + 1) * n];
-                for (c0, at) in &runs {
-                    let out = &mut out[*c0..*c0 + at.len()];
-                    let (w0, w1, w2) = (&w0[at.clone()], &w1[at.clone()], &w2[at.clone()]);
+                for &(lo, hi) in &p.runs {
+                    let out = &mut out[p.cols[lo]..p.cols[lo] + hi - lo];
+                    let (w0, w1, w2) = (&w0[lo..hi], &w1[lo..hi], &w2[lo..hi]);
                     for (((o, a), b), d) in out.iter_mut().zip(w0).zip(w1).zip(w2) {
                         *o -= a * u[0] + b * u[1] + d * u[2];
                     }

@@ -732,14 +732,7 @@ impl LinearModel {
                         out.clear();
                         out.extend(lk.row(row).iter());
                     }
-                    runs.clear();
-                    let mut start = 0;
-                    for x in 1..=nz.len() {
-                        if x == nz.len() || nz[x] != nz[x - 1] + 1 {
-                            runs.push((start, x));
-                            start = x;
-                        }
-                    }
+                    sparse::consecutive_runs(&nz, &mut runs);
                     let [k0, k1, k2] = &lk_rows;
                     let mut first_run = 0;
                     for (x, &cx) in nz.iter().enumerate() {
