@@ -50,6 +50,7 @@ use crate::kinematics::{self, Face, Joints, Reading, link1_rotation, link2_rotat
 use crate::trackers::{self, Evaluate, Param, TrackerModel};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use std::cell::Cell;
 use std::fmt;
 
 /// Number of error parameters of the DH model: 6 per joint, 3 joints.
@@ -601,10 +602,28 @@ impl Evaluator<'_> {
     /// when its beam reaches `target` — the joint values that solve Eq. (8)
     /// (or another model's forward model) exactly ([`kinematics::invert`]).
     pub fn reading_of(&self, target: &Vector3<f64>, face: Face) -> Result<Reading, InverseError> {
-        kinematics::invert(target, face, |r| {
+        self.reading_and_links_of(target, face).map(|(r, _)| r)
+    }
+
+    /// [`Self::reading_of`] with the reading's link rotations: the inverse's
+    /// last evaluation is at the reading it returns, so a caller that goes
+    /// on to evaluate there (the bundle's design network) need not build
+    /// them again (issue 34).
+    pub fn reading_and_links_of(
+        &self,
+        target: &Vector3<f64>,
+        face: Face,
+    ) -> Result<(Reading, Links), InverseError> {
+        let last = Cell::new(None);
+        let r = kinematics::invert(target, face, |r| {
             let q = r.joints();
-            self.point(q, &Links::new(q))
-        })
+            let links = Links::new(q);
+            last.set(Some(links));
+            self.point(q, &links)
+        })?;
+        // `invert` returns only after evaluating its answer.
+        let links = last.get().unwrap_or_else(|| Links::new(r.joints()));
+        Ok((r, links))
     }
 
     /// Eq. (8) at joints `q` whose link rotations are `links`.

@@ -47,7 +47,7 @@ use super::{
     BundleStd, Calibration, FitSummary, Network, Norm, Settings, SigmaFactor, gauge_scale_ppm,
 };
 use crate::determined::Determined;
-use crate::error_model::{ErrorParams, Evaluator, Links};
+use crate::error_model::{ErrorParams, Evaluator};
 use crate::identifiability::{Analysis, Combination, RowMajor};
 use crate::identify::{VC_MAX_ITERS, VC_ROUND_OFF, helmert_round, helmert_u};
 use crate::kinematics::nominal_jacobian;
@@ -286,11 +286,12 @@ impl<'a> Bundle<'a> {
         let xt = self.point(x, o.target);
         let y = station.to_station * (xt - station.c);
         // The design network reads exactly the predicted point: the joints
-        // that reach `y` with the current parameters.
+        // that reach `y` with the current parameters, with their link
+        // rotations as the inverse left them.
         let design_q = design
-            .then(|| eval.reading_of(&y, o.face).ok())
+            .then(|| eval.reading_and_links_of(&y, o.face).ok())
             .flatten()
-            .map(|r| (r.joints(), Links::new(r.joints()), design_weight(o, r)));
+            .map(|(r, links)| (r.joints(), links, design_weight(o, r)));
         let (q, links, m) = match &design_q {
             Some((q, l, m)) => (*q, l, *m),
             None => (o.q, &o.links, self.weights[i]),
