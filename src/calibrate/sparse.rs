@@ -908,9 +908,10 @@ impl Normal {
         for &b in &dense_only {
             acc.add(b, None);
         }
+        let h_aa_shares: Vec<&[f64]> = shares.iter().map(|(h, _, _)| h.as_slice()).collect();
+        combine_shares(&mut acc.h_aa, n_a, &h_aa_shares, |a, b| *a += b);
         let mut points = Vec::with_capacity(j.points());
-        for (h_aa, g_a, pts) in shares {
-            acc.h_aa.iter_mut().zip(&h_aa).for_each(|(a, b)| *a += b);
+        for (_, g_a, pts) in shares {
             acc.g_a.iter_mut().zip(&g_a).for_each(|(a, b)| *a += b);
             points.extend(pts);
         }
@@ -979,19 +980,8 @@ impl Normal {
         for i in 0..n_a {
             s[(i, i)] += lambda * self.h_aa[(i, i)].max(1e-300);
         }
-        // Every entry takes the chunks' shares off in chunk order, a
-        // column per task: the same numbers, on every core (16 shares of
-        // a 121-wide dense part were 0.2 M subtractions on one, issue 34).
-        s.as_mut_slice()
-            .par_chunks_mut(n_a.max(1))
-            .enumerate()
-            .with_min_len(8)
-            .for_each(|(c, col)| {
-                for (share, _) in &shares {
-                    let share = &share[c * n_a..(c + 1) * n_a];
-                    col.iter_mut().zip(share).for_each(|(a, b)| *a -= b);
-                }
-            });
+        let schur_shares: Vec<&[f64]> = shares.iter().map(|(s, _)| s.as_slice()).collect();
+        combine_shares(s.as_mut_slice(), n_a, &schur_shares, |a, b| *a -= b);
         let points = shares.into_iter().flat_map(|(_, f)| f).collect();
         mirror_lower(s.as_mut_slice(), n_a);
         if !s.iter().all(|v| v.is_finite()) {
@@ -1500,6 +1490,23 @@ pub fn all_finite(values: &[f64]) -> bool {
         .all(|v| v.is_finite())
 }
 
+/// `out` (column-major, `n` rows) combined with each chunk's share in
+/// turn by `op`, every entry its shares in chunk order, a column per task:
+/// the same numbers on any number of cores. Sixteen shares of a 121-wide
+/// dense part are 0.2 M operations, once per assembly and factorisation,
+/// that ran on one core while the other waited (issue 34).
+fn combine_shares(out: &mut [f64], n: usize, shares: &[&[f64]], op: impl Fn(&mut f64, f64) + Sync) {
+    out.par_chunks_mut(n.max(1))
+        .enumerate()
+        .with_min_len(8)
+        .for_each(|(c, col)| {
+            for share in shares {
+                let share = &share[c * n..(c + 1) * n];
+                col.iter_mut().zip(share).for_each(|(a, &b)| op(a, b));
+            }
+        });
+}
+
 fn min_max(a: usize, b: usize) -> (usize, usize) {
     if a <= b { (a, b) } else { (b, a) }
 }
@@ -1956,6 +1963,34 @@ mod tests {
             }
         }
         assert_eq!(f.dense_covariance(), inv);
+    }
+
+    /// Issue 34: the chunks' shares combined column by column in parallel
+    /// are the serial pass's, entry by entry in chunk order — with values
+    /// whose sum depends on that order.
+    #[test]
+    fn shares_combined_by_columns_are_the_serial_pass_s() {
+        let n = 23;
+        let shares: Vec<Vec<f64>> = (0..5)
+            .map(|k| {
+                (0..n * n)
+                    .map(|i| match (i + k) % 3 {
+                        0 => 1e16,
+                        1 => -1e16,
+                        _ => 1.0 + (i * k) as f64 * 0.1,
+                    })
+                    .collect()
+            })
+            .collect();
+        let refs: Vec<&[f64]> = shares.iter().map(Vec::as_slice).collect();
+        let start: Vec<f64> = (0..n * n).map(|i| i as f64 * 0.37).collect();
+        let mut serial = start.clone();
+        for share in &shares {
+            serial.iter_mut().zip(share).for_each(|(a, b)| *a -= b);
+        }
+        let mut combined = start;
+        combine_shares(&mut combined, n, &refs, |a, b| *a -= b);
+        assert_eq!(combined, serial);
     }
 
     #[test]
