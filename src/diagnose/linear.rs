@@ -459,10 +459,28 @@ impl Products {
 /// The fit of `c` to `r_perp` (the residuals, `J`'s span removed) on the
 /// factor `full` of all data.
 fn fit_with(j: &BlockJacobian, full: &Factor, r_perp: &DVector<f64>, c: &Signature) -> Fit {
+    fit_keeping(j, full, r_perp, c).0
+}
+
+/// [`fit_with`] and the products it formed over every reading.
+fn fit_keeping(
+    j: &BlockJacobian,
+    full: &Factor,
+    r_perp: &DVector<f64>,
+    c: &Signature,
+) -> (Fit, AllProducts) {
     let pr = products(j, c, Some(r_perp), |_| true);
     let (gram, _) = pr.projected_gram(full);
-    fit_of(&gram, &pr.ctx, c.column_scale(|_| true))
+    let fit = fit_of(&gram, &pr.ctx, c.column_scale(|_| true));
+    (fit, AllProducts(pr))
 }
+
+/// A signature's `u_A`, `uₓ` and `CᵀC` over every reading, as its fit on
+/// all data formed them ([`LinearModel::fit_keeping`]): what
+/// [`LinearModel::cv_rms_um_given`] starts from. `Cᵀx` is not read there
+/// (each fold sums its own), and the other sums do not depend on `x`: they
+/// are the products [`LinearModel::cv_rms_um`] forms, the same numbers.
+pub struct AllProducts(Products);
 
 /// The fits of the nested signatures `chain` (each the one before on
 /// fewer of its readings, the same values there: a station's steps at
@@ -833,12 +851,28 @@ impl LinearModel {
         fit_with(&self.j, &self.full, &self.r_perp, c)
     }
 
+    /// [`LinearModel::fit`] and the products over every reading it formed.
+    pub fn fit_keeping(&self, c: &Signature) -> (Fit, AllProducts) {
+        fit_keeping(&self.j, &self.full, &self.r_perp, c)
+    }
+
     /// [`LinearModel::fit`] of each of `cs`, in parallel, in their order: a
     /// run of nested signatures (each [`Signature::narrows`] the one before:
     /// a station's steps at later and later times, a reflector's shift from
     /// later and later stations) as one chain ([`fit_nested`], equal to the
     /// fits one by one to round-off), every other signature on its own.
     pub fn fit_each(&self, cs: &[&Signature]) -> Vec<Fit> {
+        self.fit_each_keeping(cs)
+            .into_iter()
+            .map(|(fit, _)| fit)
+            .collect()
+    }
+
+    /// [`LinearModel::fit_each`], each fit with the products over every
+    /// reading it formed, where it formed them (a chain's fits have none):
+    /// a candidate's held-out RMS ([`LinearModel::cv_rms_um_given`]) need
+    /// not form them again.
+    pub fn fit_each_keeping(&self, cs: &[&Signature]) -> Vec<(Fit, Option<AllProducts>)> {
         let mut runs: Vec<std::ops::Range<usize>> = Vec::new();
         for (i, c) in cs.iter().enumerate() {
             match runs.last_mut() {
@@ -848,8 +882,14 @@ impl LinearModel {
         }
         runs.par_iter()
             .map(|run| match run.len() {
-                1 => vec![self.fit(cs[run.start])],
-                _ => fit_nested(&self.j, &self.full, &self.r_perp, &cs[run.clone()]),
+                1 => {
+                    let (fit, all) = self.fit_keeping(cs[run.start]);
+                    vec![(fit, Some(all))]
+                }
+                _ => fit_nested(&self.j, &self.full, &self.r_perp, &cs[run.clone()])
+                    .into_iter()
+                    .map(|fit| (fit, None))
+                    .collect(),
             })
             .collect::<Vec<_>>()
             .into_iter()
@@ -896,12 +936,26 @@ impl LinearModel {
     /// Root mean square of the held-out residuals in µm with `c` added to
     /// the model, for the model's own residuals.
     pub fn cv_rms_um(&self, c: &Signature) -> f64 {
+        self.cv_rms_um_given(c, None)
+    }
+
+    /// [`LinearModel::cv_rms_um`] from `c`'s products over every reading
+    /// where its fit formed them already ([`LinearModel::fit_keeping`]),
+    /// the same numbers.
+    pub fn cv_rms_um_given(&self, c: &Signature, all: Option<&AllProducts>) -> f64 {
         // The products over every reading once; a fold's training share is
         // them less its held-out readings' (a fifth of the readings per
         // fold instead of four fifths). `ctx` depends on the fold's
         // residuals: it is summed over the training readings themselves
         // (neither the whole products' nor the held-out ones' is read).
-        let all = products(&self.j, c, None, |_| true);
+        let own;
+        let all = match all {
+            Some(AllProducts(all)) => all,
+            None => {
+                own = products(&self.j, c, None, |_| true);
+                &own
+            }
+        };
         let c_rows: Vec<(usize, &[f64])> = c.blocks().collect();
         // Each fold's part is its own (its sums in its own order): the
         // folds in parallel — a broad candidate was one thread's work
@@ -909,7 +963,7 @@ impl LinearModel {
         // the same number.
         let parts: Vec<f64> = (0..self.folds.len())
             .into_par_iter()
-            .map(|fi| self.cv_part(c, &all, &c_rows, fi))
+            .map(|fi| self.cv_part(c, all, &c_rows, fi))
             .collect();
         let mut sum = 0.0;
         for part in parts {

@@ -1877,18 +1877,27 @@ impl StepContext<'_> {
             .collect();
         // Without members, a reflector's shifts from later and later
         // stations (nested) are fitted as one chain ([`LinearModel::fit_each`]).
-        let fits: Vec<linear::Fit> = if against.ncols() == 0 {
-            lm.fit_each(
-                &open
-                    .iter()
-                    .map(|&i| &st.cands[i].columns)
-                    .collect::<Vec<_>>(),
-            )
-        } else {
-            open.par_iter()
-                .map(|&i| lm.fit(&Signature::joined(&against, &st.cands[i].columns)))
-                .collect()
-        };
+        // Each fit with the products over every reading it formed: the
+        // held-out RMS of the best per effect and place starts from them.
+        let (fits, mut formed): (Vec<linear::Fit>, Vec<Option<linear::AllProducts>>) =
+            if against.ncols() == 0 {
+                lm.fit_each_keeping(
+                    &open
+                        .iter()
+                        .map(|&i| &st.cands[i].columns)
+                        .collect::<Vec<_>>(),
+                )
+                .into_iter()
+                .unzip()
+            } else {
+                open.par_iter()
+                    .map(|&i| {
+                        let (fit, all) =
+                            lm.fit_keeping(&Signature::joined(&against, &st.cands[i].columns));
+                        (fit, Some(all))
+                    })
+                    .unzip()
+            };
         let gain = |f: &linear::Fit| (f.delta_chi2 - members_chi2).max(0.0);
         let mut best: Vec<(usize, usize, f64)> = Vec::new();
         // Each (effect, place)'s entry in `best`: a search of `best` per
@@ -1910,10 +1919,16 @@ impl StepContext<'_> {
             }
         }
         let tried: usize = best.iter().map(|(i, _, _)| st.cands[*i].alternatives).sum();
+        // The best's products kept, the others' dropped.
+        let formed: Vec<Option<linear::AllProducts>> = best
+            .iter()
+            .map(|&(_, slot, _)| formed[slot].take())
+            .collect();
         let m = lm.rows() as f64;
         let scored: Vec<(Row, (usize, Vec<f64>))> = best
             .par_iter()
-            .map(|&(i, slot, delta_chi2)| {
+            .zip(&formed)
+            .map(|(&(i, slot, delta_chi2), all)| {
                 let cand: &Candidate = &st.cands[i];
                 let fit = &fits[slot];
                 let k = cand.columns.ncols();
@@ -1923,7 +1938,8 @@ impl StepContext<'_> {
                 let p = f_test::p_value(k as f64, dof_aug as f64, f_stat);
                 let p_corrected = (p * tried as f64 * spend).min(1.0);
                 let delta_bic = delta_chi2 - k as f64 * m.ln();
-                let rms_after = lm.cv_rms_um(&Signature::joined(&against, &cand.columns));
+                let rms_after =
+                    lm.cv_rms_um_given(&Signature::joined(&against, &cand.columns), all.as_ref());
                 let score = 100.0 * (1.0 - (rms_after / rms_before).powi(2));
                 let cov = fit.cov.view((k_a, k_a), (k, k)).into_owned();
                 // A candidate the set (or the base model) already spans in
