@@ -862,10 +862,7 @@ impl LinearModel {
     /// later and later stations) as one chain ([`fit_nested`], equal to the
     /// fits one by one to round-off), every other signature on its own.
     pub fn fit_each(&self, cs: &[&Signature]) -> Vec<Fit> {
-        self.fit_each_keeping(cs)
-            .into_iter()
-            .map(|(fit, _)| fit)
-            .collect()
+        self.fit_runs(cs, |c| self.fit(c), |fit| fit)
     }
 
     /// [`LinearModel::fit_each`], each fit with the products over every
@@ -873,6 +870,26 @@ impl LinearModel {
     /// a candidate's held-out RMS ([`LinearModel::cv_rms_um_given`]) need
     /// not form them again.
     pub fn fit_each_keeping(&self, cs: &[&Signature]) -> Vec<(Fit, Option<AllProducts>)> {
+        self.fit_runs(
+            cs,
+            |c| {
+                let (fit, all) = self.fit_keeping(c);
+                (fit, Some(all))
+            },
+            |fit| (fit, None),
+        )
+    }
+
+    /// [`LinearModel::fit_each`]'s runs, a lone signature fitted by `lone`,
+    /// a chain's fits passed through `chained`: a caller that does not keep
+    /// the products never holds them (the localisation's ~127 broad bases
+    /// at once would be ~100 MB at 24 000 readings).
+    fn fit_runs<T: Send>(
+        &self,
+        cs: &[&Signature],
+        lone: impl Fn(&Signature) -> T + Sync,
+        chained: impl Fn(Fit) -> T + Sync,
+    ) -> Vec<T> {
         let mut runs: Vec<std::ops::Range<usize>> = Vec::new();
         for (i, c) in cs.iter().enumerate() {
             match runs.last_mut() {
@@ -882,13 +899,10 @@ impl LinearModel {
         }
         runs.par_iter()
             .map(|run| match run.len() {
-                1 => {
-                    let (fit, all) = self.fit_keeping(cs[run.start]);
-                    vec![(fit, Some(all))]
-                }
+                1 => vec![lone(cs[run.start])],
                 _ => fit_nested(&self.j, &self.full, &self.r_perp, &cs[run.clone()])
                     .into_iter()
-                    .map(|fit| (fit, None))
+                    .map(&chained)
                     .collect(),
             })
             .collect::<Vec<_>>()
