@@ -894,18 +894,17 @@ pub fn calibrate(
             })
         })
         .collect();
-    // Each position's covariance is its own: in parallel.
-    let cov_rows = cov_a.transpose();
+    let eliminated = factor.point_covariances(&cov_a, var_factor);
     let estimated: Vec<(usize, Vector3<f64>, Matrix3<f64>)> = layout
         .point
-        .par_iter()
+        .iter()
         .enumerate()
         .filter_map(|(t, off)| {
             let (o, dense) = (*off)?;
             let cov = if dense {
                 Matrix3::from_fn(|i, j| cov_a[(o + i, o + j)])
             } else {
-                factor.point_covariance((o - layout.n_a) / 3, &cov_rows, var_factor)
+                eliminated[(o - layout.n_a) / 3]
             };
             Some((t, problem.point(x, t), cov))
         })

@@ -1064,6 +1064,60 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
     })
 }
 
+/// How much more padded work a dense product over a chunk of positions
+/// may do than their own products and still be taken: `matrixmultiply`'s
+/// blocked kernel (nalgebra's `*` on matrices wider than five) does ~4× the
+/// multiply-adds per cycle of the per-position loops, whose rows are a
+/// station's six columns long (issue 34).
+const PANEL_GAIN: usize = 3;
+
+/// The union `U` of a chunk of positions' columns (ascending) when one
+/// dense product on `U` — `|U|²` entries per position's three columns —
+/// costs at most [`PANEL_GAIN`] times the positions' own products (`work(c)`
+/// entries for `c` columns); `None` otherwise. In a hall every station
+/// sees nearly every reflector and `U` is each position's own columns; in
+/// a network where each reflector is seen from a few of many stations, `U`
+/// is mostly padding and the positions go one by one.
+fn panel_columns<'a>(
+    cols: impl Iterator<Item = &'a [usize]>,
+    n_a: usize,
+    work: impl Fn(usize) -> usize,
+) -> Option<Vec<usize>> {
+    let mut seen = vec![false; n_a];
+    let (mut exact, mut m) = (0usize, 0usize);
+    for c in cols.filter(|c| !c.is_empty()) {
+        c.iter().for_each(|&x| seen[x] = true);
+        exact += work(c.len());
+        m += 1;
+    }
+    let u: Vec<usize> = (0..n_a).filter(|&c| seen[c]).collect();
+    (m > 0 && u.len() * u.len() * m <= PANEL_GAIN * exact).then_some(u)
+}
+
+/// A `c × 3` block per position (`value(position, row, column)` on its
+/// `cols`), scattered onto the union `u` of their columns side by side:
+/// `|u| × 3m`, column-major, zero where a position has no column.
+fn scatter(
+    u: &[usize],
+    n_a: usize,
+    cols: &[&[usize]],
+    value: impl Fn(usize, usize, usize) -> f64,
+) -> DMatrix<f64> {
+    let mut at = vec![usize::MAX; n_a];
+    for (i, &c) in u.iter().enumerate() {
+        at[c] = i;
+    }
+    let mut out = DMatrix::zeros(u.len(), 3 * cols.len());
+    for (j, cj) in cols.iter().enumerate() {
+        for (a, &c) in cj.iter().enumerate() {
+            for l in 0..3 {
+                out[(at[c], 3 * j + l)] = value(j, a, l);
+            }
+        }
+    }
+    out
+}
+
 /// The maximal ranges `[lo, hi)` of `cols` (ascending) whose columns are
 /// consecutive, into `runs` (cleared first: a caller per reading keeps one).
 pub fn consecutive_runs(cols: &[usize], runs: &mut Vec<(usize, usize)>) {
@@ -1210,6 +1264,43 @@ impl Factor {
             }
         }
         inv
+    }
+
+    /// Every eliminated position's 3 × 3 covariance ([`Self::point_covariance`]),
+    /// given the dense part's covariance `C = v·S⁻¹`: in parallel, a chunk
+    /// of positions at a time, each chunk's `Cᵀ·W` one dense product on the
+    /// union of its positions' columns where they share most of them
+    /// ([`panel_columns`]) — the same sums in another order, equal at
+    /// round-off — else position by position. (What the stage reports; no
+    /// fit or decision depends on it, so the order may change.)
+    pub fn point_covariances(&self, dense_cov: &DMatrix<f64>, v: f64) -> Vec<Matrix3<f64>> {
+        let n_a = self.n_a;
+        let rows = dense_cov.transpose();
+        let chunk = self.points.len().div_ceil(CHUNKS).max(1);
+        let per_chunk: Vec<Vec<Matrix3<f64>>> = self
+            .points
+            .par_chunks(chunk)
+            .enumerate()
+            .map(|(c, pts)| {
+                let cols: Vec<&[usize]> = pts.iter().map(|p| p.cols.as_slice()).collect();
+                let Some(u) = panel_columns(cols.iter().copied(), n_a, |c| c * c) else {
+                    return (c * chunk..c * chunk + pts.len())
+                        .map(|i| self.point_covariance(i, &rows, v))
+                        .collect();
+                };
+                let w = scatter(&u, n_a, &cols, |j, a, l| pts[j].w[(a, l)]);
+                let c_t = DMatrix::from_fn(u.len(), u.len(), |i, j| rows[(u[i], u[j])]);
+                let cw = c_t * &w;
+                (0..pts.len())
+                    .map(|j| {
+                        let (cw_j, w_j) = (cw.columns(3 * j, 3), w.columns(3 * j, 3));
+                        let add = Matrix3::from_fn(|k, l| cw_j.column(k).dot(&w_j.column(l)));
+                        pts[j].inv * v + add
+                    })
+                    .collect()
+            })
+            .collect();
+        per_chunk.into_iter().flatten().collect()
     }
 
     /// The 3 × 3 covariance of eliminated position `i`, given the dense
@@ -1968,6 +2059,109 @@ mod tests {
     /// Issue 34: the chunks' shares combined column by column in parallel
     /// are the serial pass's, entry by entry in chunk order — with values
     /// whose sum depends on that order.
+    /// A network in a hall's shape: 4 error coordinates, `stations` poses
+    /// (6 columns each) and `n_pts` reflectors, each read three times from
+    /// every station `sees(point, station)` admits.
+    fn station_network(
+        n_pts: usize,
+        stations: usize,
+        sees: impl Fn(usize, usize) -> bool,
+    ) -> (BlockJacobian, DMatrix<f64>) {
+        let n_a = 4 + 6 * stations;
+        let n = n_a + 3 * n_pts;
+        let mut j = BlockJacobian::new(n_a, n);
+        let mut rows = Vec::new();
+        let mut s = 0.61_f64;
+        let mut next = || {
+            s = (s * 9301.0 + 49297.0) % 233280.0;
+            s / 233280.0 - 0.5
+        };
+        for p in 0..n_pts {
+            for st in (0..stations).filter(|&st| sees(p, st)) {
+                let z: Vec<f64> = (0..12).map(|_| next()).collect();
+                let pose: Vec<f64> = (0..18).map(|_| next()).collect();
+                let x: Vec<f64> = (0..9)
+                    .map(|k| next() + if k % 4 == 0 { 2.0 } else { 0.0 })
+                    .collect();
+                let (c_s, c_x) = (4 + 6 * st, n_a + 3 * p);
+                j.push(3, &[(0, &z), (c_s, &pose), (c_x, &x)]);
+                for k in 0..3 {
+                    let mut row = vec![0.0; n];
+                    row[..4].copy_from_slice(&z[4 * k..4 * k + 4]);
+                    row[c_s..c_s + 6].copy_from_slice(&pose[6 * k..6 * k + 6]);
+                    row[c_x..c_x + 3].copy_from_slice(&x[3 * k..3 * k + 3]);
+                    rows.push(row);
+                }
+            }
+        }
+        // A little of every column on the diagonal: the poses and the
+        // coordinates determined whatever the visibility.
+        for c in 0..n_a {
+            let mut row = vec![0.0; n];
+            row[c] = 1.0;
+            j.push(1, &[(c, &[1.0])]);
+            rows.push(row);
+        }
+        (j, DMatrix::from_fn(rows.len(), n, |i, k| rows[i][k]))
+    }
+
+    fn max_rel_diff(a: &[f64], b: &[f64]) -> f64 {
+        let scale = a.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+        a.iter()
+            .zip(b)
+            .fold(0.0, |m, (x, y)| m.max((x - y).abs() / scale))
+    }
+
+    #[test]
+    fn batched_point_covariances_are_the_one_by_one_ones_and_the_dense_inverse() {
+        // A hall (every station sees every reflector: chunks as panels) and
+        // a sparse network (two of twelve stations each: one by one).
+        for (stations, sees) in [
+            (
+                5,
+                Box::new(|_, _| true) as Box<dyn Fn(usize, usize) -> bool>,
+            ),
+            (12, Box::new(|p, s| s == p % 12 || s == (p * 5 + 1) % 12)),
+        ] {
+            let (j, jd) = station_network(40, stations, sees);
+            let f = Normal::assemble(&j, None, |_| true).factor(0.0).unwrap();
+            let dense = f.dense_covariance() * 1.7;
+            let batched = f.point_covariances(&dense, 1.7);
+            let inv = (jd.transpose() * &jd).try_inverse().unwrap() * 1.7;
+            let n_a = j.n_a;
+            for (i, b) in batched.iter().enumerate() {
+                let one = f.point_covariance(i, &dense.transpose(), 1.7);
+                let d = max_rel_diff(one.as_slice(), b.as_slice());
+                assert!(d < 1e-12, "position {i}: {d:e}");
+                let want = inv
+                    .fixed_view::<3, 3>(n_a + 3 * i, n_a + 3 * i)
+                    .into_owned();
+                assert!(max_rel_diff(want.as_slice(), b.as_slice()) < 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn panels_are_taken_in_a_hall_and_not_where_few_stations_see_each_reflector() {
+        let hall: Vec<Vec<usize>> = (0..60).map(|_| (0..100).collect()).collect();
+        let refs = hall.iter().map(Vec::as_slice);
+        assert!(panel_columns(refs, 100, |c| c * c).is_some());
+        // 24 stations, each reflector seen from two: the union is the whole
+        // dense part, twelve times each reflector's columns.
+        let sparse: Vec<Vec<usize>> = (0..60)
+            .map(|p| {
+                let (a, b) = (p % 24, (p * 7 + 3) % 24);
+                let (a, b) = (a.min(b), a.max(b));
+                (0..4)
+                    .chain(4 + 6 * a..10 + 6 * a)
+                    .chain(4 + 6 * b..10 + 6 * b)
+                    .collect()
+            })
+            .collect();
+        let refs = sparse.iter().map(Vec::as_slice);
+        assert!(panel_columns(refs, 4 + 6 * 24, |c| c * c).is_none());
+    }
+
     #[test]
     fn shares_combined_by_columns_are_the_serial_pass_s() {
         let n = 23;
