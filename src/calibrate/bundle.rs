@@ -42,7 +42,7 @@
 //! stated noise: they are its test.
 
 use super::register::{Rigid, align};
-use super::sparse::{self, BlockJacobian, BlockShape, GroupedLayout, Normal};
+use super::sparse::{self, BlockJacobian, BlockShape, GroupedLayout, Normal, with_constant_width};
 use super::{
     BundleStd, Calibration, FitSummary, Network, Norm, Settings, SigmaFactor, gauge_scale_ppm,
 };
@@ -306,19 +306,7 @@ impl<'a> Bundle<'a> {
         let p = eval.point_with_jacobian(q, links, cols);
         // Error-parameter coordinates: 3 × n_free, then onto the basis.
         let nz = self.layout.n_z;
-        // (`max(1)`: with no coordinate there is nothing to fill.)
-        for (&ci, basis_row) in self
-            .free_index
-            .iter()
-            .zip(self.basis_rows.chunks_exact(nz.max(1)))
-        {
-            let jk = m * cols[ci];
-            for (row, out) in jz.chunks_exact_mut(nz.max(1)).enumerate() {
-                for (o, b) in out.iter_mut().zip(basis_row) {
-                    *o += jk[row] * b;
-                }
-            }
-        }
+        with_constant_width!(nz, K => self.onto_basis::<K>(jz, nz, &m, cols));
         let rt = &station.to_station;
         let station = station.free.map(|so| {
             let v = station.from_start * (xt - station.c);
@@ -337,6 +325,33 @@ impl<'a> Bundle<'a> {
             r: m * (p - y),
             station,
             point: row_major(&(-m * rt)),
+        }
+    }
+
+    /// A reading's rows on the error-parameter coordinates, `jz += Σ_k
+    /// (M·∂p/∂k)·B_k` over the free coefficients `k` in order (`B_k` the
+    /// basis's row of `k`), with `nz = K` known at compile time (`K = 0`:
+    /// `nz` as given) so that a row's loop unrolls: the same sums.
+    fn onto_basis<const K: usize>(
+        &self,
+        jz: &mut [f64],
+        nz: usize,
+        m: &Matrix3<f64>,
+        cols: &[Vector3<f64>],
+    ) {
+        let nz = if K == 0 { nz } else { K };
+        // (`max(1)`: with no coordinate there is nothing to fill.)
+        for (&ci, basis_row) in self
+            .free_index
+            .iter()
+            .zip(self.basis_rows.chunks_exact(nz.max(1)))
+        {
+            let jk = m * cols[ci];
+            for (row, out) in jz.chunks_exact_mut(nz.max(1)).enumerate() {
+                for (o, b) in out.iter_mut().zip(basis_row) {
+                    *o += jk[row] * b;
+                }
+            }
         }
     }
 
