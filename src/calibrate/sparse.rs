@@ -1189,21 +1189,17 @@ const PANEL_GAIN: usize = 3;
 
 /// The union `U` of a chunk of positions' columns (ascending) when one
 /// dense product on `U` — `|U|²` entries per position's three columns —
-/// costs at most [`PANEL_GAIN`] times the positions' own products (`work(c)`
+/// costs at most [`PANEL_GAIN`] times the positions' own products (`c²`
 /// entries for `c` columns); `None` otherwise. In a hall every station
 /// sees nearly every reflector and `U` is each position's own columns; in
 /// a network where each reflector is seen from a few of many stations, `U`
 /// is mostly padding and the positions go one by one.
-fn panel_columns<'a>(
-    cols: impl Iterator<Item = &'a [usize]>,
-    n_a: usize,
-    work: impl Fn(usize) -> usize,
-) -> Option<Vec<usize>> {
+fn panel_columns<'a>(cols: impl Iterator<Item = &'a [usize]>, n_a: usize) -> Option<Vec<usize>> {
     let mut seen = vec![false; n_a];
     let (mut exact, mut m) = (0usize, 0usize);
     for c in cols.filter(|c| !c.is_empty()) {
         c.iter().for_each(|&x| seen[x] = true);
-        exact += work(c.len());
+        exact += c.len() * c.len();
         m += 1;
     }
     let u: Vec<usize> = (0..n_a).filter(|&c| seen[c]).collect();
@@ -1406,7 +1402,7 @@ impl Factor {
             .enumerate()
             .map(|(c, pts)| {
                 let cols: Vec<&[usize]> = pts.iter().map(|p| p.cols.as_slice()).collect();
-                let Some(u) = panel_columns(cols.iter().copied(), n_a, |c| c * c) else {
+                let Some(u) = panel_columns(cols.iter().copied(), n_a) else {
                     return (c * chunk..c * chunk + pts.len())
                         .map(|i| self.point_covariance(i, &rows, v))
                         .collect();
@@ -1759,6 +1755,18 @@ pub fn part3_mul(part: &[f64], v: &Vector3<f64>) -> Vector3<f64> {
     )
 }
 
+/// The tests' deterministic stream of values in (−0.5, 0.5): a linear
+/// congruential generator from `seed` in (0, 1) — the same numbers on
+/// every platform, with no random-number state to seed.
+#[cfg(test)]
+fn lcg(seed: f64) -> impl FnMut() -> f64 {
+    let mut s = seed;
+    move || {
+        s = (s * 9301.0 + 49297.0) % 233280.0;
+        s / 233280.0 - 0.5
+    }
+}
+
 /// A random-ish arrow-structured problem for tests here and in the
 /// diagnosis: 2 dense unknowns, `n_pts` positions seen by three blocks of
 /// three rows each (`interleaved`: the blocks cycle through the positions;
@@ -1776,11 +1784,7 @@ pub(crate) fn random_arrow(
     let n = n_a + 3 * n_pts;
     let mut j = BlockJacobian::new(n_a, n);
     let mut rows = Vec::new();
-    let mut s = seed;
-    let mut next = || {
-        s = (s * 9301.0 + 49297.0) % 233280.0;
-        s / 233280.0 - 0.5
-    };
+    let mut next = lcg(seed);
     for i in 0..3 * n_pts {
         let p = if interleaved { i % n_pts } else { i / 3 };
         let a: Vec<f64> = (0..3 * n_a).map(|_| next()).collect();
@@ -1843,11 +1847,7 @@ mod tests {
         // parts (neither fuses). Every product must agree to the last bit.
         let (n, k) = (16, 7);
         let (mut fused, mut single) = (BlockJacobian::new(n, n), BlockJacobian::new(n, n));
-        let mut s = 0.53_f64;
-        let mut next = || {
-            s = (s * 9301.0 + 49297.0) % 233280.0;
-            s / 233280.0 - 0.5
-        };
+        let mut next = lcg(0.53);
         for b in 0..9 {
             // Two parts on columns apart (0–8 and 8–16), so that both
             // orders visit each entry's terms in the same order.
@@ -1891,11 +1891,7 @@ mod tests {
         let n_a = n_z + 6 * n_st;
         let n = n_a + 3 * n_pts;
         let (mut fwd, mut bwd) = (BlockJacobian::new(n_a, n), BlockJacobian::new(n_a, n));
-        let mut s = 0.37_f64;
-        let mut next = || {
-            s = (s * 9301.0 + 49297.0) % 233280.0;
-            s / 233280.0 - 0.5
-        };
+        let mut next = lcg(0.37);
         for p in 0..n_pts {
             for st in [p % n_st, (p + 1) % n_st, p % n_st] {
                 let z: Vec<f64> = (0..3 * n_z).map(|_| next()).collect();
@@ -1935,11 +1931,7 @@ mod tests {
         let n = n_a + 3 * n_pts;
         let mut j = BlockJacobian::new(n_a, n);
         let mut dense = Vec::new();
-        let mut s = 0.61_f64;
-        let mut next = || {
-            s = (s * 9301.0 + 49297.0) % 233280.0;
-            s / 233280.0 - 0.5
-        };
+        let mut next = lcg(0.61);
         for p in 0..n_pts {
             // Reflector p is seen from stations p % 3 and (p + 2) % 3:
             // its columns have a gap; each reading a few times.
@@ -2194,11 +2186,7 @@ mod tests {
         let n = n_a + 3 * n_pts;
         let mut j = BlockJacobian::new(n_a, n);
         let mut rows = Vec::new();
-        let mut s = 0.61_f64;
-        let mut next = || {
-            s = (s * 9301.0 + 49297.0) % 233280.0;
-            s / 233280.0 - 0.5
-        };
+        let mut next = lcg(0.61);
         for p in 0..n_pts {
             for st in (0..stations).filter(|&st| sees(p, st)) {
                 let z: Vec<f64> = (0..12).map(|_| next()).collect();
@@ -2268,7 +2256,7 @@ mod tests {
     fn panels_are_taken_in_a_hall_and_not_where_few_stations_see_each_reflector() {
         let hall: Vec<Vec<usize>> = (0..60).map(|_| (0..100).collect()).collect();
         let refs = hall.iter().map(Vec::as_slice);
-        assert!(panel_columns(refs, 100, |c| c * c).is_some());
+        assert!(panel_columns(refs, 100).is_some());
         // 24 stations, each reflector seen from two: the union is the whole
         // dense part, twelve times each reflector's columns.
         let sparse: Vec<Vec<usize>> = (0..60)
@@ -2282,7 +2270,7 @@ mod tests {
             })
             .collect();
         let refs = sparse.iter().map(Vec::as_slice);
-        assert!(panel_columns(refs, 4 + 6 * 24, |c| c * c).is_none());
+        assert!(panel_columns(refs, 4 + 6 * 24).is_none());
     }
 
     #[test]
