@@ -833,13 +833,27 @@ impl<'a> Accumulator<'a> {
             }
             width += w;
         }
+        // The usual shapes — the coordinates then a pose, either alone —
+        // at widths known at compile time.
+        let mut point = pb.zip(x_part);
+        let fixed = match *self.dense.as_slice() {
+            [(c1, w1, v1), (c2, 6, v2)] => with_constant_width!(w1, A => {
+                self.add_reading_of::<A, 6>([(c1, v1), (c2, v2)], res, &mut point)
+            }),
+            [(c1, w1, v1)] => with_constant_width!(w1, A => {
+                self.add_reading_of::<A, 0>([(c1, v1), (0, &[])], res, &mut point)
+            }),
+            _ => false,
+        };
+        if fixed {
+            return true;
+        }
         // The rows side by side; each local column's global one, where its
         // part ends, and its row of the position's `H_AX`.
         let mut r = [[0.0; READING_WIDTH]; 3];
         let mut global = [0usize; READING_WIDTH];
         let mut part_end = [0usize; READING_WIDTH];
         let mut h_ax_row = [0usize; READING_WIDTH];
-        let mut point = pb.zip(x_part);
         let mut at = 0;
         for &(col, w, v) in &self.dense {
             for (row, out) in r.iter_mut().enumerate() {
@@ -882,27 +896,131 @@ impl<'a> Accumulator<'a> {
                 c = end;
             }
             if let Some((pb, x)) = point.as_mut() {
-                for (c, out) in pb.h_ax[h_ax_row[a]].iter_mut().enumerate() {
-                    *out += a0 * x[c] + a1 * x[3 + c] + a2 * x[6 + c];
-                }
+                add_cross(&mut pb.h_ax[h_ax_row[a]], [a0, a1, a2], x);
             }
         }
         if let Some((pb, x)) = point {
-            for a in 0..3 {
-                let (a0, a1, a2) = (x[a], x[3 + a], x[6 + a]);
-                if let Some(res) = res {
-                    pb.g_x[a] += a0 * res[0] + a1 * res[1] + a2 * res[2];
-                }
-                for c in a..3 {
-                    let h = a0 * x[c] + a1 * x[3 + c] + a2 * x[6 + c];
-                    pb.h_xx[(a, c)] += h;
-                    if a != c {
-                        pb.h_xx[(c, a)] += h;
-                    }
-                }
-            }
+            add_position(pb, x, res);
         }
         true
+    }
+
+    /// [`Self::add_reading`] for a reading whose dense parts are `A`
+    /// columns from `c1` and, when `B > 0`, `B` from `c2 ≥ c1 + A` (the
+    /// error-parameter coordinates and a station's pose; a pose alone),
+    /// `parts` their `(first column, rows side by side)`.
+    ///
+    /// With both widths constants every loop below has fixed bounds: the
+    /// compiler unrolls them and folds their bounds checks, and no table
+    /// of global columns is built per reading — that bookkeeping was most
+    /// of the assembly's instructions (issue 34). Every entry receives the
+    /// very sum the general path gives it, `a₀·x₀ + a₁·x₁ + a₂·x₂`, once
+    /// per block: the same numbers, bit for bit (test).
+    fn add_reading_of<const A: usize, const B: usize>(
+        &mut self,
+        parts: [(usize, &[f64]); 2],
+        res: Option<&[f64]>,
+        point: &mut Option<(&mut PointBlock, &[f64])>,
+    ) -> bool {
+        if A == 0 {
+            // The first part's width is not one of the constants.
+            return false;
+        }
+        let [(c1, v1), (c2, v2)] = parts;
+        // Each part's first row of the position's `H_AX`.
+        let first = |point: &Option<(&mut PointBlock, &[f64])>, col: usize| {
+            point.as_ref().map_or(0, |(pb, _)| {
+                pb.cols
+                    .binary_search(&col)
+                    .expect("collected from these blocks")
+            })
+        };
+        let (p, q) = (rows_of::<A>(v1), rows_of::<B>(v2));
+        let f1 = first(point, c1);
+        self.add_part_of::<A, B>((c1, p), (c2, q), f1, res, point);
+        if B > 0 {
+            let f2 = first(point, c2);
+            self.add_part_of::<B, 0>((c2, q), (0, [&[0.0; 0]; 3]), f2, res, point);
+        }
+        if let Some((pb, x)) = point {
+            add_position(pb, x, res);
+        }
+        true
+    }
+
+    /// The products of one part of a reading's block (`W` columns from
+    /// `own.0`, its three rows `own.1`): `g_A`, its rows of the lower
+    /// triangle — its own part from the diagonal on, then the part after
+    /// it whole (`next`, `N` columns) — and its rows of `H_AX` from row
+    /// `h_ax_first`.
+    #[inline(always)]
+    fn add_part_of<const W: usize, const N: usize>(
+        &mut self,
+        own: (usize, [&[f64; W]; 3]),
+        next: (usize, [&[f64; N]; 3]),
+        h_ax_first: usize,
+        res: Option<&[f64]>,
+        point: &mut Option<(&mut PointBlock, &[f64])>,
+    ) {
+        let n_a = self.j.n_a;
+        let ((col, [r0, r1, r2]), (next_col, [s0, s1, s2])) = (own, next);
+        for a in 0..W {
+            let (a0, a1, a2) = (r0[a], r1[a], r2[a]);
+            let ga = col + a;
+            if let Some(res) = res {
+                self.g_a[ga] += a0 * res[0] + a1 * res[1] + a2 * res[2];
+            }
+            let row = &mut self.h_aa[ga * n_a..(ga + 1) * n_a];
+            let own_row: &mut [f64; W] = (&mut row[col..col + W]).try_into().unwrap();
+            for c in a..W {
+                own_row[c] += a0 * r0[c] + a1 * r1[c] + a2 * r2[c];
+            }
+            if N > 0 {
+                let next_row: &mut [f64; N] =
+                    (&mut row[next_col..next_col + N]).try_into().unwrap();
+                for c in 0..N {
+                    next_row[c] += a0 * s0[c] + a1 * s1[c] + a2 * s2[c];
+                }
+            }
+            if let Some((pb, x)) = point.as_mut() {
+                add_cross(&mut pb.h_ax[h_ax_first + a], [a0, a1, a2], x);
+            }
+        }
+    }
+}
+
+/// A part's three rows (`W` values each, side by side in `v`) as arrays.
+fn rows_of<const W: usize>(v: &[f64]) -> [&[f64; W]; 3] {
+    let row = |r: usize| <&[f64; W]>::try_from(&v[r * W..(r + 1) * W]).unwrap();
+    [row(0), row(1), row(2)]
+}
+
+/// `out += (column a of a reading's block)ᵀ·x`: a row of `H_AX` from the
+/// column's three entries `a` and the position's part `x` (row-major).
+#[inline]
+fn add_cross(out: &mut [f64; 3], a: [f64; 3], x: &[f64]) {
+    let [a0, a1, a2] = a;
+    for (c, out) in out.iter_mut().enumerate() {
+        *out += a0 * x[c] + a1 * x[3 + c] + a2 * x[6 + c];
+    }
+}
+
+/// A reading's `H_XX` and `g_X` from its position's part `x` (row-major)
+/// and its residuals.
+#[inline]
+fn add_position(pb: &mut PointBlock, x: &[f64], res: Option<&[f64]>) {
+    for a in 0..3 {
+        let (a0, a1, a2) = (x[a], x[3 + a], x[6 + a]);
+        if let Some(res) = res {
+            pb.g_x[a] += a0 * res[0] + a1 * res[1] + a2 * res[2];
+        }
+        for c in a..3 {
+            let h = a0 * x[c] + a1 * x[3 + c] + a2 * x[6 + c];
+            pb.h_xx[(a, c)] += h;
+            if a != c {
+                pb.h_xx[(c, a)] += h;
+            }
+        }
     }
 }
 
@@ -1882,39 +2000,54 @@ mod tests {
 
     #[test]
     fn a_reading_assembled_on_the_stack_is_the_general_assembly_bit_for_bit() {
-        // Coordinates (4 columns), three stations (6 each), five reflectors,
-        // every reading's block pushed twice over: its parts in ascending
-        // order (the stack path, `Accumulator::add_reading`) and backwards
-        // (the general path). Both must give the same normal equations to
-        // the last bit, with and without residuals.
-        let (n_z, n_st, n_pts) = (4, 3, 5);
-        let n_a = n_z + 6 * n_st;
-        let n = n_a + 3 * n_pts;
-        let (mut fwd, mut bwd) = (BlockJacobian::new(n_a, n), BlockJacobian::new(n_a, n));
-        let mut next = lcg(0.37);
-        for p in 0..n_pts {
-            for st in [p % n_st, (p + 1) % n_st, p % n_st] {
-                let z: Vec<f64> = (0..3 * n_z).map(|_| next()).collect();
-                let pose: Vec<f64> = (0..18).map(|_| next() * 1e3).collect();
-                let x: Vec<f64> = (0..9).map(|_| next() + 1.5).collect();
-                let (sc, pc) = (n_z + 6 * st, n_a + 3 * p);
-                fwd.push(3, &[(0, &z), (sc, &pose), (pc, &x)]);
-                bwd.push(3, &[(pc, &x), (sc, &pose), (0, &z)]);
+        // Coordinates (n_z columns), three stations (6 each), five
+        // reflectors; readings with the coordinates and a pose, the
+        // coordinates alone (a fixed station) and a pose alone, each
+        // block pushed twice over: its parts in ascending order (the
+        // stack paths, `Accumulator::add_reading` — at widths known at
+        // compile time up to 18 coordinates, at run time beyond) and
+        // backwards (the general path). Both must give the same normal
+        // equations to the last bit, with and without residuals.
+        for n_z in [1, 4, 7, 18, 20] {
+            let (n_st, n_pts) = (3, 5);
+            let n_a = n_z + 6 * n_st;
+            let n = n_a + 3 * n_pts;
+            let (mut fwd, mut bwd) = (BlockJacobian::new(n_a, n), BlockJacobian::new(n_a, n));
+            let mut next = lcg(0.37);
+            for p in 0..n_pts {
+                for (k, st) in [p % n_st, (p + 1) % n_st, p % n_st].into_iter().enumerate() {
+                    let z: Vec<f64> = (0..3 * n_z).map(|_| next()).collect();
+                    let pose: Vec<f64> = (0..18).map(|_| next() * 1e3).collect();
+                    let x: Vec<f64> = (0..9).map(|_| next() + 1.5).collect();
+                    let (sc, pc) = (n_z + 6 * st, n_a + 3 * p);
+                    let (z, pose, x) = ((0, &z[..]), (sc, &pose[..]), (pc, &x[..]));
+                    let parts = match k {
+                        0 => vec![z, pose, x],
+                        1 => vec![z, x],
+                        _ => vec![pose, x],
+                    };
+                    fwd.push(3, &parts);
+                    bwd.push(3, &parts.into_iter().rev().collect::<Vec<_>>());
+                }
             }
-        }
-        let r = DVector::from_fn(fwd.nrows(), |i, _| (i as f64 * 1.3).cos());
-        for r in [None, Some(&r)] {
-            let (a, b) = (
-                Normal::assemble(&fwd, r, |_| true),
-                Normal::assemble(&bwd, r, |_| true),
-            );
-            let bits = |m: &[f64]| m.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
-            assert_eq!(bits(a.h_aa.as_slice()), bits(b.h_aa.as_slice()));
-            assert_eq!(bits(a.g.as_slice()), bits(b.g.as_slice()));
-            for (pa, pb) in a.points.iter().zip(&b.points) {
-                assert_eq!(pa.cols, pb.cols);
-                assert_eq!(bits(pa.h_ax.as_flattened()), bits(pb.h_ax.as_flattened()));
-                assert_eq!(bits(pa.h_xx.as_slice()), bits(pb.h_xx.as_slice()));
+            let r = DVector::from_fn(fwd.nrows(), |i, _| (i as f64 * 1.3).cos());
+            for r in [None, Some(&r)] {
+                let (a, b) = (
+                    Normal::assemble(&fwd, r, |_| true),
+                    Normal::assemble(&bwd, r, |_| true),
+                );
+                let bits = |m: &[f64]| m.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(a.h_aa.as_slice()),
+                    bits(b.h_aa.as_slice()),
+                    "n_z {n_z}"
+                );
+                assert_eq!(bits(a.g.as_slice()), bits(b.g.as_slice()));
+                for (pa, pb) in a.points.iter().zip(&b.points) {
+                    assert_eq!(pa.cols, pb.cols);
+                    assert_eq!(bits(pa.h_ax.as_flattened()), bits(pb.h_ax.as_flattened()));
+                    assert_eq!(bits(pa.h_xx.as_slice()), bits(pb.h_xx.as_slice()));
+                }
             }
         }
     }
