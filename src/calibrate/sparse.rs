@@ -997,7 +997,7 @@ fn rows_of<const W: usize>(v: &[f64]) -> [&[f64; W]; 3] {
 
 /// `out += (column a of a reading's block)ᵀ·x`: a row of `H_AX` from the
 /// column's three entries `a` and the position's part `x` (row-major).
-#[inline]
+#[inline(always)]
 fn add_cross(out: &mut [f64; 3], a: [f64; 3], x: &[f64]) {
     let [a0, a1, a2] = a;
     for (c, out) in out.iter_mut().enumerate() {
