@@ -837,8 +837,8 @@ impl<'a> Accumulator<'a> {
         // at widths known at compile time.
         let mut point = pb.zip(x_part);
         let fixed = match *self.dense.as_slice() {
-            [(c1, w1, v1), (c2, 6, v2)] => with_constant_width!(w1, A => {
-                self.add_reading_of::<A, 6>([(c1, v1), (c2, v2)], res, &mut point)
+            [(c1, w1, v1), (c2, POSE, v2)] => with_constant_width!(w1, A => {
+                self.add_reading_of::<A, POSE>([(c1, v1), (c2, v2)], res, &mut point)
             }),
             [(c1, w1, v1)] => with_constant_width!(w1, A => {
                 self.add_reading_of::<A, 0>([(c1, v1), (0, &[])], res, &mut point)
@@ -1023,6 +1023,10 @@ fn add_position(pb: &mut PointBlock, x: &[f64], res: Option<&[f64]>) {
         }
     }
 }
+
+/// The columns of a station's pose on the dense part: its rotation `ω`
+/// then its position `c`.
+const POSE: usize = 6;
 
 /// The widest dense part (error-parameter coordinates and a station's
 /// pose) [`Accumulator::add_reading`] holds on the stack: all 18
