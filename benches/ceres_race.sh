@@ -6,7 +6,9 @@
 # parameters free) on each, every ltcal run into a fresh results folder (no cache).
 # Prints per size the medians — the peer's own solve time (its stdout) and its
 # whole process, ltcal's `calibrate` stage (run.json) and its whole process — the
-# ratios ltcal / Ceres, and χ² of both with their relative difference (≤ 1e-7).
+# ratios ltcal / Ceres, and χ² of both with their relative difference (≤ 1e-7);
+# then the ratios paired round by round (each ltcal run against the peer's run
+# of the same round), their median and range.
 #
 # usage (from the repository root, after `cargo build --release`):
 #     benches/ceres_race.sh [ROUNDS (default 7)] [WORK (default /tmp/ltcal-ceres-race)]
@@ -82,6 +84,19 @@ for s in sizes:
     print(f"| {s} | {s.split('-')[1]} | {m['ceres_solve']:.3f} | {m['ceres_proc']:.3f} | "
           f"{m['ltcal_stage']:.3f} ({m['ltcal_stage'] / m['ceres_solve']:.2f}×) | "
           f"{m['ltcal_proc']:.3f} ({m['ltcal_proc'] / m['ceres_proc']:.2f}×) | {c:.10f} | {l:.10f} | {rel:.1e} |")
+# The same ratios taken round by round — each of ltcal's runs against the
+# peer's run of the same round, moments apart — then their median and range:
+# a VM's load drifting over the minutes moves both sides of a pair alike,
+# where it moves the two medians above apart.
+print()
+print("Paired within each round: median (min–max) of ltcal / Ceres")
+print("| campaign | stage / solve | process / process |")
+print("|---|---|---|")
+for s in sizes:
+    def paired(a, b):
+        q = sorted(x / y for x, y in zip(t[s][a], t[s][b]))
+        return f"{med(q):.2f}× ({q[0]:.2f}–{q[-1]:.2f})"
+    print(f"| {s} | {paired('ltcal_stage', 'ceres_solve')} | {paired('ltcal_proc', 'ceres_proc')} |")
 if worst > 1e-7:
     print(f"ceres_race: χ² differs by {worst:.1e} relative (> 1e-7)", file=sys.stderr)
     sys.exit(1)

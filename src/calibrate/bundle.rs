@@ -339,19 +339,40 @@ impl<'a> Bundle<'a> {
         m: &Matrix3<f64>,
         cols: &[Vector3<f64>],
     ) {
-        let nz = if K == 0 { nz } else { K };
-        // (`max(1)`: with no coordinate there is nothing to fill.)
-        for (&ci, basis_row) in self
-            .free_index
-            .iter()
-            .zip(self.basis_rows.chunks_exact(nz.max(1)))
-        {
+        if K == 0 {
+            // (`max(1)`: with no coordinate there is nothing to fill.)
+            for (&ci, basis_row) in self
+                .free_index
+                .iter()
+                .zip(self.basis_rows.chunks_exact(nz.max(1)))
+            {
+                let jk = m * cols[ci];
+                for (row, out) in jz.chunks_exact_mut(nz.max(1)).enumerate() {
+                    for (o, b) in out.iter_mut().zip(basis_row) {
+                        *o += jk[row] * b;
+                    }
+                }
+            }
+            return;
+        }
+        // The three rows summed in registers, then stored once: stored
+        // after every coefficient, they went through memory 3·K times a
+        // reading at every linearisation (issue 34). The same sums.
+        let mut acc = [[0.0; K]; 3];
+        for (acc, jz) in acc.iter_mut().zip(jz.chunks_exact(K)) {
+            acc.copy_from_slice(jz);
+        }
+        for (&ci, basis_row) in self.free_index.iter().zip(self.basis_rows.chunks_exact(K)) {
             let jk = m * cols[ci];
-            for (row, out) in jz.chunks_exact_mut(nz.max(1)).enumerate() {
+            let basis_row: &[f64; K] = basis_row.try_into().expect("K wide");
+            for (row, out) in acc.iter_mut().enumerate() {
                 for (o, b) in out.iter_mut().zip(basis_row) {
                     *o += jk[row] * b;
                 }
             }
+        }
+        for (acc, jz) in acc.iter().zip(jz.chunks_exact_mut(K)) {
+            jz.copy_from_slice(acc);
         }
     }
 
