@@ -1205,10 +1205,10 @@ impl Normal {
             .par_chunks(chunk)
             .map(|pts| {
                 let mut share = vec![0.0; n_a * n_a];
-                let factored = pts
-                    .iter()
-                    .map(|p| eliminate(p, lambda, &mut share, n_a))
-                    .collect::<Option<Vec<_>>>()?;
+                let mut factored = Vec::with_capacity(pts.len());
+                for group in same_columns(pts) {
+                    factored.extend(eliminate(group, lambda, &mut share, n_a)?);
+                }
                 Some((share, factored))
             })
             .collect();
@@ -1236,21 +1236,87 @@ impl Normal {
     }
 }
 
-/// Eliminates one position: its damped inverse block and
+/// How many positions on the same columns [`eliminate`] takes at once.
+const GROUP: usize = 4;
+
+/// `pts` cut, in order, into runs of at most [`GROUP`] positions that
+/// are seen and on the same columns (every reflector of a hall seen from
+/// every station), any other position alone.
+fn same_columns(pts: &[PointBlock]) -> impl Iterator<Item = &[PointBlock]> {
+    let mut rest = pts;
+    std::iter::from_fn(move || {
+        let first = rest.first()?;
+        let n = if first.seen {
+            rest.iter()
+                .take(GROUP)
+                .take_while(|p| p.seen && p.cols == first.cols)
+                .count()
+        } else {
+            1
+        };
+        let (group, tail) = rest.split_at(n);
+        rest = tail;
+        Some(group)
+    })
+}
+
+/// Eliminates a group of positions (one, or up to [`GROUP`] seen on the
+/// same columns: [`same_columns`]): each one's damped inverse block and
 /// `W = H_AX·H_XX⁻¹`, with `W·H_XA` added to `share` (column-major, lower
 /// triangle: the columns ascend, so the inner loop writes consecutive
-/// entries where they are consecutive); `None` when its block is singular. The
-/// small products are written out, as they run once per reflector per
+/// entries where they are consecutive); `None` when a block is singular.
+/// The small products are written out, as they run once per reflector per
 /// factorisation.
-fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Option<FactorPoint> {
+fn eliminate(
+    group: &[PointBlock],
+    lambda: f64,
+    share: &mut [f64],
+    n_a: usize,
+) -> Option<Vec<FactorPoint>> {
+    let p = &group[0];
     if !p.seen {
-        return Some(FactorPoint {
+        return Some(vec![FactorPoint {
             cols: Vec::new(),
             runs: Vec::new(),
             inv: Matrix3::zeros(),
             w: DMatrix::zeros(0, 3),
-        });
+        }]);
     }
+    let parts = group
+        .iter()
+        .map(|p| eliminated_parts(p, lambda))
+        .collect::<Option<Vec<_>>>()?;
+    let mut runs = Vec::new();
+    consecutive_runs(&p.cols, &mut runs);
+    match parts.as_slice() {
+        [a] => add_updates::<1>(&[a], &p.cols, &runs, share, n_a),
+        [a, b] => add_updates::<2>(&[a, b], &p.cols, &runs, share, n_a),
+        [a, b, c] => add_updates::<3>(&[a, b, c], &p.cols, &runs, share, n_a),
+        [a, b, c, d] => add_updates::<4>(&[a, b, c, d], &p.cols, &runs, share, n_a),
+        _ => unreachable!("groups hold 1 to GROUP positions"),
+    }
+    Some(
+        parts
+            .into_iter()
+            .map(|e| FactorPoint {
+                cols: p.cols.clone(),
+                runs: runs.clone(),
+                inv: e.inv,
+                w: DMatrix::from_fn(e.w.len(), 3, |a, c| e.w[a][c]),
+            })
+            .collect(),
+    )
+}
+
+/// One position's share of the elimination: `H_XX⁻¹` (damped), `W` by
+/// rows, and `H_AX` by its three columns.
+struct Eliminated {
+    inv: Matrix3<f64>,
+    w: Vec<[f64; 3]>,
+    h: [Vec<f64>; 3],
+}
+
+fn eliminated_parts(p: &PointBlock, lambda: f64) -> Option<Eliminated> {
     let mut d = p.h_xx;
     for i in 0..3 {
         d[(i, i)] += lambda * p.h_xx[(i, i)].max(1e-300);
@@ -1259,7 +1325,7 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
     if !inv.iter().all(|v| v.is_finite()) {
         return None;
     }
-    let w: Vec<[f64; 3]> = p
+    let w = p
         .h_ax
         .iter()
         .map(|h| {
@@ -1270,36 +1336,50 @@ fn eliminate(p: &PointBlock, lambda: f64, share: &mut [f64], n_a: usize) -> Opti
             row
         })
         .collect();
-    // `H_AX` by its three columns, and the runs of consecutive columns:
-    // each run's entries of a row of the update lie side by side, and
-    // their loop vectorises (the same sum per entry).
-    let h: [Vec<f64>; 3] = std::array::from_fn(|c| p.h_ax.iter().map(|hb| hb[c]).collect());
-    let mut runs = Vec::new();
-    consecutive_runs(&p.cols, &mut runs);
-    for (a, wa) in w.iter().enumerate() {
-        let row = &mut share[p.cols[a] * n_a..(p.cols[a] + 1) * n_a];
-        for &(lo, hi) in &runs {
+    // `H_AX` by its three columns: a row of the update reads each side by
+    // side.
+    let h = std::array::from_fn(|c| p.h_ax.iter().map(|hb| hb[c]).collect());
+    Some(Eliminated { inv, w, h })
+}
+
+/// `share += Σ_g W_g·H_XA,g` over `G` positions on the same `cols`, on the
+/// lower triangle, run by run of consecutive columns. Each entry is loaded
+/// once, receives the positions' terms `w₀·h₀ + w₁·h₁ + w₂·h₂` one after
+/// another in their order, and is stored once: the sums the positions give
+/// one at a time, bit for bit, with a `G`-th of the trips through memory —
+/// the Schur complement of a 20-station hall is 127 × 127, larger than a
+/// core's first-level cache, and each reflector updates all of its lower
+/// triangle (issue 34).
+fn add_updates<const G: usize>(
+    parts: &[&Eliminated; G],
+    cols: &[usize],
+    runs: &[(usize, usize)],
+    share: &mut [f64],
+    n_a: usize,
+) {
+    for a in 0..cols.len() {
+        let wa: [[f64; 3]; G] = std::array::from_fn(|g| parts[g].w[a]);
+        let row = &mut share[cols[a] * n_a..(cols[a] + 1) * n_a];
+        for &(lo, hi) in runs {
             let lo = lo.max(a);
             if lo >= hi {
                 continue;
             }
-            let out = &mut row[p.cols[lo]..p.cols[lo] + hi - lo];
-            for (((o, h0), h1), h2) in out
-                .iter_mut()
-                .zip(&h[0][lo..hi])
-                .zip(&h[1][lo..hi])
-                .zip(&h[2][lo..hi])
-            {
-                *o += wa[0] * h0 + wa[1] * h1 + wa[2] * h2;
+            let out = &mut row[cols[lo]..cols[lo] + hi - lo];
+            let hs: [[&[f64]; 3]; G] = std::array::from_fn(|g| {
+                let h = &parts[g].h;
+                [&h[0][lo..hi], &h[1][lo..hi], &h[2][lo..hi]]
+            });
+            for (i, o) in out.iter_mut().enumerate() {
+                let mut v = *o;
+                for g in 0..G {
+                    let ([w0, w1, w2], [h0, h1, h2]) = (wa[g], hs[g]);
+                    v += w0 * h0[i] + w1 * h1[i] + w2 * h2[i];
+                }
+                *o = v;
             }
         }
     }
-    Some(FactorPoint {
-        cols: p.cols.clone(),
-        runs,
-        inv,
-        w: DMatrix::from_fn(w.len(), 3, |a, c| w[a][c]),
-    })
 }
 
 /// How much more padded work a dense product over a chunk of positions
