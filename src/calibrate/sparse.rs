@@ -1288,6 +1288,10 @@ fn eliminate(
         .collect::<Option<Vec<_>>>()?;
     let mut runs = Vec::new();
     consecutive_runs(&p.cols, &mut runs);
+    const _: () = assert!(
+        GROUP <= 4,
+        "add_updates is dispatched for one to four positions"
+    );
     match parts.as_slice() {
         [a] => add_updates::<1>(&[a], &p.cols, &runs, share, n_a),
         [a, b] => add_updates::<2>(&[a, b], &p.cols, &runs, share, n_a),
@@ -2467,6 +2471,42 @@ mod tests {
                 assert!(max_rel_diff(want.as_slice(), b.as_slice()) < 1e-9);
             }
         }
+    }
+
+    #[test]
+    fn a_group_s_updates_are_its_positions_one_at_a_time_bit_for_bit() {
+        // Two runs of columns (a gap at 5), as a station not seen leaves.
+        let cols: Vec<usize> = (0..5).chain(6..13).collect();
+        let n_a = 14;
+        let mut runs = Vec::new();
+        consecutive_runs(&cols, &mut runs);
+        let parts: Vec<Eliminated> = (0..GROUP)
+            .map(|g| {
+                let v = |a: usize, c: usize| ((g * 131 + a * 17 + c * 7) as f64 * 0.37).sin();
+                Eliminated {
+                    inv: Matrix3::identity(),
+                    w: (0..cols.len())
+                        .map(|a| [v(a, 0), v(a, 1), v(a, 2)])
+                        .collect(),
+                    h: std::array::from_fn(|c| (0..cols.len()).map(|a| v(a + 40, c)).collect()),
+                }
+            })
+            .collect();
+        let start: Vec<f64> = (0..n_a * n_a).map(|i| (i as f64 * 0.11).cos()).collect();
+        let mut grouped = start.clone();
+        add_updates::<4>(
+            &[&parts[0], &parts[1], &parts[2], &parts[3]],
+            &cols,
+            &runs,
+            &mut grouped,
+            n_a,
+        );
+        let mut single = start;
+        for p in &parts {
+            add_updates::<1>(&[p], &cols, &runs, &mut single, n_a);
+        }
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&grouped), bits(&single));
     }
 
     #[test]
