@@ -339,40 +339,40 @@ impl<'a> Bundle<'a> {
         m: &Matrix3<f64>,
         cols: &[Vector3<f64>],
     ) {
-        if K == 0 {
-            // (`max(1)`: with no coordinate there is nothing to fill.)
-            for (&ci, basis_row) in self
-                .free_index
-                .iter()
-                .zip(self.basis_rows.chunks_exact(nz.max(1)))
-            {
-                let jk = m * cols[ci];
-                for (row, out) in jz.chunks_exact_mut(nz.max(1)).enumerate() {
-                    for (o, b) in out.iter_mut().zip(basis_row) {
-                        *o += jk[row] * b;
-                    }
-                }
-            }
-            return;
-        }
-        // The three rows summed in registers, then stored once: stored
-        // after every coefficient, they went through memory 3·K times a
-        // reading at every linearisation (issue 34). The same sums.
+        let nz = if K == 0 { nz } else { K };
+        // At a constant width the three rows are summed in registers and
+        // stored once: stored after every coefficient, they went through
+        // memory 3·K times a reading at every linearisation (issue 34).
+        // The same sums either way.
         let mut acc = [[0.0; K]; 3];
-        for (acc, jz) in acc.iter_mut().zip(jz.chunks_exact(K)) {
-            acc.copy_from_slice(jz);
-        }
-        for (&ci, basis_row) in self.free_index.iter().zip(self.basis_rows.chunks_exact(K)) {
+        let mut rows: [&mut [f64]; 3] = if K == 0 {
+            let (r0, rest) = jz.split_at_mut(nz);
+            let (r1, r2) = rest.split_at_mut(nz);
+            [r0, r1, r2]
+        } else {
+            for (acc, jz) in acc.iter_mut().zip(jz.chunks_exact(K)) {
+                acc.copy_from_slice(jz);
+            }
+            let [r0, r1, r2] = &mut acc;
+            [r0, r1, r2]
+        };
+        // (`max(1)`: with no coordinate there is nothing to fill.)
+        for (&ci, basis_row) in self
+            .free_index
+            .iter()
+            .zip(self.basis_rows.chunks_exact(nz.max(1)))
+        {
             let jk = m * cols[ci];
-            let basis_row: &[f64; K] = basis_row.try_into().expect("K wide");
-            for (row, out) in acc.iter_mut().enumerate() {
+            for (row, out) in rows.iter_mut().enumerate() {
                 for (o, b) in out.iter_mut().zip(basis_row) {
                     *o += jk[row] * b;
                 }
             }
         }
-        for (acc, jz) in acc.iter().zip(jz.chunks_exact_mut(K)) {
-            jz.copy_from_slice(acc);
+        if K > 0 {
+            for (acc, jz) in acc.iter().zip(jz.chunks_exact_mut(K)) {
+                jz.copy_from_slice(acc);
+            }
         }
     }
 
