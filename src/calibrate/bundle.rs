@@ -210,9 +210,6 @@ struct Bundle<'a> {
     /// The readings' blocks as laid out at the first linearisation: every
     /// later one has the same shapes.
     grouped: OnceLock<GroupedLayout>,
-    /// Storage for the first linearisation, when another Jacobian no longer
-    /// needed left it (the identifiability analysis's).
-    spare: Mutex<Option<BlockJacobian>>,
 }
 
 /// The linearisation the solver built last. Its last iteration linearises
@@ -501,22 +498,17 @@ impl<'a> Bundle<'a> {
     fn design_jacobian(&self, x: &DVector<f64>) -> (BlockJacobian, Vec<f64>) {
         let k = self.layout.n_z;
         let (n_obs, n_gauge, n_refs) = self.row_groups();
-        // Room for the fit's Jacobian, which has these blocks and parts and
-        // at most `k` coordinate columns more: when the analysis is done,
-        // its storage, faulted in, serves the fit's first linearisation
-        // ([`Bundle::jacobian`]) rather than 12 MB of fresh pages at 24 000
-        // readings (issue 34). Untouched, the rest costs nothing.
         let room = [
             n_obs + n_gauge + n_refs,
-            3 * n_obs + 2 * n_gauge + n_refs,
-            3 * (k + 9) * n_obs + 6 * n_gauge + 9 * n_refs,
+            2 * n_obs + 2 * n_gauge + n_refs,
+            27 * n_obs + 6 * n_gauge + 9 * n_refs,
         ];
         let mut nuisance =
             BlockJacobian::with_capacity(self.layout.n_a - k, self.layout.n - k, room);
         let mut lead = Vec::with_capacity((3 * n_obs + n_gauge + 3 * n_refs) * k);
+        sparse::extend_with_zeros(&mut lead, 3 * n_obs * k);
         // The readings' blocks stored in reading order: the analysis's
-        // projection reads them block by block. Laying them out is
-        // bookkeeping on one core; the coordinates' rows are zeroed beside it.
+        // projection reads them block by block.
         let shapes = self.net.obs.iter().map(|o| {
             let [station, point] = self.layout.reading_parts(o, k);
             BlockShape {
@@ -525,11 +517,7 @@ impl<'a> Bundle<'a> {
                 group: 0,
             }
         });
-        let (laid, ()) = rayon::join(
-            || GroupedLayout::new(shapes, 1),
-            || sparse::extend_with_zeros(&mut lead, 3 * n_obs * k),
-        );
-        let rest = nuisance.push_laid_out(&laid);
+        let rest = nuisance.push_grouped(shapes, 1);
         let jz = rows_of(&mut lead, 3 * k, n_obs);
         self.fill_readings(x, true, jz, rest, &mut vec![0.0; 3 * n_obs]);
         self.visit_others(x, true, |rows, _, parts| {
@@ -676,8 +664,7 @@ impl Jacobian for Bundle<'_> {
         let spare = self
             .last
             .and_then(|l| l.lock().unwrap_or_else(|e| e.into_inner()).take())
-            .map(|l| l.jacobian)
-            .or_else(|| self.spare.lock().unwrap_or_else(|e| e.into_inner()).take());
+            .map(|l| l.jacobian);
         let (j, r) = self.jacobian_in(x, false, spare);
         let normal = Arc::new(Normal::assemble(&j, Some(&r), |_| true));
         if let Some(last) = self.last {
@@ -720,26 +707,15 @@ impl Setup {
     fn new(net: &Network, start: &ErrorParams, free: &[bool]) -> Result<Setup> {
         let use_references = net.references_fix_frame();
         let anchor = use_references.then(|| net.reference_points());
-        // The registration runs on one core: the readings' weights, which
-        // do not depend on it, are formed beside it (issue 34).
-        let (alignment, weights) = rayon::join(
-            || {
-                align(
-                    &net.station_points(start),
-                    anchor.as_ref(),
-                    FIRST_GUESS_TOL_MM,
-                )
-            },
-            || reading_weights(net),
-        );
-        let alignment = alignment.ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
+        let alignment = align(&net.station_points(start), anchor.as_ref(), FIRST_GUESS_TOL_MM)
+            .ok_or_else(|| anyhow!("the stations cannot be registered: some station shares fewer than 3 reflectors (not on a line) with the others"))?;
         Ok(Setup {
             free_index: (0..free.len()).filter(|&i| free[i]).collect(),
             use_references,
             fixed_station: (!use_references).then_some(0),
             poses0: alignment.poses,
             points0: alignment.points,
-            weights,
+            weights: reading_weights(net),
         })
     }
 
@@ -792,7 +768,6 @@ impl Setup {
             last: None,
             known: None,
             grouped: OnceLock::new(),
-            spare: Mutex::new(None),
         }
     }
 }
@@ -808,7 +783,7 @@ pub fn analyse(
     rank_tol: f64,
 ) -> Result<(Analysis, Vec<Combination>)> {
     let setup = Setup::new(net, start, free)?;
-    let (det, _) = analyse_setup(net, start, &setup, rank_tol)?;
+    let det = analyse_setup(net, start, &setup, rank_tol)?;
     Ok((det.analysis, det.combinations))
 }
 
@@ -818,15 +793,12 @@ pub fn analyse(
 /// semi-normal equations ([`sparse::project_out`]), which leaves exact
 /// redundancies at round-off level as a QR factorisation would. The result
 /// has as many columns as free coefficients, so its SVD is cheap.
-///
-/// Also gives back the analysis's Jacobian, no longer needed: its storage
-/// is sized for the fit's first linearisation ([`Bundle::design_jacobian`]).
 fn analyse_setup(
     net: &Network,
     start: &ErrorParams,
     setup: &Setup,
     rank_tol: f64,
-) -> Result<(Determined, BlockJacobian)> {
+) -> Result<Determined> {
     let n = setup.free_index.len();
     let identity = DMatrix::identity(n, n);
     let layout = setup.layout(net, n);
@@ -861,8 +833,7 @@ fn analyse_setup(
         nrows: nuisance.nrows(),
         ncols: n,
     };
-    let det = Determined::analyse(&projected, start, &free, rank_tol)?;
-    Ok((det, nuisance))
+    Determined::analyse(&projected, start, &free, rank_tol)
 }
 
 /// The linearised problem at a bundle adjustment's solution, for tests of
@@ -885,7 +856,7 @@ pub fn calibrate(
         bail!("the bundle adjustment is a least-squares fit: use norm = \"l2\"");
     }
     let setup = Setup::new(net, start, free)?;
-    let (det, spare) = analyse_setup(net, start, &setup, settings.rank_tol)?;
+    let det = analyse_setup(net, start, &setup, settings.rank_tol)?;
     let basis = det.basis().clone();
     let layout = setup.layout(net, basis.ncols());
     let x0 = setup.initial(&layout);
@@ -898,7 +869,6 @@ pub fn calibrate(
         &layout,
         &x0,
         Some(&r0),
-        Some(spare),
         settings,
     )?;
     let m = stated.r.len();
@@ -929,7 +899,7 @@ pub fn calibrate(
             let net_w = net.scaled(&c.s2);
             let setup_w = setup.reweighted(&net_w);
             let fit = solve(
-                &setup_w, &net_w, start, &basis, &layout, &stated.x, None, None, settings,
+                &setup_w, &net_w, start, &basis, &layout, &stated.x, None, settings,
             )?;
             ("variance-components", 1.0, Some(fit))
         }
@@ -1063,8 +1033,7 @@ struct Solution {
 
 /// Levenberg–Marquardt from `x0` (with its residuals `r0` when known) on
 /// the network as `setup` weighs it; the solver's last linearisation is
-/// kept when it is at the solution, built there otherwise. The first
-/// linearisation is built in `spare`'s storage when given.
+/// kept when it is at the solution, built there otherwise.
 #[allow(clippy::too_many_arguments)]
 fn solve(
     setup: &Setup,
@@ -1074,14 +1043,12 @@ fn solve(
     layout: &Layout,
     x0: &DVector<f64>,
     r0: Option<&DVector<f64>>,
-    spare: Option<BlockJacobian>,
     settings: &Settings,
 ) -> Result<Solution> {
     let last = Mutex::new(None);
     let problem = Bundle {
         last: Some(&last),
         known: r0.map(|r| (x0, r)),
-        spare: Mutex::new(spare),
         ..setup.problem(net, start, basis, layout)
     };
     let fit = LevenbergMarquardt::new()
@@ -1352,17 +1319,19 @@ impl Repeated {
         settings: &Settings,
     ) -> Result<Repeated> {
         let setup = Setup::new(net, start, free)?;
-        let (det, spare) = analyse_setup(net, start, &setup, settings.rank_tol)?;
+        let det = analyse_setup(net, start, &setup, settings.rank_tol)?;
         let basis = det.basis().clone();
         let layout = setup.layout(net, basis.ncols());
         let x0 = setup.initial(&layout);
-        let problem = Bundle {
-            spare: Mutex::new(Some(spare)),
-            ..setup.problem(net, start, &basis, &layout)
-        };
         let x = LevenbergMarquardt::new()
             .with_initial_lambda(INITIAL_LAMBDA)
-            .and_then(|lm| lm.minimize(problem, x0, settings.max_iters))
+            .and_then(|lm| {
+                lm.minimize(
+                    setup.problem(net, start, &basis, &layout),
+                    x0,
+                    settings.max_iters,
+                )
+            })
             .map_err(|e| anyhow!("bundle adjustment failed: {e}"))?
             .x;
         Ok(Repeated {
@@ -1569,7 +1538,7 @@ mod tests {
         let free = [true; 18];
         let setup = Setup::new(&net, &start, &free).unwrap();
         let tol = crate::identifiability::DEFAULT_REL_TOL;
-        let (det, _) = analyse_setup(&net, &start, &setup, tol).unwrap();
+        let det = analyse_setup(&net, &start, &setup, tol).unwrap();
         let (a, combinations) = (&det.analysis, &det.combinations);
         let identity = DMatrix::identity(18, 18);
         let layout = setup.layout(&net, 18);
@@ -1687,8 +1656,7 @@ mod tests {
         let net = corner_network();
         let start = ErrorParams::zero(&ErrorModel::constant());
         let setup = Setup::new(&net, &start, &[true; 18]).unwrap();
-        let (det, _) =
-            analyse_setup(&net, &start, &setup, identifiability::DEFAULT_REL_TOL).unwrap();
+        let det = analyse_setup(&net, &start, &setup, identifiability::DEFAULT_REL_TOL).unwrap();
         let basis = det.basis().clone();
         let layout = setup.layout(&net, basis.ncols());
         let problem = setup.problem(&net, &start, &basis, &layout);
