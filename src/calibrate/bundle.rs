@@ -1403,40 +1403,11 @@ impl Repeated {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::campaign::Aim;
-    use crate::effects::Effects;
     use crate::error_model::ErrorModel;
     use crate::identifiability;
-    use crate::kinematics::Face;
-    use crate::layout::{self, Kind, Spec};
-    use crate::noise::Noise;
-    use crate::simulate::{CampaignSpec, simulate_campaign};
 
     fn corner_network() -> Network {
-        let layout = layout::build(&Spec::new(Kind::Corner));
-        let sim = simulate_campaign(&CampaignSpec {
-            name: "corner".into(),
-            layout: &layout,
-            errors: Some(&ErrorParams::table2()),
-            faces: &[Face::Front, Face::Back],
-            aim: Aim::StationsCentroid,
-            max_angle_deg: 30.0,
-            noise: Noise {
-                sigma_angle_urad: 1.0,
-                sigma_range_um: 2.0,
-                sigma_range_ppm: 0.3,
-            },
-            effects: &Effects::default(),
-            gauge_u_mm: 0.0005,
-            reference_u_mm: 0.002,
-            level_urad: 1000.0,
-            interval_s: 20.0,
-            record_time: true,
-            record_temperature: true,
-            seed: 3,
-        })
-        .unwrap();
-        Network::from_campaign(&sim.campaign).unwrap()
+        Network::from_campaign(&super::super::tests::corner_campaign()).unwrap()
     }
 
     /// Issue 34: the stations' means are formed per station in parallel,

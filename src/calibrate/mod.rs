@@ -582,7 +582,9 @@ mod tests {
         assert_eq!(weighting_u_mm(Some(0.002)), 0.002);
     }
 
-    fn corner_campaign() -> Campaign {
+    /// The corner campaign of Fig. 10 with Table 2's errors, both faces,
+    /// simulated: the calibration's tests share it.
+    pub(super) fn corner_campaign() -> Campaign {
         use crate::layout::{self, Kind, Spec};
         use crate::simulate::{CampaignSpec, simulate_campaign};
         let layout = layout::build(&Spec::new(Kind::Corner));
@@ -593,7 +595,11 @@ mod tests {
             faces: &[Face::Front, Face::Back],
             aim: crate::campaign::Aim::StationsCentroid,
             max_angle_deg: 30.0,
-            noise: DEFAULT_NOISE,
+            noise: Noise {
+                sigma_angle_urad: 1.0,
+                sigma_range_um: 2.0,
+                sigma_range_ppm: 0.3,
+            },
             effects: &crate::effects::Effects::default(),
             gauge_u_mm: 0.0005,
             reference_u_mm: 0.002,
