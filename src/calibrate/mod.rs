@@ -582,8 +582,8 @@ mod tests {
         assert_eq!(weighting_u_mm(Some(0.002)), 0.002);
     }
 
-    /// The corner campaign of Fig. 10 with Table 2's errors, both faces,
-    /// simulated: the calibration's tests share it.
+    /// The laboratory corner of Figures 13–14, simulated with Table 2's
+    /// errors in both faces: the calibration's tests share it.
     pub(super) fn corner_campaign() -> Campaign {
         use crate::layout::{self, Kind, Spec};
         use crate::simulate::{CampaignSpec, simulate_campaign};
