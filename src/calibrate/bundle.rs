@@ -328,10 +328,11 @@ impl<'a> Bundle<'a> {
         }
     }
 
-    /// A reading's rows on the error-parameter coordinates, `jz += Σ_k
-    /// (M·∂p/∂k)·B_k` over the free coefficients `k` in order (`B_k` the
-    /// basis's row of `k`), with `nz = K` known at compile time (`K = 0`:
-    /// `nz` as given) so that a row's loop unrolls: the same sums.
+    /// A reading's rows on the error-parameter coordinates into `jz`
+    /// (zeroed), `Σ_k (M·∂p/∂k)·B_k` over the free coefficients `k` in
+    /// order (`B_k` the basis's row of `k`), with `nz = K` known at compile
+    /// time (`K = 0`: `nz` as given) so that a row's loop unrolls: the same
+    /// sums.
     fn onto_basis<const K: usize>(
         &self,
         jz: &mut [f64],
@@ -343,16 +344,13 @@ impl<'a> Bundle<'a> {
         // At a constant width the three rows are summed in registers and
         // stored once: stored after every coefficient, they went through
         // memory 3·K times a reading at every linearisation (issue 34).
-        // The same sums either way.
+        // They start from zero, as `jz` does: the same sums either way.
         let mut acc = [[0.0; K]; 3];
         let mut rows: [&mut [f64]; 3] = if K == 0 {
             let (r0, rest) = jz.split_at_mut(nz);
             let (r1, r2) = rest.split_at_mut(nz);
             [r0, r1, r2]
         } else {
-            for (acc, jz) in acc.iter_mut().zip(jz.chunks_exact(K)) {
-                acc.copy_from_slice(jz);
-            }
             let [r0, r1, r2] = &mut acc;
             [r0, r1, r2]
         };
@@ -370,9 +368,13 @@ impl<'a> Bundle<'a> {
             }
         }
         if K > 0 {
-            for (acc, jz) in acc.iter().zip(jz.chunks_exact_mut(K)) {
-                jz.copy_from_slice(acc);
-            }
+            // Row by row, each a copy of a size the compiler knows: as one
+            // loop they became a call to `memcpy` per reading (1–2 % of a
+            // 24 000-reading run's time, issue 34).
+            let [a0, a1, a2] = &acc;
+            jz[..K].copy_from_slice(a0);
+            jz[K..2 * K].copy_from_slice(a1);
+            jz[2 * K..3 * K].copy_from_slice(a2);
         }
     }
 

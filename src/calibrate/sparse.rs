@@ -32,6 +32,7 @@
 //! at the round-off level of `J`, as a QR factorisation would give, not at
 //! that of `JᵀJ`.
 
+use multiversion::multiversion;
 use nalgebra::{
     DMatrix, DVector, DVectorViewMut, Dyn, Matrix3, MatrixXx3, Vector3, linalg::Cholesky,
 };
@@ -684,6 +685,19 @@ struct PointBlock {
 /// chunks: fixed, so that the sums do not depend on the thread count.
 const CHUNKS: usize = 16;
 
+/// Adds `blocks`' `JᵀJ` and `Jᵀr` to `acc` ([`Accumulator::add`]), `pb`
+/// their position's share. Compiled also for wider vectors, chosen at run
+/// time: the products of a reading's columns, each row of `H_AA` one loop
+/// over consecutive entries, are what they widen; each entry's sum keeps
+/// its order (Rust never fuses a multiply and an add), so every CPU gets
+/// the same numbers (issue 34).
+#[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
+fn add_blocks<'a>(acc: &mut Accumulator<'a>, blocks: &[usize], mut pb: Option<&mut PointBlock>) {
+    for &b in blocks {
+        acc.add(b, pb.as_deref_mut());
+    }
+}
+
 /// One chunk's share of the assembly: `H_AA` (column-major, lower
 /// triangle: a block's columns ascend, so a row of its products lands in
 /// consecutive entries) and the dense part of `Jᵀr`, and the scratch space
@@ -726,6 +740,7 @@ impl<'a> Accumulator<'a> {
     /// vectorises instead of a scattered update per pair (issue 34). A
     /// reading's block whose parts ascend takes [`Self::add_reading`]
     /// instead: the same sums, without this path's column gathers.
+    #[inline(always)]
     fn add(&mut self, b: usize, mut pb: Option<&mut PointBlock>) {
         let (j, n_a) = (self.j, self.j.n_a);
         let blk = &j.blocks[b];
@@ -815,6 +830,7 @@ impl<'a> Accumulator<'a> {
     /// Every entry receives the very sum [`Self::add`] gives it —
     /// `a₀·x₀ + a₁·x₁ + a₂·x₂`, rows in order — once per block, in block
     /// order: the same numbers, bit for bit.
+    #[inline(always)]
     fn add_reading(
         &mut self,
         res: Option<&[f64]>,
@@ -916,6 +932,7 @@ impl<'a> Accumulator<'a> {
     /// of the assembly's instructions (issue 34). Every entry receives the
     /// very sum the general path gives it, `a₀·x₀ + a₁·x₁ + a₂·x₂`, once
     /// per block: the same numbers, bit for bit (test).
+    #[inline(always)]
     fn add_reading_of<const A: usize, const B: usize>(
         &mut self,
         parts: [(usize, &[f64]); 2],
@@ -1133,9 +1150,7 @@ impl Normal {
                             g_x: [0.0; 3],
                             seen: !blocks.is_empty(),
                         };
-                        for &b in blocks {
-                            acc.add(b, Some(&mut pb));
-                        }
+                        add_blocks(&mut acc, blocks, Some(&mut pb));
                         pb
                     })
                     .collect();
@@ -1143,9 +1158,7 @@ impl Normal {
             })
             .collect();
         let mut acc = Accumulator::new(j, r);
-        for &b in &dense_only {
-            acc.add(b, None);
-        }
+        add_blocks(&mut acc, &dense_only, None);
         let h_aa_shares: Vec<&[f64]> = shares.iter().map(|(h, _, _)| h.as_slice()).collect();
         combine_shares(&mut acc.h_aa, n_a, &h_aa_shares, |a, b| *a += b);
         let mut points = Vec::with_capacity(j.points());
@@ -1353,7 +1366,10 @@ fn eliminated_parts(p: &PointBlock, lambda: f64) -> Option<Eliminated> {
 /// one at a time, bit for bit, with a `G`-th of the trips through memory —
 /// the Schur complement of a 20-station hall is 127 × 127, larger than a
 /// core's first-level cache, and each reflector updates all of its lower
-/// triangle (issue 34).
+/// triangle (issue 34). Compiled also for wider vectors, chosen at run
+/// time: the loop over `i` is what they widen, and each entry's sum keeps
+/// its order (Rust never fuses a multiply and an add).
+#[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
 fn add_updates<const G: usize>(
     parts: &[&Eliminated; G],
     cols: &[usize],
@@ -2507,6 +2523,82 @@ mod tests {
         }
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&grouped), bits(&single));
+    }
+
+    /// Issue 34: the assembly's and the elimination's kernels are compiled
+    /// also for AVX2 and AVX-512 and chosen at run time. Whichever this
+    /// CPU takes must give the numbers of the plain code, compiled for the
+    /// baseline in this test, to the last bit: a wider vector does the same
+    /// operations in the same order, and Rust never fuses a multiply and
+    /// an add.
+    #[test]
+    fn kernels_chosen_at_run_time_give_the_baseline_s_numbers_bit_for_bit() {
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        // The elimination's update: each entry of the lower triangle, the
+        // positions' terms one after another.
+        let cols: Vec<usize> = (0..9).chain(11..30).collect();
+        let n_a = 31;
+        let mut runs = Vec::new();
+        consecutive_runs(&cols, &mut runs);
+        let mut next = lcg(0.61);
+        let parts: Vec<Eliminated> = (0..3)
+            .map(|_| Eliminated {
+                inv: Matrix3::identity(),
+                w: (0..cols.len()).map(|_| [next(), next(), next()]).collect(),
+                h: std::array::from_fn(|_| (0..cols.len()).map(|_| next() * 1e3).collect()),
+            })
+            .collect();
+        let start: Vec<f64> = (0..n_a * n_a).map(|_| next()).collect();
+        let mut chosen = start.clone();
+        add_updates::<3>(
+            &[&parts[0], &parts[1], &parts[2]],
+            &cols,
+            &runs,
+            &mut chosen,
+            n_a,
+        );
+        let mut plain = start;
+        for a in 0..cols.len() {
+            for c in a..cols.len() {
+                let o = &mut plain[cols[a] * n_a + cols[c]];
+                for p in &parts {
+                    let ([w0, w1, w2], h) = (p.w[a], &p.h);
+                    *o += w0 * h[0][c] + w1 * h[1][c] + w2 * h[2][c];
+                }
+            }
+        }
+        assert_eq!(bits(&chosen), bits(&plain));
+        // The assembly: one position's readings added through the chosen
+        // kernel and one by one here.
+        let (n_z, n_st) = (7, 4);
+        let n_a = n_z + 6 * n_st;
+        let mut j = BlockJacobian::new(n_a, n_a + 3);
+        for st in 0..n_st {
+            let z: Vec<f64> = (0..3 * n_z).map(|_| next()).collect();
+            let pose: Vec<f64> = (0..18).map(|_| next() * 1e3).collect();
+            let x: Vec<f64> = (0..9).map(|_| next() + 1.5).collect();
+            j.push(3, &[(0, &z), (n_z + 6 * st, &pose), (n_a, &x)]);
+        }
+        let r = DVector::from_fn(j.nrows(), |i, _| (i as f64 * 1.3).cos());
+        let blocks: Vec<usize> = (0..n_st).collect();
+        let point = || PointBlock {
+            h_ax: vec![[0.0; 3]; n_a],
+            cols: (0..n_a).collect(),
+            h_xx: Matrix3::zeros(),
+            g_x: [0.0; 3],
+            seen: true,
+        };
+        let (mut a, mut pa) = (Accumulator::new(&j, Some(&r)), point());
+        add_blocks(&mut a, &blocks, Some(&mut pa));
+        let (mut b, mut pb) = (Accumulator::new(&j, Some(&r)), point());
+        for &k in &blocks {
+            b.add(k, Some(&mut pb));
+        }
+        assert_eq!(bits(&a.h_aa), bits(&b.h_aa));
+        assert_eq!(bits(&a.g_a), bits(&b.g_a));
+        assert_eq!(bits(pa.h_ax.as_flattened()), bits(pb.h_ax.as_flattened()));
+        assert_eq!(bits(pa.h_xx.as_slice()), bits(pb.h_xx.as_slice()));
+        assert_eq!(bits(&pa.g_x), bits(&pb.g_x));
     }
 
     #[test]
