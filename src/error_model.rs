@@ -48,6 +48,7 @@
 pub use crate::kinematics::InverseError;
 use crate::kinematics::{self, Face, Joints, Reading, link1_rotation, link2_rotation};
 use crate::trackers::{self, Evaluate, Param, TrackerModel};
+use multiversion::multiversion;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::cell::Cell;
@@ -733,6 +734,7 @@ impl ErrorFrames {
     }
 
     /// Eq. (7) applied to (0, 0, d): its rotation about z (εz3) moves nothing.
+    #[inline]
     fn beam_point(&self, d: f64) -> Vector3<f64> {
         let b = &self.b;
         Vector3::new(b[16] * d + b[12], -b[15] * d + b[13], d + b[14])
@@ -748,27 +750,37 @@ impl ErrorFrames {
     /// [`Self::forward`] and its derivative with respect to each of the 18
     /// parameters (mm per mm or per rad).
     pub fn forward_with_jacobian(&self, l: &Links) -> (Vector3<f64>, [Vector3<f64>; N_PARAMS]) {
-        let b = &self.b;
-        let u = l.r2 * self.beam_point(l.d);
-        let v = self.re2 * u + Vector3::new(b[6], b[7], b[8]);
-        let w = l.r1 * v;
-        let p = self.re1 * w + Vector3::new(b[0], b[1], b[2]);
-
-        let m1 = self.re1 * l.r1;
-        let m3 = m1 * self.re2 * l.r2;
-        let mut j = [Vector3::zeros(); N_PARAMS];
-        for a in 0..3 {
-            j[a][a] = 1.0;
-            j[3 + a] = self.de1[a] * w;
-            j[6 + a] = m1.column(a).into();
-            j[9 + a] = m1 * (self.de2[a] * u);
-            j[12 + a] = m3.column(a).into();
-        }
-        j[15] = -l.d * m3.column(1);
-        j[16] = l.d * m3.column(0);
-        // j[17] (εz3) stays zero: a rotation about the beam moves nothing.
-        (p, j)
+        forward_with_jacobian(self, l)
     }
+}
+
+/// [`ErrorFrames::forward_with_jacobian`], once per reading at every
+/// linearisation of a bundle adjustment. Compiled also for AVX2 and
+/// AVX-512, chosen at run time (its 3 × 3 products are what they widen):
+/// the same operations in the same order, so the same numbers on every CPU
+/// (Rust never fuses a multiply and an add; issue 34).
+#[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
+fn forward_with_jacobian(f: &ErrorFrames, l: &Links) -> (Vector3<f64>, [Vector3<f64>; N_PARAMS]) {
+    let b = &f.b;
+    let u = l.r2 * f.beam_point(l.d);
+    let v = f.re2 * u + Vector3::new(b[6], b[7], b[8]);
+    let w = l.r1 * v;
+    let p = f.re1 * w + Vector3::new(b[0], b[1], b[2]);
+
+    let m1 = f.re1 * l.r1;
+    let m3 = m1 * f.re2 * l.r2;
+    let mut j = [Vector3::zeros(); N_PARAMS];
+    for a in 0..3 {
+        j[a][a] = 1.0;
+        j[3 + a] = f.de1[a] * w;
+        j[6 + a] = m1.column(a).into();
+        j[9 + a] = m1 * (f.de2[a] * u);
+        j[12 + a] = m3.column(a).into();
+    }
+    j[15] = -l.d * m3.column(1);
+    j[16] = l.d * m3.column(0);
+    // j[17] (εz3) stays zero: a rotation about the beam moves nothing.
+    (p, j)
 }
 
 #[cfg(test)]
@@ -815,6 +827,25 @@ mod tests {
         for p in sphere_points() {
             let r = nominal_reading(&p, Face::Front);
             assert!((e.correct(r) - p).norm() < 1e-9);
+        }
+    }
+
+    /// Issue 34: `forward_with_jacobian` runs the code compiled for this
+    /// CPU's widest vectors; `forward`, the same products in the same
+    /// order, the baseline's. The point must be the same to the last bit.
+    #[test]
+    fn the_point_with_the_jacobian_is_forward_s_bit_for_bit() {
+        let b: [f64; N_PARAMS] = std::array::from_fn(|i| 1e-3 * (i as f64 * 0.7).sin());
+        let frames = ErrorFrames::new(&b);
+        for (theta, phi, d) in [
+            (0.7, -0.4, 4321.0),
+            (-2.9, 1.1, 812.5),
+            (3.1, 0.05, 17_004.0),
+        ] {
+            let l = Links::new(Joints { theta, phi, d });
+            let (p, _) = frames.forward_with_jacobian(&l);
+            let bits = |v: Vector3<f64>| v.map(f64::to_bits);
+            assert_eq!(bits(p), bits(frames.forward(&l)));
         }
     }
 
