@@ -380,6 +380,7 @@ impl BlockJacobian {
         self.n
     }
 
+    #[inline]
     fn parts_of(&self, b: &Block) -> impl Iterator<Item = (usize, usize, &[f64])> {
         self.parts[b.parts.0..b.parts.1]
             .iter()
@@ -420,42 +421,8 @@ impl BlockJacobian {
             outs.push((lo, hi, head));
             rest = tail;
         }
-        outs.into_par_iter().for_each(|(lo, hi, out)| {
-            for (b, blk) in self.blocks.iter().enumerate() {
-                if !keep(b) {
-                    continue;
-                }
-                for (col, w, v) in self.parts_of(blk) {
-                    let (a0, a1) = (lo.max(col), hi.min(col + w));
-                    if blk.rows == 3 {
-                        // A reading's three rows in one pass over each
-                        // output row: `((o + p₀) + p₁) + p₂`, the sum the
-                        // row-by-row passes below form (issue 34).
-                        let xb = &x[blk.row * k..(blk.row + 3) * k];
-                        let (x0, rest) = xb.split_at(k);
-                        let (x1, x2) = rest.split_at(k);
-                        for c in a0..a1 {
-                            let (c0, c1, c2) = (v[c - col], v[w + c - col], v[2 * w + c - col]);
-                            let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
-                            for (((o, x0), x1), x2) in o.iter_mut().zip(x0).zip(x1).zip(x2) {
-                                *o = *o + c0 * x0 + c1 * x1 + c2 * x2;
-                            }
-                        }
-                        continue;
-                    }
-                    for row in 0..blk.rows {
-                        let xr = &x[(blk.row + row) * k..(blk.row + row + 1) * k];
-                        for c in a0..a1 {
-                            let coef = v[row * w + c - col];
-                            let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
-                            for (o, x) in o.iter_mut().zip(xr) {
-                                *o += coef * x;
-                            }
-                        }
-                    }
-                }
-            }
-        });
+        outs.into_par_iter()
+            .for_each(|(lo, hi, out)| tr_mul_columns::<K>(self, x, k, &keep, (lo, hi), out));
         g
     }
 
@@ -684,6 +651,120 @@ struct PointBlock {
 /// Parallel assembly and factorisation split the positions into this many
 /// chunks: fixed, so that the sums do not depend on the thread count.
 const CHUNKS: usize = 16;
+
+/// Rows `lo..hi` of `Jᵀ·X` ([`BlockJacobian::tr_mul_rows`], `k = K` when
+/// `K > 0`) into `out`, over the blocks `keep` admits in order. Compiled
+/// also for wider vectors, chosen at run time (a row of `X`'s `k` columns
+/// is what they widen): the same sums in the same order (Rust never fuses
+/// a multiply and an add; issue 34).
+#[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
+fn tr_mul_columns<const K: usize>(
+    j: &BlockJacobian,
+    x: &[f64],
+    k: usize,
+    keep: &impl Fn(usize) -> bool,
+    (lo, hi): (usize, usize),
+    out: &mut [f64],
+) {
+    let k = if K == 0 { k } else { K };
+    for (b, blk) in j.blocks.iter().enumerate() {
+        if !keep(b) {
+            continue;
+        }
+        for (col, w, v) in j.parts_of(blk) {
+            let (a0, a1) = (lo.max(col), hi.min(col + w));
+            if blk.rows == 3 {
+                // A reading's three rows in one pass over each output
+                // row: `((o + p₀) + p₁) + p₂`, the sum the row-by-row
+                // passes below form (issue 34).
+                let xb = &x[blk.row * k..(blk.row + 3) * k];
+                let (x0, rest) = xb.split_at(k);
+                let (x1, x2) = rest.split_at(k);
+                for c in a0..a1 {
+                    let (c0, c1, c2) = (v[c - col], v[w + c - col], v[2 * w + c - col]);
+                    let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
+                    for (((o, x0), x1), x2) in o.iter_mut().zip(x0).zip(x1).zip(x2) {
+                        *o = *o + c0 * x0 + c1 * x1 + c2 * x2;
+                    }
+                }
+                continue;
+            }
+            for row in 0..blk.rows {
+                let xr = &x[(blk.row + row) * k..(blk.row + row + 1) * k];
+                for c in a0..a1 {
+                    let coef = v[row * w + c - col];
+                    let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
+                    for (o, x) in o.iter_mut().zip(xr) {
+                        *o += coef * x;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// [`Factor::solve_rows`]' reduction of the dense part's right-hand side,
+/// `b_A −= Σ W_x·b_x`, on its rows from `lo` (`out`, `k = K` columns when
+/// `K > 0`), `rx` the positions' rows of the right-hand side: every row
+/// summed in position order. Compiled also for wider vectors, chosen at
+/// run time: the same sums in the same order (issue 34).
+#[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
+fn reduce_rows<const K: usize>(
+    points: &[FactorPoint],
+    rx: &[f64],
+    k: usize,
+    lo: usize,
+    out: &mut [f64],
+) {
+    let k = if K == 0 { k } else { K };
+    let hi = lo + out.len() / k;
+    for (i, p) in points.iter().enumerate() {
+        let rx = &rx[3 * i * k..(3 * i + 3) * k];
+        let (r0, r12) = rx.split_at(k);
+        let (r1, r2) = r12.split_at(k);
+        let first = p.cols.partition_point(|&c| c < lo);
+        for (row, &c) in p.cols.iter().enumerate().skip(first) {
+            if c >= hi {
+                break;
+            }
+            let w = [p.w[(row, 0)], p.w[(row, 1)], p.w[(row, 2)]];
+            let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
+            for (((o, x0), x1), x2) in o.iter_mut().zip(r0).zip(r1).zip(r2) {
+                *o -= w[0] * x0 + w[1] * x1 + w[2] * x2;
+            }
+        }
+    }
+}
+
+/// [`Factor::solve_rows`]' back-substitution of one position, `out =
+/// H_XX⁻¹·b_x − Wᵀ·x_A` (`k = K` columns when `K > 0`). Compiled also for
+/// wider vectors, chosen at run time: the same sums in the same order
+/// (issue 34).
+#[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
+fn back_substitute<const K: usize>(
+    p: &FactorPoint,
+    rx: &[f64],
+    xa: &[f64],
+    k: usize,
+    out: &mut [f64],
+) {
+    let k = if K == 0 { k } else { K };
+    for a in 0..3 {
+        let inv = [p.inv[(a, 0)], p.inv[(a, 1)], p.inv[(a, 2)]];
+        for col in 0..k {
+            out[a * k + col] = inv[0] * rx[col] + inv[1] * rx[k + col] + inv[2] * rx[2 * k + col];
+        }
+    }
+    for (row, &c) in p.cols.iter().enumerate() {
+        let xc = &xa[c * k..(c + 1) * k];
+        for a in 0..3 {
+            let w = p.w[(row, a)];
+            for (o, v) in out[a * k..(a + 1) * k].iter_mut().zip(xc) {
+                *o -= w * v;
+            }
+        }
+    }
+}
 
 /// Adds `blocks`' `JᵀJ` and `Jᵀr` to `acc` ([`Accumulator::add`]), `pb`
 /// their position's share. Compiled also for wider vectors, chosen at run
@@ -944,19 +1025,11 @@ impl<'a> Accumulator<'a> {
             return false;
         }
         let [(c1, v1), (c2, v2)] = parts;
-        // Each part's first row of the position's `H_AX`.
-        let first = |point: &Option<(&mut PointBlock, &[f64])>, col: usize| {
-            point.as_ref().map_or(0, |(pb, _)| {
-                pb.cols
-                    .binary_search(&col)
-                    .expect("collected from these blocks")
-            })
-        };
         let (p, q) = (rows_of::<A>(v1), rows_of::<B>(v2));
-        let f1 = first(point, c1);
+        let f1 = h_ax_first(point, c1);
         self.add_part_of::<A, B>((c1, p), (c2, q), f1, res, point);
         if B > 0 {
-            let f2 = first(point, c2);
+            let f2 = h_ax_first(point, c2);
             self.add_part_of::<B, 0>((c2, q), (0, [&[0.0; 0]; 3]), f2, res, point);
         }
         if let Some((pb, x)) = point {
@@ -1006,7 +1079,23 @@ impl<'a> Accumulator<'a> {
     }
 }
 
+/// A reading's part from dense column `col`: its first row of the
+/// position's `H_AX` (0 without a position). Inlined into the assembly's
+/// kernel ([`add_blocks`]): as a call it was 5 % of the assembly's time
+/// (issue 34).
+#[inline(always)]
+fn h_ax_first(point: &Option<(&mut PointBlock, &[f64])>, col: usize) -> usize {
+    match point {
+        Some((pb, _)) => pb
+            .cols
+            .binary_search(&col)
+            .expect("collected from these blocks"),
+        None => 0,
+    }
+}
+
 /// A part's three rows (`W` values each, side by side in `v`) as arrays.
+#[inline(always)]
 fn rows_of<const W: usize>(v: &[f64]) -> [&[f64; W]; 3] {
     let row = |r: usize| <&[f64; W]>::try_from(&v[r * W..(r + 1) * W]).unwrap();
     [row(0), row(1), row(2)]
@@ -1024,7 +1113,7 @@ fn add_cross(out: &mut [f64; 3], a: [f64; 3], x: &[f64]) {
 
 /// A reading's `H_XX` and `g_X` from its position's part `x` (row-major)
 /// and its residuals.
-#[inline]
+#[inline(always)]
 fn add_position(pb: &mut PointBlock, x: &[f64], res: Option<&[f64]>) {
     for a in 0..3 {
         let (a0, a1, a2) = (x[a], x[3 + a], x[6 + a]);
@@ -1532,23 +1621,7 @@ impl Factor {
         };
         let per = n_a.div_ceil(tasks).max(1);
         b.par_chunks_mut(per * k).enumerate().for_each(|(t, out)| {
-            let (lo, hi) = (t * per, (t * per + out.len() / k));
-            for (i, p) in self.points.iter().enumerate() {
-                let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
-                let (r0, r12) = rx.split_at(k);
-                let (r1, r2) = r12.split_at(k);
-                let first = p.cols.partition_point(|&c| c < lo);
-                for (row, &c) in p.cols.iter().enumerate().skip(first) {
-                    if c >= hi {
-                        break;
-                    }
-                    let w = [p.w[(row, 0)], p.w[(row, 1)], p.w[(row, 2)]];
-                    let o = &mut out[(c - lo) * k..(c - lo + 1) * k];
-                    for (((o, x0), x1), x2) in o.iter_mut().zip(r0).zip(r1).zip(r2) {
-                        *o -= w[0] * x0 + w[1] * x1 + w[2] * x2;
-                    }
-                }
-            }
+            reduce_rows::<K>(&self.points, &rhs[n_a * k..], k, t * per, out);
         });
         let scaled = DMatrix::from_fn(n_a, k, |r, c| b[r * k + c] * self.d[r]);
         let xa = self.chol.solve(&scaled);
@@ -1568,22 +1641,7 @@ impl Factor {
             .with_min_len(64)
             .for_each(|(i, (out, p))| {
                 let rx = &rhs[(n_a + 3 * i) * k..(n_a + 3 * i + 3) * k];
-                for a in 0..3 {
-                    let inv = [p.inv[(a, 0)], p.inv[(a, 1)], p.inv[(a, 2)]];
-                    for col in 0..k {
-                        out[a * k + col] =
-                            inv[0] * rx[col] + inv[1] * rx[k + col] + inv[2] * rx[2 * k + col];
-                    }
-                }
-                for (row, &c) in p.cols.iter().enumerate() {
-                    let xc = &xa[c * k..(c + 1) * k];
-                    for a in 0..3 {
-                        let w = p.w[(row, a)];
-                        for (o, v) in out[a * k..(a + 1) * k].iter_mut().zip(xc) {
-                            *o -= w * v;
-                        }
-                    }
-                }
+                back_substitute::<K>(p, rx, xa, k, out);
             });
         x
     }
@@ -2525,8 +2583,9 @@ mod tests {
         assert_eq!(bits(&grouped), bits(&single));
     }
 
-    /// Issue 34: the assembly's and the elimination's kernels are compiled
-    /// also for AVX2 and AVX-512 and chosen at run time. Whichever this
+    /// Issue 34: the assembly's, the elimination's and the projection's
+    /// kernels are compiled also for AVX2 and AVX-512 and chosen at run
+    /// time. Whichever this
     /// CPU takes must give the numbers of the plain code, compiled for the
     /// baseline in this test, to the last bit: a wider vector does the same
     /// operations in the same order, and Rust never fuses a multiply and
@@ -2599,6 +2658,25 @@ mod tests {
         assert_eq!(bits(pa.h_ax.as_flattened()), bits(pb.h_ax.as_flattened()));
         assert_eq!(bits(pa.h_xx.as_slice()), bits(pb.h_xx.as_slice()));
         assert_eq!(bits(&pa.g_x), bits(&pb.g_x));
+        // The projection's transposed product: each entry the blocks'
+        // three-row sums `((o + p₀) + p₁) + p₂` in block order (a block
+        // off the column adds zeros, which leave the sum as it is).
+        let (j, jd) = random_arrow(6, 0.29, 2.0, true);
+        let k = 7;
+        let x: Vec<f64> = (0..jd.nrows() * k).map(|_| next()).collect();
+        let mut plain = vec![0.0; jd.ncols() * k];
+        for row in (0..jd.nrows()).step_by(3) {
+            for c in 0..jd.ncols() {
+                for l in 0..k {
+                    let o = &mut plain[c * k + l];
+                    *o = *o
+                        + jd[(row, c)] * x[row * k + l]
+                        + jd[(row + 1, c)] * x[(row + 1) * k + l]
+                        + jd[(row + 2, c)] * x[(row + 2) * k + l];
+                }
+            }
+        }
+        assert_eq!(bits(&j.tr_mul_rows(&x, k, |_| true)), bits(&plain));
     }
 
     #[test]
