@@ -1080,9 +1080,10 @@ impl<'a> Accumulator<'a> {
 }
 
 /// A reading's part from dense column `col`: its first row of the
-/// position's `H_AX` (0 without a position). Inlined into the assembly's
-/// kernel ([`add_blocks`]): as a call it was 5 % of the assembly's time
-/// (issue 34).
+/// position's `H_AX` (0 without a position). Forced inline, like the
+/// other helpers of the assembly's kernel ([`add_blocks`]): its copy for
+/// wider vectors called them, and inlining them took 9 % off the
+/// assembly's time (issue 34).
 #[inline(always)]
 fn h_ax_first(point: &Option<(&mut PointBlock, &[f64])>, col: usize) -> usize {
     match point {
