@@ -774,6 +774,9 @@ fn back_substitute<const K: usize>(
 /// the same numbers (issue 34).
 #[multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2+fma"))]
 fn add_blocks<'a>(acc: &mut Accumulator<'a>, blocks: &[usize], mut pb: Option<&mut PointBlock>) {
+    if let Some(pb) = &pb {
+        acc.place(pb);
+    }
     for &b in blocks {
         acc.add(b, pb.as_deref_mut());
     }
@@ -796,6 +799,11 @@ struct Accumulator<'a> {
     /// The block's position part by columns (`rows` values each), so that
     /// every product with it is one [`dot`] of two contiguous columns.
     x_cols: Vec<f64>,
+    /// Per dense column, its row in the `H_AX` of the position being
+    /// added ([`Self::place`]): looked up, not searched for, twice per
+    /// reading (a binary search each was 2 % of a 24 000-reading run's
+    /// time, issue 34).
+    slot: Vec<usize>,
 }
 
 impl<'a> Accumulator<'a> {
@@ -808,11 +816,20 @@ impl<'a> Accumulator<'a> {
             dense: Vec::new(),
             column: Vec::new(),
             x_cols: Vec::new(),
+            slot: vec![0; j.n_a],
+        }
+    }
+
+    /// Makes `pb`'s dense columns the ones [`Self::add`] finds rows of
+    /// `H_AX` for: to be called before a position's blocks are added.
+    fn place(&mut self, pb: &PointBlock) {
+        for (i, &c) in pb.cols.iter().enumerate() {
+            self.slot[c] = i;
         }
     }
 
     /// Adds block `b`'s `JᵀJ` and `Jᵀr`; `pb` is its position's share
-    /// (`None` for a block on the dense part alone).
+    /// (`None` for a block on the dense part alone), [`Self::place`]d.
     ///
     /// Every entry receives one [`dot`] of two of the block's columns, as
     /// the plain double loop over column pairs forms it; the products of a
@@ -847,11 +864,9 @@ impl<'a> Accumulator<'a> {
             }
         }
         for (i, &(col_a, w_a, v_a)) in self.dense.iter().enumerate() {
-            let first = point.as_ref().map(|(pb, _)| {
-                pb.cols
-                    .binary_search(&col_a)
-                    .expect("collected from these blocks")
-            });
+            let first = point
+                .is_some()
+                .then(|| h_ax_first(&point, &self.slot, col_a));
             for a in 0..w_a {
                 let ga = col_a + a;
                 self.column.clear();
@@ -956,11 +971,7 @@ impl<'a> Accumulator<'a> {
             for (row, out) in r.iter_mut().enumerate() {
                 out[at..at + w].copy_from_slice(&v[row * w..(row + 1) * w]);
             }
-            let first = point.as_ref().map_or(0, |(pb, _)| {
-                pb.cols
-                    .binary_search(&col)
-                    .expect("collected from these blocks")
-            });
+            let first = h_ax_first(&point, &self.slot, col);
             for k in 0..w {
                 global[at + k] = col + k;
                 part_end[at + k] = at + w;
@@ -1026,10 +1037,10 @@ impl<'a> Accumulator<'a> {
         }
         let [(c1, v1), (c2, v2)] = parts;
         let (p, q) = (rows_of::<A>(v1), rows_of::<B>(v2));
-        let f1 = h_ax_first(point, c1);
+        let f1 = h_ax_first(point, &self.slot, c1);
         self.add_part_of::<A, B>((c1, p), (c2, q), f1, res, point);
         if B > 0 {
-            let f2 = h_ax_first(point, c2);
+            let f2 = h_ax_first(point, &self.slot, c2);
             self.add_part_of::<B, 0>((c2, q), (0, [&[0.0; 0]; 3]), f2, res, point);
         }
         if let Some((pb, x)) = point {
@@ -1080,17 +1091,19 @@ impl<'a> Accumulator<'a> {
 }
 
 /// A reading's part from dense column `col`: its first row of the
-/// position's `H_AX` (0 without a position). Forced inline, like the
+/// position's `H_AX` (0 without a position), from `slot`
+/// ([`Accumulator::place`]). Forced inline, like the
 /// other helpers of the assembly's kernel ([`add_blocks`]): its copy for
 /// wider vectors called them, and inlining them took 9 % off the
 /// assembly's time (issue 34).
 #[inline(always)]
-fn h_ax_first(point: &Option<(&mut PointBlock, &[f64])>, col: usize) -> usize {
+fn h_ax_first(point: &Option<(&mut PointBlock, &[f64])>, slot: &[usize], col: usize) -> usize {
     match point {
-        Some((pb, _)) => pb
-            .cols
-            .binary_search(&col)
-            .expect("collected from these blocks"),
+        Some((pb, _)) => {
+            let row = slot[col];
+            debug_assert_eq!(pb.cols.get(row), Some(&col), "not placed");
+            row
+        }
         None => 0,
     }
 }
@@ -2651,6 +2664,7 @@ mod tests {
         let (mut a, mut pa) = (Accumulator::new(&j, Some(&r)), point());
         add_blocks(&mut a, &blocks, Some(&mut pa));
         let (mut b, mut pb) = (Accumulator::new(&j, Some(&r)), point());
+        b.place(&pb);
         for &k in &blocks {
             b.add(k, Some(&mut pb));
         }
