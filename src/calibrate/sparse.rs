@@ -864,9 +864,7 @@ impl<'a> Accumulator<'a> {
             }
         }
         for (i, &(col_a, w_a, v_a)) in self.dense.iter().enumerate() {
-            let first = point
-                .is_some()
-                .then(|| h_ax_first(&point, &self.slot, col_a));
+            let first = h_ax_first(&point, &self.slot, col_a);
             for a in 0..w_a {
                 let ga = col_a + a;
                 self.column.clear();
@@ -889,7 +887,7 @@ impl<'a> Accumulator<'a> {
                         }
                     }
                 }
-                if let (Some((pb, _)), Some(first)) = (point.as_mut(), first) {
+                if let Some((pb, _)) = point.as_mut() {
                     let xc = |c: usize| &self.x_cols[c * rows..(c + 1) * rows];
                     for (c, out) in pb.h_ax[first + a].iter_mut().enumerate() {
                         *out += dot(la, xc(c));
